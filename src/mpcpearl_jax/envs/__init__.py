@@ -1,0 +1,86 @@
+"""Navigation environments: `make_env(name)` and `make_tasks(name, split, seed=0)`.
+
+Task families register a config and a task builder here; see `register` to add your own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from mpcpearl_jax.envs.navigation import NavEnv
+from mpcpearl_jax.envs.types import ConfigError, EnvState, NavConfig, StepInfo, TaskParams
+
+SPLITS = ("train", "test", "ood")
+
+# name -> (default config, task builder(split, seed, config, **kwargs) -> stacked TaskParams)
+_REGISTRY: dict[str, tuple[NavConfig, Callable[..., TaskParams]]] = {}
+
+
+def register(name: str, config: NavConfig, builder: Callable[..., TaskParams]) -> None:
+    """Register a task family so that `make_env(name)` and `make_tasks(name, ...)` know it."""
+    _REGISTRY[name] = (config, builder)
+
+
+def _lookup(name: str) -> tuple[NavConfig, Callable[..., TaskParams]]:
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown env name {name!r}; known: {sorted(_REGISTRY)}")
+    return _REGISTRY[name]
+
+
+def env_names() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def make_env(name: str, **overrides: Any) -> NavEnv:
+    """The environment of a task family; keyword overrides replace `NavConfig` fields."""
+    config, _ = _lookup(name)
+    unknown = set(overrides) - set(NavConfig.__dataclass_fields__)
+    if unknown:
+        raise ConfigError(f"NavConfig has no field(s) {sorted(unknown)}")
+    return NavEnv(config.replace(**overrides) if overrides else config)
+
+
+def make_tasks(
+    name: str, split: str, seed: int = 0, config: NavConfig | None = None, **kwargs: Any
+) -> TaskParams:
+    """Tasks of a split stacked on a leading axis. split in {"train", "test", "ood"}."""
+    default, builder = _lookup(name)
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r} for env {name!r}; expected one of {SPLITS}")
+    return builder(split, seed, config or default, **kwargs)
+
+
+def _restaurant_builder(split: str, seed: int, config: NavConfig, **kwargs: Any) -> TaskParams:
+    from mpcpearl_jax.envs.restaurant import make_restaurant_tasks
+
+    if kwargs:
+        raise TypeError(f"make_tasks('restaurant') got unexpected arguments {sorted(kwargs)}")
+    return make_restaurant_tasks(split, seed, config)
+
+
+def _register_builtin() -> None:
+    from mpcpearl_jax.envs.restaurant import RESTAURANT_CONFIG
+
+    register("restaurant", RESTAURANT_CONFIG, _restaurant_builder)
+    try:  # the sidewalk family registers itself when present
+        from mpcpearl_jax.envs import sidewalk  # noqa: F401
+    except ImportError:
+        pass
+
+
+_register_builtin()
+
+__all__ = [
+    "SPLITS",
+    "ConfigError",
+    "EnvState",
+    "NavConfig",
+    "NavEnv",
+    "StepInfo",
+    "TaskParams",
+    "env_names",
+    "make_env",
+    "make_tasks",
+    "register",
+]

@@ -1,0 +1,150 @@
+"""The pure-functional navigation environment shared by every task family.
+
+`NavEnv(config)` exposes gymnax-style `reset(key, params)` and `step(key, state, action, params)`
+for a *single* environment; `vmap` over stacked `TaskParams` runs many tasks, `vmap` over keys many
+episodes of one task. People move on precomputed paths (`params.human_pos`), so the step reads
+their positions at t and t + 1 and never simulates them.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from mpcpearl_jax import physics
+from mpcpearl_jax.dynamics import bicycle_step, to_physical
+from mpcpearl_jax.envs.types import EnvState, NavConfig, StepInfo, TaskParams
+
+ACTION_DIM = 2
+
+
+class NavEnv:
+    """A navigation task family: robot among moving people and static obstacles."""
+
+    action_dim = ACTION_DIM
+
+    def __init__(self, config: NavConfig):
+        if not isinstance(config, NavConfig):
+            raise TypeError(f"config must be a NavConfig, got {type(config).__name__}")
+        self.config = config
+
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    def obs_dim(self, params: TaskParams) -> int:
+        num_h = params.human_pos.shape[-2]
+        num_s = params.static_lo.shape[-2] if self.config.observe_static else 0
+        return 3 + 2 * num_h + 2 * num_s
+
+    # ------------------------------------------------------------------ API
+    def reset(self, key: Array, params: TaskParams) -> tuple[Array, EnvState]:
+        """Start an episode at the task's start pose. Returns (obs, state)."""
+        del key  # deterministic start (SPEC 3, 4)
+        state = EnvState(pose=params.start.astype(jnp.float32), t=jnp.zeros((), jnp.int32))
+        return self.observe(state, params), state
+
+    def step(
+        self, key: Array, state: EnvState, action: Array, params: TaskParams
+    ) -> tuple[Array, EnvState, Array, Array, StepInfo]:
+        """Apply a normalized action [2] in [-1, 1]^2 (clipped).
+
+        Returns (obs, next_state, reward, done, info); done is True after `horizon` steps.
+        There is no early termination (SPEC 2).
+        """
+        del key
+        self._check_action(action)
+        cfg = self.config
+        t = state.t
+        pos = state.pose[:2]
+        humans_now, mask_now = self.humans_at(params, t)
+        humans_next, mask_next = self.humans_at(params, t + 1)
+        event = physics.events(pos, humans_now, mask_now, params.goal, cfg)
+
+        u = to_physical(action, cfg.v_max)
+        parked = jnp.linalg.norm(pos - params.goal) <= cfg.robot_radius
+        u = u.at[0].set(jnp.where(parked, 0.0, u[0]))
+        cand = bicycle_step(state.pose, u, cfg.dt, cfg.wheelbase)
+        cand = cand.at[:2].set(physics.clip_to_arena(cand[:2], cfg))
+        # Safety violations are counted at the attempted position, so that a blocked collision is
+        # penalised exactly like one that would have happened.
+        n_d, n_s = physics.safety_violations(cand[:2], humans_next, mask_next, params, cfg)
+        collision = physics.collides(cand[:2], humans_next, mask_next, params, cfg)
+        next_pose = jnp.where(collision, state.pose, cand)
+        r = physics.reward(pos, u, n_d, n_s, next_pose[:2], params.goal, cfg)
+
+        next_state = EnvState(pose=next_pose, t=t + 1)
+        done = next_state.t >= cfg.horizon
+        info = StepInfo(
+            collision=collision,
+            in_goal=jnp.linalg.norm(next_pose[:2] - params.goal) <= cfg.goal_radius,
+            n_dynamic=n_d,
+            n_static=n_s,
+            event=event,
+            position=next_pose[:2],
+        )
+        return self.observe(next_state, params), next_state, r, done, info
+
+    # ------------------------------------------------------------- helpers
+    def humans_at(self, params: TaskParams, t: Array) -> tuple[Array, Array]:
+        """People positions [H, 2] and presence mask [H] at step t (clamped to the horizon)."""
+        idx = jnp.clip(t, 0, params.human_pos.shape[0] - 1)
+        return params.human_pos[idx], params.human_mask[idx]
+
+    def event(self, state: EnvState, params: TaskParams) -> Array:
+        """The MPC trigger at the current state (SPEC 5)."""
+        humans, mask = self.humans_at(params, state.t)
+        return physics.events(state.pose[:2], humans, mask, params.goal, self.config)
+
+    def normalize_xy(self, p: Array) -> Array:
+        lo = jnp.asarray(self.config.arena_lo)
+        hi = jnp.asarray(self.config.arena_hi)
+        return jnp.clip(2.0 * (p - lo) / (hi - lo) - 1.0, -1.0, 1.0)
+
+    def observe(self, state: EnvState, params: TaskParams) -> Array:
+        """Observation in [-1, 1]: pose, people (absent ones at (-1, -1)), [static centres]."""
+        humans, mask = self.humans_at(params, state.t)
+        h = jnp.where(mask[:, None], self.normalize_xy(humans), -1.0)
+        parts = [self.normalize_xy(state.pose[:2]), state.pose[2:3] / jnp.pi, h.reshape(-1)]
+        if self.config.observe_static:
+            parts.append(self.normalize_xy(params.static_center).reshape(-1))
+        return jnp.concatenate(parts).astype(jnp.float32)
+
+    def _check_action(self, action: Array) -> None:
+        if jnp.shape(action) != (ACTION_DIM,):
+            raise ValueError(
+                f"{self.name}.step: action must have shape ({ACTION_DIM},) for one env "
+                f"(vmap for batches), got {jnp.shape(action)}"
+            )
+
+    def rollout(
+        self, key: Array, params: TaskParams, policy, num_steps: int | None = None
+    ) -> dict[str, Array]:
+        """Roll out `policy(key, obs) -> action` for one episode with `lax.scan`.
+
+        Returns arrays with a leading time axis: obs [T, O], action [T, 2], reward [T],
+        position [T + 1, 2], collision [T], in_goal [T], event [T].
+        """
+        steps = num_steps or self.config.horizon
+        obs0, state0 = self.reset(key, params)
+
+        def body(carry, k):
+            obs, state = carry
+            k_pi, k_env = jax.random.split(k)
+            a = policy(k_pi, obs)
+            nobs, nstate, r, _, info = self.step(k_env, state, a, params)
+            out = dict(
+                obs=obs,
+                action=a,
+                reward=r,
+                position=info.position,
+                collision=info.collision,
+                in_goal=info.in_goal,
+                event=info.event,
+            )
+            return (nobs, nstate), out
+
+        _, traj = jax.lax.scan(body, (obs0, state0), jax.random.split(key, steps))
+        traj["position"] = jnp.concatenate([state0.pose[None, :2], traj["position"]], axis=0)
+        return traj

@@ -1,0 +1,177 @@
+"""Types shared by every navigation task family.
+
+`NavConfig` holds what is fixed for a whole family (a frozen dataclass, validated on construction,
+static under jit). `TaskParams` holds everything that varies by task and is stacked on a leading
+axis for many tasks; `EnvState` holds what changes within an episode (gymnax style).
+
+Static obstacles of every family are *rounded boxes*: the set of points within `radius` of the
+axis-aligned box [lo, hi]. A round table is a box with lo == hi and radius r_s; a building or a
+parked car is a box with radius 0. One distance function therefore serves both environments.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import jax.numpy as jnp
+from flax import struct
+from jax import Array
+
+
+class ConfigError(ValueError):
+    """A configuration value is invalid; the message names the field."""
+
+
+def _check(cond: bool, cls_name: str, field: str, msg: str) -> None:
+    if not cond:
+        raise ConfigError(f"{cls_name}.{field}: {msg}")
+
+
+@dataclasses.dataclass(frozen=True)
+class NavConfig:
+    """Constants of a navigation task family (SPEC 1, 2, 5).
+
+    Attributes are in metres, seconds and radians. `arena_lo`/`arena_hi` bound the robot centre
+    before shrinking by `robot_radius`.
+    """
+
+    name: str = "restaurant"
+    dt: float = 0.05
+    horizon: int = 80  # T, steps per episode
+    v_max: float = 7.0
+    wheelbase: float = 0.5
+    robot_radius: float = 0.25  # r_r = L / 2
+    human_radius: float = 0.25  # r_d
+    r_safe: float = 0.25  # paper 0.25; authors' code 0.125
+    arena_lo: tuple[float, float] = (-5.0, -5.0)
+    arena_hi: tuple[float, float] = (5.0, 5.0)
+    goal_radius: float = 0.5  # eps_g = 2 r_r
+    q_weight: float = 1.0  # Q = q I on position
+    r_weight: float = 0.2  # R = r I on (v, delta)
+    cost_scale: float = 25.0  # quadratic cost divided by this (authors' normalisation)
+    w_dynamic: float = 20.0
+    w_static: float = 20.0
+    w_goal: float = 10.0
+    goal_event_radius: float = 2.0
+    collision_event_factor: float = 2.0  # event when a human is within factor * eps_d
+    observe_static: bool = True  # restaurant: table centres are part of the observation
+
+    def __post_init__(self) -> None:
+        n = type(self).__name__
+        for f in (
+            "dt",
+            "v_max",
+            "wheelbase",
+            "robot_radius",
+            "human_radius",
+            "goal_radius",
+            "cost_scale",
+            "goal_event_radius",
+            "collision_event_factor",
+        ):
+            v = getattr(self, f)
+            _check(
+                isinstance(v, (int, float)) and math.isfinite(v) and v > 0,
+                n,
+                f,
+                f"must be a positive finite number, got {v!r}",
+            )
+        for f in ("r_safe", "q_weight", "r_weight", "w_dynamic", "w_static", "w_goal"):
+            v = getattr(self, f)
+            _check(
+                isinstance(v, (int, float)) and math.isfinite(v) and v >= 0,
+                n,
+                f,
+                f"must be a non-negative finite number, got {v!r}",
+            )
+        _check(
+            isinstance(self.horizon, int) and self.horizon > 0,
+            n,
+            "horizon",
+            f"must be a positive int, got {self.horizon!r}",
+        )
+        for f in ("arena_lo", "arena_hi"):
+            v = getattr(self, f)
+            _check(len(v) == 2, n, f, f"must be a pair (x, y), got {v!r}")
+        _check(
+            all(lo + 2 * self.robot_radius < hi for lo, hi in zip(self.arena_lo, self.arena_hi)),
+            n,
+            "arena_hi",
+            "must exceed arena_lo by more than the robot diameter",
+        )
+
+    def replace(self, **changes: Any) -> NavConfig:
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def eps_dynamic(self) -> float:
+        """Safety threshold to a human: eps_d = r_r + r_d + r_safe."""
+        return self.robot_radius + self.human_radius + self.r_safe
+
+
+@struct.dataclass
+class TaskParams:
+    """Everything that varies by task. Add a leading axis to stack tasks.
+
+    Shapes (single task): T = horizon, H = humans, S = static obstacles.
+      human_pos:   [T + 1, H, 2] positions of the people at every step (precomputed).
+      human_mask:  [T + 1, H] bool, True where a person is present (absent ones are no obstacle).
+      static_lo:   [S, 2] lower corner of each static box.
+      static_hi:   [S, 2] upper corner.
+      static_radius: [S] rounding radius (table radius r_s, or 0 for a plain box).
+      start:       [3] start pose (x, y, theta).
+      goal:        [2] goal position.
+    """
+
+    human_pos: Array
+    human_mask: Array
+    static_lo: Array
+    static_hi: Array
+    static_radius: Array
+    start: Array
+    goal: Array
+
+    @property
+    def static_center(self) -> Array:
+        return 0.5 * (self.static_lo + self.static_hi)
+
+    @property
+    def num_tasks(self) -> int:
+        """Size of the leading task axis (only for stacked params)."""
+        return int(self.start.shape[0]) if self.start.ndim == 2 else 1
+
+
+@struct.dataclass
+class EnvState:
+    """Per-episode state: robot pose [3] and step counter t (int32)."""
+
+    pose: Array
+    t: Array
+
+
+@struct.dataclass
+class StepInfo:
+    """What a step reports besides the reward (all scalars for a single env).
+
+    collision: a real collision was attempted this step (the robot did not move).
+    in_goal:   next position is inside the goal radius.
+    n_dynamic, n_static: safety-threshold violations counted in the reward.
+    event:     the MPC trigger (goal or collision event) evaluated at the *pre-step* state.
+    position:  robot position after the step [2].
+    """
+
+    collision: Array
+    in_goal: Array
+    n_dynamic: Array
+    n_static: Array
+    event: Array
+    position: Array
+
+
+def stack_params(params: list[TaskParams]) -> TaskParams:
+    """Stack single-task params on a new leading axis."""
+    import jax
+
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *params)
