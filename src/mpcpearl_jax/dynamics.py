@@ -18,9 +18,13 @@ def wrap_angle(theta: Array) -> Array:
 
 
 def slip_angle(delta: Array, wheelbase: float = 0.5) -> Array:
-    """beta = atan(l_r tan(delta) / L) with l_r = L / 2, i.e. atan(tan(delta) / 2)."""
+    """beta = atan(l_r tan(delta) / L) with l_r = L / 2, i.e. atan(tan(delta) / 2).
+
+    Written as atan2(sin(delta), 2 cos(delta)), equal on |delta| < pi/2 and exact at the steering
+    bounds, where float32 tan(+-pi/2) has the wrong sign and would flip the direction of motion.
+    """
     del wheelbase  # l_r / L = 1/2 for any wheelbase
-    return jnp.arctan(jnp.tan(delta) / 2.0)
+    return jnp.arctan2(jnp.sin(delta), 2.0 * jnp.cos(delta))
 
 
 def bicycle_step(pose: Array, action: Array, dt: float, wheelbase: float = 0.5) -> Array:
@@ -39,7 +43,8 @@ def bicycle_step(pose: Array, action: Array, dt: float, wheelbase: float = 0.5) 
     beta = slip_angle(delta, wheelbase)
     x_next = x + dt * v * jnp.cos(theta + beta)
     y_next = y + dt * v * jnp.sin(theta + beta)
-    theta_next = theta + dt * v * jnp.cos(beta) * jnp.tan(delta) / wheelbase
+    # cos(beta) tan(delta) / L == sin(beta) / l_r (l_r = L / 2), finite at delta = +-pi/2
+    theta_next = theta + dt * v * 2.0 * jnp.sin(beta) / wheelbase
     return jnp.stack([x_next, y_next, wrap_angle(theta_next)], axis=-1)
 
 
