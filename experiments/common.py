@@ -1,0 +1,135 @@
+"""Command-line interface shared by the experiment entry points."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+from mpcpearl_jax.config import PRESETS, ExperimentConfig, preset
+from mpcpearl_jax.envs.types import ConfigError
+
+
+def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=f"python -m experiments.{env}",
+        description=f"Train and evaluate MPC-PEARL (and its baselines) on the {env} tasks.",
+    )
+    p.add_argument(
+        "--preset",
+        default=default_preset,
+        choices=sorted(PRESETS),
+        help="smoke: ~2 min pipeline check; default: a few minutes on a laptop CPU; "
+        "cpu: an hours-long CPU schedule; paper: SPEC 7 exactly",
+    )
+    p.add_argument("--eps", type=float, help="MPC probability on an event (0 = PEARL)")
+    p.add_argument("--seeds", type=int, help="independent seeds trained in one program")
+    p.add_argument("--seed", type=int, help="base seed (seed s uses seed + s)")
+    p.add_argument("--iterations", type=int, help="meta-training iterations")
+    p.add_argument(
+        "--algo",
+        choices=("pearl", "sac"),
+        default="pearl",
+        help="sac = no context encoder (the paper's MPC-SAC baseline)",
+    )
+    p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-eps<eps>)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help="override any config field, e.g. --set train.updates_per_iteration=200 "
+        "--set pearl.hidden=[256,256] --set mpc.v_max=4 (JSON values)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def _parse_value(text: str):
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfig:
+    cfg = preset(args.preset).replace(env=env, **extra)
+    sections: dict[str, dict] = {
+        "pearl": {},
+        "train": {},
+        "mpc": dict(cfg.mpc),
+        "env_overrides": dict(cfg.env_overrides),
+        "": {},
+    }
+    if args.eps is not None:
+        sections["train"]["eps"] = args.eps
+    if args.iterations is not None:
+        sections["train"]["iterations"] = args.iterations
+    if args.seeds is not None:
+        sections[""]["seeds"] = args.seeds
+    if args.seed is not None:
+        sections[""]["seed"] = args.seed
+    if args.algo == "sac":
+        sections["pearl"]["use_context"] = False
+    for item in args.set:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected SECTION.FIELD=VALUE")
+        key, value = item.split("=", 1)
+        section, _, field = key.rpartition(".")
+        if section == "env":
+            section = "env_overrides"
+        if section not in sections:
+            raise ConfigError(
+                f"--set {item!r}: unknown section {section!r}; use pearl, train, "
+                "mpc, env or a top-level field"
+            )
+        v = _parse_value(value)
+        sections[section][field] = tuple(v) if isinstance(v, list) else v
+    for name, cls in (("pearl", type(cfg.pearl)), ("train", type(cfg.train))):
+        unknown = set(sections[name]) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ConfigError(f"{cls.__name__} has no field(s) {sorted(unknown)}")
+    top_unknown = set(sections[""]) - {f.name for f in dataclasses.fields(ExperimentConfig)}
+    if top_unknown:
+        raise ConfigError(f"ExperimentConfig has no field(s) {sorted(top_unknown)}")
+    return cfg.replace(
+        pearl=cfg.pearl.replace(**sections["pearl"]),
+        train=dataclasses.replace(cfg.train, **sections["train"]),
+        mpc=sections["mpc"],
+        env_overrides=sections["env_overrides"],
+        **sections[""],
+    )
+
+
+def label_of(cfg: ExperimentConfig) -> str:
+    eps = cfg.train.eps
+    if not cfg.pearl.use_context:
+        return f"MPC-SAC {eps:g}" if eps > 0 else "SAC"
+    return f"MPC-PEARL {eps:g}" if eps > 0 else "PEARL"
+
+
+def main(env: str, argv: list[str] | None = None, **extra) -> int:
+    args = parser(env).parse_args(argv)
+    try:
+        cfg = build_config(args, env, **extra)
+    except (ConfigError, TypeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    from mpcpearl_jax.run import final_evaluation, train
+
+    out = args.out or Path("runs") / f"{env}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"
+    print(
+        f"[{env}] {label_of(cfg)} preset={args.preset} seeds={cfg.seeds} "
+        f"iterations={cfg.train.iterations} out={out}",
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    trainer, state = train(cfg, out, resume=args.resume, progress=not args.no_progress)
+    print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
+    final_evaluation(trainer, state, out, label_of(cfg))
+    print(f"results, curves and figures in {out}", flush=True)
+    return 0

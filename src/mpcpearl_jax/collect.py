@@ -1,0 +1,104 @@
+"""Data collection: whole episodes for many (seed, task, episode) rows at once, with
+event-triggered MPC infusion (Algorithm 1, lines 4-17; SPEC 5).
+
+The env batch is one explicit flat axis R_all = seeds x rows so that the MPC bridge sees the whole
+batch in one `pure_callback` (SPEC 6); the policy is evaluated per seed with `vmap` over the
+seed axis of the parameters.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from mpcpearl_jax.envs.navigation import NavEnv
+from mpcpearl_jax.envs.types import TaskParams
+from mpcpearl_jax.pearl.learner import Transitions
+from mpcpearl_jax.pearl.networks import Networks
+
+
+class Episodes(NamedTuple):
+    """Collected episodes, shaped [S, R, T, ...] (positions [S, R, T + 1, 2])."""
+
+    transitions: Transitions
+    position: Array
+    collision: Array
+    in_goal: Array
+    event: Array
+    used_mpc: Array
+
+
+def rows_of(tasks: TaskParams, task_ids: Array) -> TaskParams:
+    """Gather the task params of every row: task_ids [...] -> TaskParams [...]."""
+    return jax.tree_util.tree_map(lambda x: x[task_ids], tasks)
+
+
+def make_collector(
+    env: NavEnv,
+    nets: Networks,
+    bridge: Callable | None = None,
+    eps: float = 0.0,
+    deterministic: bool = False,
+) -> Callable:
+    """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R]) -> Episodes`.
+
+    With `bridge` (see `mpcpearl_jax.mpc.make_mpc_bridge`) and eps > 0, MPC acts on the rows where
+    an event fires and a uniform draw is <= eps; its (normalized) actions go into the episodes
+    unmarked, except for the `used_mpc` log.
+    """
+    horizon = env.config.horizon
+    use_mpc = bridge is not None and eps > 0
+
+    def policy_actions(policy_params, obs, z, key):
+        # obs [S, R, O], z [S, R, L] -> [S, R, A]
+        keys = jax.random.split(key, obs.shape[0])
+        act = lambda p, o, zz, k: nets.act(p, o, zz, None if deterministic else k)
+        return jax.vmap(act)(policy_params, obs, z, keys)
+
+    def collect(key: Array, policy_params, z: Array, tasks: TaskParams) -> Episodes:
+        s, r = z.shape[:2]
+        flat = jax.tree_util.tree_map(lambda x: x.reshape((s * r, *x.shape[2:])), tasks)
+        obs0, state0 = jax.vmap(env.reset)(jax.random.split(key, s * r), flat)
+
+        def body(carry, k):
+            obs, state = carry
+            k_pi, k_eps, k_mpc = jax.random.split(k, 3)
+            a_pi = policy_actions(policy_params, obs.reshape(s, r, -1), z, k_pi).reshape(s * r, -1)
+            fire = jax.vmap(env.event)(state, flat)
+            if use_mpc:
+                fire = fire & (jax.random.uniform(k_eps, (s * r,)) <= eps)
+                action, used, _ = bridge(k_mpc, fire, state, flat, a_pi)
+            else:
+                action, used = a_pi, jnp.zeros((s * r,), bool)
+            nobs, nstate, rew, _, info = jax.vmap(env.step)(
+                jax.random.split(k, s * r), state, action, flat
+            )
+            out = (
+                Transitions(obs, action, rew, nobs, jnp.zeros_like(rew)),
+                info.position,
+                info.collision,
+                info.in_goal,
+                info.event,
+                used,
+            )
+            return (nobs, nstate), out
+
+        _, (tr, pos, col, goal, ev, used) = jax.lax.scan(
+            body, (obs0, state0), jax.random.split(key, horizon)
+        )
+        pos = jnp.concatenate([state0.pose[None, :, :2], pos], axis=0)
+        to_rows = lambda x: jnp.swapaxes(x, 0, 1).reshape((s, r, *x.shape[:1], *x.shape[2:]))
+        return Episodes(
+            jax.tree_util.tree_map(to_rows, tr),
+            to_rows(pos),
+            to_rows(col),
+            to_rows(goal),
+            to_rows(ev),
+            to_rows(used),
+        )
+
+    return collect

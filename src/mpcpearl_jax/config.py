@@ -1,0 +1,179 @@
+"""Experiment configuration: frozen dataclasses with defaults in code, validated at construction.
+
+`TrainConfig` is the meta-training schedule (SPEC 7); `ExperimentConfig` ties env, PEARL, MPC and
+schedule together. Presets live in `PRESETS`; a wrong value raises `ConfigError` naming the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from typing import Any
+
+from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.pearl.config import PearlConfig
+
+
+def _pos_int(obj: Any, *fields: str) -> None:
+    for f in fields:
+        v = getattr(obj, f)
+        if not (isinstance(v, int) and not isinstance(v, bool) and v > 0):
+            raise ConfigError(f"{type(obj).__name__}.{f}: must be a positive int, got {v!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Meta-training schedule (Algorithm 1; SPEC 7 defaults)."""
+
+    iterations: int = 3000
+    initial_episodes: int = 3  # per training task at iteration 0, prior z (200 steps -> 3 x 80)
+    tasks_per_iteration: int = 3
+    prior_episodes: int = 3  # per visited task, prior z, RL + encoder buffers
+    posterior_episodes: int = 3  # per visited task, posterior z, RL buffer only
+    updates_per_iteration: int = 750  # N_train
+    rl_capacity: int = 20_000  # transitions per task
+    eps: float = 0.2  # MPC probability on an event (0 = PEARL)
+    eval_interval: int = 10  # iterations between test evaluations (0 = only at the end)
+    eval_adapt_episodes: int = 2
+    t_update: int = 5  # online adaptation
+    checkpoint_interval: int = 10
+    keep_checkpoints: int = 3
+
+    def __post_init__(self) -> None:
+        _pos_int(
+            self,
+            "iterations",
+            "initial_episodes",
+            "tasks_per_iteration",
+            "prior_episodes",
+            "updates_per_iteration",
+            "rl_capacity",
+            "t_update",
+            "checkpoint_interval",
+            "keep_checkpoints",
+            "eval_adapt_episodes",
+        )
+        for f in ("posterior_episodes", "eval_interval"):
+            v = getattr(self, f)
+            if not (isinstance(v, int) and v >= 0):
+                raise ConfigError(f"TrainConfig.{f}: must be a non-negative int, got {v!r}")
+        if not (
+            isinstance(self.eps, (int, float))
+            and math.isfinite(self.eps)
+            and 0.0 <= self.eps <= 1.0
+        ):
+            raise ConfigError(f"TrainConfig.eps: must lie in [0, 1], got {self.eps!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ExperimentConfig:
+    """Everything a run needs; `to_json`/`from_json` round-trip it (saved with checkpoints)."""
+
+    env: str = "restaurant"
+    seeds: int = 1
+    seed: int = 0  # base seed of the run (seed s uses seed + s)
+    task_seed: int = 0  # seed of the task sets
+    pearl: PearlConfig = PearlConfig()
+    train: TrainConfig = TrainConfig()
+    mpc: dict = dataclasses.field(default_factory=dict)  # MPCConfig overrides
+    env_overrides: dict = dataclasses.field(default_factory=dict)  # NavConfig overrides
+    data: str | None = None  # data file for env families that read one (sidewalk)
+    online_eval: bool = False  # report online adaptation as the headline evaluation
+
+    def __post_init__(self) -> None:
+        _pos_int(self, "seeds")
+        for f in ("seed", "task_seed"):
+            if not isinstance(getattr(self, f), int):
+                raise ConfigError(f"ExperimentConfig.{f}: must be an int")
+        if not isinstance(self.pearl, PearlConfig):
+            raise ConfigError("ExperimentConfig.pearl: must be a PearlConfig")
+        if not isinstance(self.train, TrainConfig):
+            raise ConfigError("ExperimentConfig.train: must be a TrainConfig")
+
+    def replace(self, **changes: Any) -> ExperimentConfig:
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ExperimentConfig:
+        d = dict(d)
+        pearl = dict(d.pop("pearl", {}))
+        for f in ("hidden", "encoder_hidden"):
+            if f in pearl:
+                pearl[f] = tuple(pearl[f])
+        return cls(pearl=PearlConfig(**pearl), train=TrainConfig(**d.pop("train", {})), **d)
+
+
+def _small_pearl() -> PearlConfig:
+    return PearlConfig(
+        hidden=(128, 128, 128),
+        encoder_hidden=(128, 128, 128),
+        meta_batch=8,
+        batch_size=128,
+        context_size=64,
+    )
+
+
+PRESETS: dict[str, ExperimentConfig] = {
+    # a couple of minutes on a laptop CPU: proves the whole pipeline end to end
+    "smoke": ExperimentConfig(
+        pearl=PearlConfig(
+            hidden=(64, 64), encoder_hidden=(64, 64), meta_batch=4, batch_size=64, context_size=32
+        ),
+        train=TrainConfig(
+            iterations=4,
+            initial_episodes=1,
+            tasks_per_iteration=4,
+            prior_episodes=1,
+            posterior_episodes=1,
+            updates_per_iteration=20,
+            rl_capacity=2_000,
+            eval_interval=2,
+            checkpoint_interval=2,
+        ),
+    ),
+    # the README's main command: a few minutes on a laptop CPU
+    "default": ExperimentConfig(
+        pearl=_small_pearl(),
+        train=TrainConfig(
+            iterations=40,
+            initial_episodes=2,
+            tasks_per_iteration=16,
+            prior_episodes=2,
+            posterior_episodes=2,
+            updates_per_iteration=50,
+            rl_capacity=6_000,
+            eval_interval=10,
+            checkpoint_interval=10,
+        ),
+    ),
+    # a CPU schedule that learns in hours: many tasks per iteration (cheap here), smaller nets
+    "cpu": ExperimentConfig(
+        pearl=_small_pearl(),
+        train=TrainConfig(
+            iterations=1500,
+            initial_episodes=3,
+            tasks_per_iteration=16,
+            prior_episodes=2,
+            posterior_episodes=2,
+            updates_per_iteration=100,
+            rl_capacity=20_000,
+            eval_interval=25,
+            checkpoint_interval=25,
+        ),
+    ),
+    # SPEC 7 exactly
+    "paper": ExperimentConfig(pearl=PearlConfig(), train=TrainConfig()),
+}
+
+
+def preset(name: str) -> ExperimentConfig:
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r}; known: {sorted(PRESETS)}")
+    return PRESETS[name]

@@ -1,0 +1,133 @@
+"""Meta-test (Algorithm 2): adaptation over episodes, or online adaptation within one episode.
+
+MPC is off; the policy is deterministic (tanh of the mean). Everything is one jitted program,
+vmapped over seeds and test tasks.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from mpcpearl_jax import metrics
+from mpcpearl_jax.envs.navigation import NavEnv
+from mpcpearl_jax.envs.types import TaskParams
+from mpcpearl_jax.pearl.learner import Transitions, context_from
+from mpcpearl_jax.pearl.networks import Networks
+
+
+def _sample_z(nets: Networks, enc_params, ctx: Array, mask: Array, key: Array) -> Array:
+    """z ~ q(z | masked context [C, D]); z ~ N(0, I) when the mask is empty (or no encoder)."""
+    mean, var = nets.posterior(enc_params, ctx, mask)
+    has = jnp.any(mask > 0) & nets.cfg.use_context
+    mean = jnp.where(has, mean, 0.0)
+    var = jnp.where(has, var, 1.0)
+    z = mean + jnp.sqrt(var) * jax.random.normal(key, mean.shape)
+    return z if nets.cfg.use_context else jnp.zeros_like(z)
+
+
+def _episode(
+    env: NavEnv,
+    nets: Networks,
+    params,
+    task: TaskParams,
+    key: Array,
+    ctx: Array,
+    mask: Array,
+    offset: Array,
+    t_update: int | None,
+):
+    """One deterministic episode. Context rows [offset, offset + T) are filled as it runs.
+
+    With t_update, z is re-sampled from the context so far every t_update steps (online);
+    otherwise z is sampled once at the start from the context given.
+    """
+    horizon = env.config.horizon
+    k0, k_run = jax.random.split(key)
+    z0 = _sample_z(nets, params["encoder"], ctx, mask, k0)
+    obs0, state0 = env.reset(k0, task)
+
+    def body(carry, xs):
+        obs, state, z, ctx, mask = carry
+        t, k = xs
+        if t_update is not None:
+            z_new = _sample_z(nets, params["encoder"], ctx, mask, k)
+            z = jnp.where((t % t_update == 0) & (t > 0), z_new, z)
+        a = nets.act(params["policy"], obs, z, None)
+        nobs, nstate, r, _, info = env.step(k, state, a, task)
+        row = context_from(Transitions(obs, a, r, nobs, jnp.zeros(())))
+        ctx = ctx.at[offset + t].set(row)
+        mask = mask.at[offset + t].set(1.0)
+        return (nobs, nstate, z, ctx, mask), (info.position, info.collision, info.in_goal, r)
+
+    (_, _, _, ctx, mask), (pos, col, goal, rew) = jax.lax.scan(
+        body, (obs0, state0, z0, ctx, mask), (jnp.arange(horizon), jax.random.split(k_run, horizon))
+    )
+    pos = jnp.concatenate([state0.pose[None, :2], pos], axis=0)
+    return (pos, col, goal, rew), ctx, mask
+
+
+def make_evaluator(
+    env: NavEnv,
+    nets: Networks,
+    num_adapt_episodes: int = 2,
+    online: bool = False,
+    t_update: int = 5,
+):
+    """`evaluate(key, params [S], tasks [N]) -> dict` of arrays [S, N, ...].
+
+    Adaptation mode (paper Table II "X"): z from the prior for episode 1, then from the posterior
+    of all transitions so far; the returned episode is number num_adapt_episodes + 1.
+    Online mode ("O"): a single episode with z re-inferred every t_update steps.
+    """
+    horizon = env.config.horizon
+    n_eps = 1 if online else num_adapt_episodes + 1
+    ctx_len = n_eps * horizon
+    ctx_dim = nets.context_dim
+
+    def one_task(key, params, task):
+        ctx = jnp.zeros((ctx_len, ctx_dim))
+        mask = jnp.zeros((ctx_len,))
+        out = None
+        for e in range(n_eps):
+            out, ctx, mask = _episode(
+                env,
+                nets,
+                params,
+                task,
+                jax.random.fold_in(key, e),
+                ctx,
+                mask,
+                jnp.asarray(e * horizon),
+                t_update if online else None,
+            )
+        pos, col, goal, rew = out
+        return {"position": pos, "collision": col, "in_goal": goal, "return": jnp.sum(rew)}
+
+    def evaluate(key: Array, params, tasks: TaskParams) -> dict:
+        n = tasks.start.shape[0]
+        keys = jax.random.split(key, n)
+        per_seed = lambda p: jax.vmap(one_task, in_axes=(0, None, 0))(keys, p, tasks)
+        return jax.vmap(per_seed)(params)
+
+    return jax.jit(evaluate)
+
+
+def summarize(result: dict, tasks: TaskParams, robot_radius: float) -> dict:
+    """SPEC 8 metrics per seed [S] plus the mean return, as lists/floats."""
+    goal = jnp.broadcast_to(tasks.goal, result["position"].shape[:2] + (2,))
+    m = metrics.episode_metrics(
+        result["position"], result["collision"], result["in_goal"], goal, robot_radius
+    )
+    per_seed = {
+        "SR": jnp.mean(m.success, axis=-1),
+        "TT": jnp.mean(m.travel_time, axis=-1),
+        "CFR": jnp.mean(m.collision_free, axis=-1),
+        "SPL": jnp.mean(m.spl, axis=-1),
+        "MGD": jnp.mean(m.mgd, axis=-1),
+        "return": jnp.mean(result["return"], axis=-1),
+    }
+    out = {k: float(jnp.mean(v)) for k, v in per_seed.items()}
+    out.update({f"{k}_per_seed": [float(x) for x in v] for k, v in per_seed.items()})
+    return out

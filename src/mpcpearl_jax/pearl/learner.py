@@ -1,0 +1,138 @@
+"""The jitted PEARL update (Algorithm 1, training stage) and its state.
+
+`make_update_fn` gives one gradient step over a meta-batch; `make_update_scan` runs N of them
+as one `lax.scan` that samples meta-batches from device buffers.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+from jax import Array
+
+from mpcpearl_jax.pearl import losses
+from mpcpearl_jax.pearl.config import PearlConfig
+from mpcpearl_jax.pearl.networks import Networks
+
+
+class Transitions(NamedTuple):
+    """A batch of transitions; leading shape [...] e.g. [MB, B]."""
+
+    obs: Array  # [..., O]
+    action: Array  # [..., A] normalized
+    reward: Array  # [...] unscaled
+    next_obs: Array  # [..., O]
+    done: Array  # [...] 1.0 on true termination (never in these tasks: time limits bootstrap)
+
+
+def context_from(t: Transitions) -> Array:
+    """Context rows (s, a, r, s') [..., 2 O + A + 1] with the unscaled reward (SPEC 7)."""
+    return jnp.concatenate([t.obs, t.action, t.reward[..., None], t.next_obs], axis=-1)
+
+
+@struct.dataclass
+class LearnerState:
+    """All trainable state of one agent."""
+
+    params: dict  # {policy, q, v, encoder}
+    target_v: dict
+    opt_state: dict  # {q_enc, policy, v}
+    steps: Array  # int32 gradient steps taken
+
+
+def _optimizer(cfg: PearlConfig) -> optax.GradientTransformation:
+    adam = optax.adam(cfg.lr)
+    if cfg.max_grad_norm is None:
+        return adam
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), adam)
+
+
+def init_learner(key: Array, cfg: PearlConfig, obs_dim: int, action_dim: int) -> LearnerState:
+    nets = Networks(cfg, obs_dim, action_dim)
+    params = nets.init(key)
+    opt = _optimizer(cfg)
+    opt_state = {
+        "q_enc": opt.init({"q": params["q"], "encoder": params["encoder"]}),
+        "policy": opt.init(params["policy"]),
+        "v": opt.init(params["v"]),
+    }
+    return LearnerState(params, params["v"], opt_state, jnp.zeros((), jnp.int32))
+
+
+def _update(
+    nets: Networks,
+    cfg: PearlConfig,
+    opt,
+    state: LearnerState,
+    batch: Transitions,
+    context: Array,
+    key: Array,
+) -> tuple[LearnerState, dict]:
+    """One PEARL gradient step (order as in the authors' code: Q+encoder, then V, policy)."""
+    k_z, k_pi = jax.random.split(key)
+    p = state.params
+    # 1. Q and encoder: L_psi + beta KL (paper L_phi).
+    q_enc = {"q": p["q"], "encoder": p["encoder"]}
+    (qe_loss, aux), grads = jax.value_and_grad(losses.critic_encoder_loss, has_aux=True)(
+        q_enc, state.target_v, nets, batch, context, k_z, cfg.gamma, cfg.reward_scale, cfg.kl_weight
+    )
+    upd, os_qe = opt.update(grads, state.opt_state["q_enc"], q_enc)
+    q_enc = optax.apply_updates(q_enc, upd)
+    z = jax.lax.stop_gradient(aux["z"])
+    zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])
+    # 2. policy (z detached), with the updated Q.
+    (pi_loss, pi_aux), g_pi = jax.value_and_grad(losses.policy_loss, has_aux=True)(
+        p["policy"], nets, q_enc["q"], batch.obs, zb, k_pi, cfg.policy_mean_reg, cfg.policy_std_reg
+    )
+    upd, os_pi = opt.update(g_pi, state.opt_state["policy"], p["policy"])
+    policy = optax.apply_updates(p["policy"], upd)
+    # 3. value (z detached), target from the same policy sample.
+    new_a = jax.lax.stop_gradient(pi_aux["action"])
+    log_pi = jax.lax.stop_gradient(pi_aux["log_pi_all"])
+    v_loss, g_v = jax.value_and_grad(losses.value_loss)(
+        p["v"], nets, q_enc["q"], batch.obs, zb, new_a, log_pi
+    )
+    upd, os_v = opt.update(g_v, state.opt_state["v"], p["v"])
+    v = optax.apply_updates(p["v"], upd)
+    target_v = optax.incremental_update(v, state.target_v, cfg.tau)
+
+    params = {"policy": policy, "q": q_enc["q"], "v": v, "encoder": q_enc["encoder"]}
+    new_state = LearnerState(
+        params, target_v, {"q_enc": os_qe, "policy": os_pi, "v": os_v}, state.steps + 1
+    )
+    metrics = {
+        "q_loss": aux["q_loss"],
+        "kl": aux["kl"],
+        "policy_loss": pi_loss,
+        "v_loss": v_loss,
+        "log_pi": pi_aux["log_pi"],
+        "q_mean": aux["q1_mean"],
+        "loss_total": qe_loss,
+    }
+    return new_state, metrics
+
+
+def make_update_fn(cfg: PearlConfig, obs_dim: int, action_dim: int):
+    """Jitted `update(state, batch [MB, B], context [MB, C, D], key) -> (state, metrics)`."""
+    nets = Networks(cfg, obs_dim, action_dim)
+    opt = _optimizer(cfg)
+
+    def update(state: LearnerState, batch: Transitions, context: Array, key: Array):
+        return _update(nets, cfg, opt, state, batch, context, key)
+
+    return jax.jit(update)
+
+
+def make_update_body(cfg: PearlConfig, obs_dim: int, action_dim: int):
+    """Un-jitted single update, for composing into scans (see `trainer`)."""
+    nets = Networks(cfg, obs_dim, action_dim)
+    opt = _optimizer(cfg)
+
+    def update(state: LearnerState, batch: Transitions, context: Array, key: Array):
+        return _update(nets, cfg, opt, state, batch, context, key)
+
+    return update

@@ -1,0 +1,75 @@
+"""PEARL's SAC losses (SPEC 7; paper Sec. IV-A, Algorithm 1 lines 18-23).
+
+Shapes: MB tasks in the meta-batch, B RL transitions per task, C context transitions per task,
+O obs dim, A action dim, L latent dim. z is one posterior sample per task, broadcast over B.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from mpcpearl_jax.pearl.networks import Networks, kl_to_standard_normal, tanh_gaussian
+
+
+def sample_task_z(nets: Networks, enc_params, context: Array, key: Array):
+    """Posterior q_phi(z | c^i) per task and a reparameterised sample.
+
+    context [MB, C, D] -> z [MB, L], (mean, var) [MB, L].
+    """
+    mean, var = nets.posterior(enc_params, context)
+    if not nets.cfg.use_context:  # plain SAC: a constant latent, no encoder, no KL
+        zeros = jnp.zeros_like(mean)
+        return zeros, zeros, jnp.ones_like(var)
+    z = mean + jnp.sqrt(var) * jax.random.normal(key, mean.shape)
+    return z, mean, var
+
+
+def critic_encoder_loss(
+    q_enc_params,
+    target_v_params,
+    nets: Networks,
+    batch,
+    context,
+    key,
+    gamma: float,
+    reward_scale: float,
+    kl_weight: float,
+):
+    """L_psi (Q TD error, paper: critic loss) + L_phi = L_psi + beta KL(q(z|c) || N(0, I)).
+
+    The encoder gets gradients from the Q loss and the KL only. Returns (loss, aux).
+    """
+    z, mean, var = sample_task_z(nets, q_enc_params["encoder"], context, key)
+    zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])  # [MB, B, L]
+    q1, q2 = nets.q.apply(q_enc_params["q"], batch.obs, batch.action, zb)
+    target_v = nets.v.apply(target_v_params, batch.next_obs, jax.lax.stop_gradient(zb))
+    q_target = reward_scale * batch.reward + (1.0 - batch.done) * gamma * target_v
+    q_target = jax.lax.stop_gradient(q_target)
+    q_loss = jnp.mean((q1 - q_target) ** 2) + jnp.mean((q2 - q_target) ** 2)
+    kl = jnp.sum(kl_to_standard_normal(mean, var))  # summed over tasks (SPEC 7)
+    loss = q_loss + kl_weight * kl
+    return loss, {"q_loss": q_loss, "kl": kl, "z": z, "q1_mean": jnp.mean(q1)}
+
+
+def value_loss(v_params, nets: Networks, q_params, obs, z, new_action, log_pi):
+    """SAC value loss: (V(s, z) - [min_i Q_i(s, a~pi, z) - log pi(a|s, z)])^2 with z detached."""
+    v = nets.v.apply(v_params, obs, z)
+    q1, q2 = nets.q.apply(q_params, obs, new_action, z)
+    v_target = jax.lax.stop_gradient(jnp.minimum(q1, q2) - log_pi)
+    return jnp.mean((v - v_target) ** 2)
+
+
+def policy_loss(policy_params, nets: Networks, q_params, obs, z, key, mean_reg, std_reg):
+    """Paper's actor loss L_theta = KL(pi || exp(Q)/Z) = E[log pi - min_i Q_i] + regularisers.
+
+    z is detached (no policy gradient into the encoder). Returns (loss, aux).
+    """
+    mean, log_std = nets.policy.apply(policy_params, obs, z)
+    action, log_pi = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=key)
+    q1, q2 = nets.q.apply(q_params, obs, action, z)
+    min_q = jnp.minimum(q1, q2)
+    loss = jnp.mean(log_pi - min_q)
+    loss += mean_reg * jnp.mean(mean**2) + std_reg * jnp.mean(log_std**2)
+    return loss, {"log_pi": jnp.mean(log_pi), "action": action, "log_pi_all": log_pi}

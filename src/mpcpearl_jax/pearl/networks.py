@@ -1,0 +1,165 @@
+"""PEARL networks in flax (SPEC 7): tanh-Gaussian policy, twin Q, V, context encoder.
+
+Initialisation follows the authors' rlkit/PEARL code: hidden weights uniform in +-1/sqrt(fan_in),
+hidden biases 0.1, last layer weights and biases uniform in +-3e-3.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import distrax
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from mpcpearl_jax.pearl.config import PearlConfig
+
+LAST_INIT = 3e-3
+
+
+def _fanin_init(key: Array, shape: Sequence[int], dtype=jnp.float32) -> Array:
+    bound = 1.0 / jnp.sqrt(shape[0])
+    return jax.random.uniform(key, shape, dtype, -bound, bound)
+
+
+def _uniform_init(scale: float):
+    def init(key: Array, shape: Sequence[int], dtype=jnp.float32) -> Array:
+        return jax.random.uniform(key, shape, dtype, -scale, scale)
+
+    return init
+
+
+class MLP(nn.Module):
+    """ReLU MLP with rlkit initialisation: [..., in] -> [..., out_dim]."""
+
+    hidden: Sequence[int]
+    out_dim: int
+
+    @nn.compact
+    def __call__(self, x: Array) -> Array:
+        for h in self.hidden:
+            x = nn.Dense(h, kernel_init=_fanin_init, bias_init=nn.initializers.constant(0.1))(x)
+            x = nn.relu(x)
+        return nn.Dense(
+            self.out_dim, kernel_init=_uniform_init(LAST_INIT), bias_init=_uniform_init(LAST_INIT)
+        )(x)
+
+
+class TwinQ(nn.Module):
+    """Two Q heads Q_i(s, a, z): returns ([...], [...])."""
+
+    hidden: Sequence[int]
+
+    @nn.compact
+    def __call__(self, obs: Array, action: Array, z: Array) -> tuple[Array, Array]:
+        x = jnp.concatenate([obs, action, z], axis=-1)
+        q1 = MLP(self.hidden, 1, name="q1")(x)[..., 0]
+        q2 = MLP(self.hidden, 1, name="q2")(x)[..., 0]
+        return q1, q2
+
+
+class ValueNet(nn.Module):
+    hidden: Sequence[int]
+
+    @nn.compact
+    def __call__(self, obs: Array, z: Array) -> Array:
+        return MLP(self.hidden, 1)(jnp.concatenate([obs, z], axis=-1))[..., 0]
+
+
+class PolicyNet(nn.Module):
+    """Outputs (mean, log_std) [..., A] of the pre-tanh Gaussian, log_std clamped (SPEC 7)."""
+
+    hidden: Sequence[int]
+    action_dim: int
+    log_std_min: float = -20.0
+    log_std_max: float = 2.0
+
+    @nn.compact
+    def __call__(self, obs: Array, z: Array) -> tuple[Array, Array]:
+        out = MLP(self.hidden, 2 * self.action_dim)(jnp.concatenate([obs, z], axis=-1))
+        mean, log_std = jnp.split(out, 2, axis=-1)
+        return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
+
+
+class ContextEncoder(nn.Module):
+    """Per-transition Gaussian factors: context [..., C, D] -> (mean, var) [..., C, latent]."""
+
+    hidden: Sequence[int]
+    latent_dim: int
+    min_var: float = 1e-7
+
+    @nn.compact
+    def __call__(self, context: Array) -> tuple[Array, Array]:
+        out = MLP(self.hidden, 2 * self.latent_dim)(context)
+        mean, pre_var = jnp.split(out, 2, axis=-1)
+        return mean, jnp.maximum(jax.nn.softplus(pre_var), self.min_var)
+
+
+def tanh_gaussian(mean: Array, log_std: Array) -> distrax.Distribution:
+    """Tanh-squashed diagonal Gaussian; log-probs come from the pre-tanh sample (no atanh)."""
+    base = distrax.MultivariateNormalDiag(mean, jnp.exp(log_std))
+    return distrax.Transformed(base, distrax.Block(distrax.Tanh(), ndims=1))
+
+
+def product_of_gaussians(mean: Array, var: Array, mask: Array | None = None) -> tuple[Array, Array]:
+    """Posterior q(z | c) proportional to prod_n N(mean_n, var_n) (PEARL eq. for q_phi).
+
+    Args:
+      mean, var: [..., C, L] per-transition factors; mask: [..., C] (1 = use the transition).
+    Returns:
+      (mean, var) [..., L]. Callers pass at least one valid transition (with none, use the
+      prior N(0, I) directly).
+    """
+    precision = 1.0 / var
+    if mask is not None:
+        precision = precision * mask[..., None]
+    post_var = 1.0 / jnp.maximum(jnp.sum(precision, axis=-2), 1e-12)
+    post_mean = post_var * jnp.sum(mean * precision, axis=-2)
+    return post_mean, post_var
+
+
+def kl_to_standard_normal(mean: Array, var: Array) -> Array:
+    """KL(N(mean, diag var) || N(0, I)) summed over the last axis: [..., L] -> [...]."""
+    return 0.5 * jnp.sum(var + mean**2 - 1.0 - jnp.log(var), axis=-1)
+
+
+class Networks:
+    """The flax modules of one PEARL agent, built from a config."""
+
+    def __init__(self, cfg: PearlConfig, obs_dim: int, action_dim: int):
+        self.cfg = cfg
+        self.obs_dim = obs_dim
+        self.action_dim = action_dim
+        self.context_dim = 2 * obs_dim + action_dim + 1
+        self.policy = PolicyNet(cfg.hidden, action_dim, cfg.log_std_min, cfg.log_std_max)
+        self.q = TwinQ(cfg.hidden)
+        self.v = ValueNet(cfg.hidden)
+        self.encoder = ContextEncoder(cfg.encoder_hidden, cfg.latent_dim, cfg.min_posterior_var)
+
+    def init(self, key: Array) -> dict:
+        """Parameters {policy, q, v, encoder} for a fresh agent."""
+        k_pi, k_q, k_v, k_e = jax.random.split(key, 4)
+        obs = jnp.zeros((1, self.obs_dim))
+        act = jnp.zeros((1, self.action_dim))
+        z = jnp.zeros((1, self.cfg.latent_dim))
+        ctx = jnp.zeros((1, 1, self.context_dim))
+        return {
+            "policy": self.policy.init(k_pi, obs, z),
+            "q": self.q.init(k_q, obs, act, z),
+            "v": self.v.init(k_v, obs, z),
+            "encoder": self.encoder.init(k_e, ctx),
+        }
+
+    def posterior(self, enc_params, context: Array, mask: Array | None = None):
+        """(mean, var) [..., L] of q(z | context [..., C, D])."""
+        mean, var = self.encoder.apply(enc_params, context)
+        return product_of_gaussians(mean, var, mask)
+
+    def act(self, policy_params, obs: Array, z: Array, key: Array | None) -> Array:
+        """Normalized action [..., A]: a tanh-Gaussian sample, or tanh(mean) when key is None."""
+        mean, log_std = self.policy.apply(policy_params, obs, z)
+        if key is None:
+            return jnp.tanh(mean)
+        return tanh_gaussian(mean, log_std).sample(seed=key)

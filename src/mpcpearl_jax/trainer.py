@@ -1,0 +1,258 @@
+"""MPC-PEARL meta-training (Algorithm 1) for many seeds in one program.
+
+`Trainer(cfg)` builds the env, tasks, networks, MPC bridge and three jitted phases:
+  * collection (prior z and posterior z) over a flat batch of seeds x tasks x episodes, with
+    event-triggered MPC through one `pure_callback` per step (only when an event fires);
+  * the N_train gradient steps as one `lax.scan`, vmapped over seeds, buffers donated;
+  * meta-test evaluation (Algorithm 2), vmapped over seeds and tasks.
+The whole `TrainState` (params, optimizer states, target nets, buffers, RNG keys, iteration) is a
+pytree, checkpointed by `mpcpearl_jax.checkpoint`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from jax import Array
+
+from mpcpearl_jax import collect as collect_lib
+from mpcpearl_jax import evaluate as eval_lib
+from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.envs import make_env, make_tasks
+from mpcpearl_jax.envs.types import TaskParams
+from mpcpearl_jax.pearl import buffers
+from mpcpearl_jax.pearl.learner import LearnerState, context_from, init_learner, make_update_body
+from mpcpearl_jax.pearl.networks import Networks
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss became NaN/inf; the last good checkpoint is kept."""
+
+
+@struct.dataclass
+class TrainState:
+    """Everything that evolves during training; every leaf has a leading seed axis [S]."""
+
+    learner: LearnerState
+    rl: buffers.TaskBuffer
+    enc: buffers.TaskBuffer
+    key: Array  # [S, 2] PRNG keys
+    iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
+
+
+def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
+    """keys [S, 2] -> (new carry keys [S, 2], subkeys [S, n, 2])."""
+    both = jax.vmap(lambda k: jax.random.split(k, n + 1))(keys)
+    return both[:, 0], both[:, 1:]
+
+
+class Trainer:
+    """Builds everything for an experiment; see module docstring."""
+
+    def __init__(self, cfg: ExperimentConfig):
+        self.cfg = cfg
+        self.env = make_env(cfg.env, **cfg.env_overrides)
+        kw: dict[str, Any] = {"data": cfg.data} if cfg.data else {}
+        self.train_tasks = make_tasks(cfg.env, "train", cfg.task_seed, config=self.env.config, **kw)
+        self.test_tasks = make_tasks(cfg.env, "test", cfg.task_seed, config=self.env.config, **kw)
+        self.num_train = int(self.train_tasks.start.shape[0])
+        self.obs_dim = self.env.obs_dim(self.train_tasks)
+        self.action_dim = self.env.action_dim
+        self.nets = Networks(cfg.pearl, self.obs_dim, self.action_dim)
+        self.horizon = self.env.config.horizon
+        tc = cfg.train
+        self.enc_capacity = tc.prior_episodes * self.horizon
+        self.bridge = None
+        if tc.eps > 0:
+            from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
+
+            self.bridge = make_mpc_bridge(self.env, MPCConfig(**cfg.mpc))
+        self._collector = collect_lib.make_collector(self.env, self.nets, self.bridge, tc.eps)
+        self._update_body = make_update_body(cfg.pearl, self.obs_dim, self.action_dim)
+        self.collect_phase = jax.jit(
+            self._collect_phase, static_argnums=(2, 3, 4, 5), donate_argnums=0
+        )
+        self.update_phase = jax.jit(self._update_phase, donate_argnums=0)
+        self.evaluate_adapt = eval_lib.make_evaluator(
+            self.env, self.nets, tc.eval_adapt_episodes, online=False
+        )
+        self.evaluate_online = eval_lib.make_evaluator(
+            self.env, self.nets, online=True, t_update=tc.t_update
+        )
+
+    # ------------------------------------------------------------------ state
+    def init_state(self) -> TrainState:
+        cfg = self.cfg
+        keys = jnp.stack([jax.random.PRNGKey(cfg.seed + s) for s in range(cfg.seeds)])
+        keys, sub = _split_keys(keys, 1)
+        learner = jax.vmap(lambda k: init_learner(k, cfg.pearl, self.obs_dim, self.action_dim))(
+            sub[:, 0]
+        )
+        n, od, ad = self.num_train, self.obs_dim, self.action_dim
+        stack = lambda b: jax.tree_util.tree_map(lambda x: jnp.stack([x] * cfg.seeds), b)
+        rl = stack(buffers.init_buffer(n, cfg.train.rl_capacity, od, ad))
+        enc = stack(buffers.init_buffer(n, self.enc_capacity, od, ad))
+        state = TrainState(learner, rl, enc, keys, jnp.zeros((cfg.seeds,), jnp.int32))
+        # distinct device buffers for every leaf (phases donate their input state)
+        return jax.tree_util.tree_map(lambda x: jnp.array(x, copy=True), state)
+
+    # ------------------------------------------------------------- collection
+    def _row_z(self, state: TrainState, keys: Array, rows: Array, posterior: bool) -> Array:
+        """z [S, R, L] per collection row: prior samples, or posterior of sampled context."""
+        cfg = self.cfg.pearl
+
+        def per_seed(learner, enc, key, rows_s):
+            k_c, k_z = jax.random.split(key)
+            shape = (rows_s.shape[0], cfg.latent_dim)
+            if not cfg.use_context:
+                return jnp.zeros(shape)
+            noise = jax.random.normal(k_z, shape)
+            if not posterior:
+                return noise
+            ctx = context_from(buffers.sample(enc, k_c, rows_s, cfg.context_size))
+            mean, var = self.nets.posterior(learner.params["encoder"], ctx)
+            return mean + jnp.sqrt(var) * noise
+
+        return jax.vmap(per_seed)(state.learner, state.enc, keys, rows)
+
+    def _collect_phase(
+        self,
+        state: TrainState,
+        task_ids: Array,
+        episodes: int,
+        posterior: bool,
+        to_encoder: bool,
+        clear_encoder: bool,
+    ) -> tuple[TrainState, dict]:
+        """Collect `episodes` per task of task_ids [S, k] and store them. Returns (state, stats)."""
+        keys, sub = _split_keys(state.key, 2)
+        rows = jnp.repeat(task_ids, episodes, axis=1)  # [S, k * E]
+        enc = state.enc
+        if clear_encoder:
+            enc = jax.vmap(buffers.clear)(enc, task_ids)
+        state = state.replace(enc=enc)
+        z = self._row_z(state, sub[:, 0], rows, posterior)
+        tasks = collect_lib.rows_of(self.train_tasks, rows)
+        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks)
+        s, k = task_ids.shape
+        per_task = jax.tree_util.tree_map(
+            lambda x: x.reshape((s, k, episodes * self.horizon, *x.shape[3:])), ep.transitions
+        )
+        rl = jax.vmap(buffers.insert)(state.rl, task_ids, per_task)
+        if to_encoder:
+            enc = jax.vmap(buffers.insert)(enc, task_ids, per_task)
+        stats = {
+            "return": jnp.mean(jnp.sum(ep.transitions.reward, axis=-1), axis=-1),  # [S]
+            "success": jnp.mean(jnp.any(ep.in_goal, -1) & ~jnp.any(ep.collision, -1), axis=-1),
+            "collision_free": jnp.mean(~jnp.any(ep.collision, -1), axis=-1),
+            "event_rate": jnp.mean(ep.event, axis=(-1, -2)),
+            "mpc_share": jnp.mean(ep.used_mpc, axis=(-1, -2)),
+            "steps": jnp.asarray(ep.transitions.reward[0].size),
+        }
+        return state.replace(rl=rl, enc=enc, key=keys), stats
+
+    def _choose_tasks(self, state: TrainState, k: int) -> tuple[TrainState, Array]:
+        keys, sub = _split_keys(state.key, 1)
+        n = self.num_train
+        pick = lambda key: jax.random.choice(key, n, (min(k, n),), replace=False)
+        return state.replace(key=keys), jax.vmap(pick)(sub[:, 0])
+
+    # ---------------------------------------------------------------- updates
+    def _update_phase(self, state: TrainState) -> tuple[TrainState, dict]:
+        cfg, n = self.cfg.pearl, self.num_train
+        steps = self.cfg.train.updates_per_iteration
+
+        def per_seed(learner, rl, enc, key):
+            def body(learner, k):
+                k_t, k_b, k_c, k_u = jax.random.split(k, 4)
+                tids = jax.random.choice(k_t, n, (cfg.meta_batch,), replace=cfg.meta_batch > n)
+                batch = buffers.sample(rl, k_b, tids, cfg.batch_size)
+                ctx = context_from(buffers.sample(enc, k_c, tids, cfg.context_size))
+                return self._update_body(learner, batch, ctx, k_u)
+
+            learner, ms = jax.lax.scan(body, learner, jax.random.split(key, steps))
+            return learner, jax.tree_util.tree_map(jnp.mean, ms)
+
+        keys, sub = _split_keys(state.key, 1)
+        learner, ms = jax.vmap(per_seed)(state.learner, state.rl, state.enc, sub[:, 0])
+        return state.replace(learner=learner, key=keys), ms
+
+    # -------------------------------------------------------------- iteration
+    def initial_collection(self, state: TrainState) -> tuple[TrainState, dict]:
+        """Iteration 0: every training task, prior z, RL + encoder buffers."""
+        ids = jnp.broadcast_to(jnp.arange(self.num_train), (self.cfg.seeds, self.num_train))
+        return self.collect_phase(state, ids, self.cfg.train.initial_episodes, False, True, True)
+
+    def iteration(self, state: TrainState) -> tuple[TrainState, dict]:
+        """One meta-training iteration: collect (prior, posterior), then N_train updates."""
+        tc = self.cfg.train
+        log: dict[str, Any] = {}
+        t0 = time.perf_counter()
+        mpc0 = self.bridge.stats() if self.bridge is not None else None
+        if int(state.iteration[0]) == 0:
+            state, _ = self.initial_collection(state)
+        state, ids = self._choose_tasks(state, tc.tasks_per_iteration)
+        state, prior = self.collect_phase(state, ids, tc.prior_episodes, False, True, True)
+        post = None
+        if tc.posterior_episodes > 0:
+            state, post = self.collect_phase(state, ids, tc.posterior_episodes, True, False, False)
+        jax.block_until_ready(state.rl.size)
+        t1 = time.perf_counter()
+        state, losses = self.update_phase(state)
+        losses = jax.device_get(losses)
+        t2 = time.perf_counter()
+        bad = [k for k, v in losses.items() if not np.all(np.isfinite(v))]
+        if bad:
+            raise TrainingDiverged(
+                f"non-finite losses {bad} at iteration {int(state.iteration[0]) + 1}; "
+                "the last good checkpoint is kept (lower the learning rate or reward scale)"
+            )
+        state = state.replace(iteration=state.iteration + 1)
+        log["iteration"] = int(state.iteration[0])
+        log["collect_s"] = t1 - t0
+        log["update_s"] = t2 - t1
+        src = post if post is not None else prior
+        for name in ("return", "success", "collision_free", "event_rate", "mpc_share"):
+            log[f"train_{name}"] = float(np.mean(jax.device_get(src[name])))
+        log["train_prior_return"] = float(np.mean(jax.device_get(prior["return"])))
+        if mpc0 is not None:
+            mpc1 = self.bridge.stats()
+            log["mpc_solve_s"] = mpc1.get("solve_time_s", 0.0) - mpc0.get("solve_time_s", 0.0)
+            log["mpc_rows"] = mpc1.get("rows_solved", 0) - mpc0.get("rows_solved", 0)
+            log["mpc_fallbacks"] = mpc1.get("fallbacks", 0) - mpc0.get("fallbacks", 0)
+        log.update({k: float(np.mean(v)) for k, v in losses.items()})
+        return state, log
+
+    # ------------------------------------------------------------- evaluation
+    def evaluate(
+        self,
+        state: TrainState,
+        tasks: TaskParams | None = None,
+        online: bool = False,
+        key: Array | None = None,
+    ) -> dict:
+        """SPEC 8 metrics on `tasks` (default: test tasks), mean and per seed."""
+        tasks = self.test_tasks if tasks is None else tasks
+        key = jax.random.PRNGKey(12345) if key is None else key
+        fn = self.evaluate_online if online else self.evaluate_adapt
+        params = {
+            "policy": state.learner.params["policy"],
+            "encoder": state.learner.params["encoder"],
+        }
+        result = jax.device_get(fn(key, params, tasks))
+        return eval_lib.summarize(result, tasks, self.env.config.robot_radius) | {"_raw": result}
+
+    def steps_per_iteration(self) -> int:
+        tc = self.cfg.train
+        per = tc.tasks_per_iteration * (tc.prior_episodes + tc.posterior_episodes)
+        return per * self.horizon
+
+
+def num_params(tree) -> int:
+    return int(sum(math.prod(x.shape) for x in jax.tree_util.tree_leaves(tree)))
