@@ -9,6 +9,7 @@ from collections.abc import Callable
 from typing import Any
 
 from mpcpearl_jax.envs.navigation import NavEnv
+from mpcpearl_jax.envs.numpy_ref import NumpyNavEnv, task_to_numpy
 from mpcpearl_jax.envs.types import ConfigError, EnvState, NavConfig, StepInfo, TaskParams
 
 SPLITS = ("train", "test", "ood")
@@ -77,10 +78,12 @@ __all__ = [
     "EnvState",
     "NavConfig",
     "NavEnv",
+    "NumpyNavEnv",
     "StepInfo",
     "TaskParams",
     "env_names",
     "make_env",
     "make_tasks",
     "register",
+    "task_to_numpy",
 ]
