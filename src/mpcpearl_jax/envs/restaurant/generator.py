@@ -4,8 +4,9 @@ A task = (table configuration, behaviour). A behaviour fixes, for each of the 6 
 (landmark -> table seat, table seat -> landmark, or landmark -> landmark), a start delay and a
 walking speed. Paths come from a pure-JAX crowd model integrated once per task with `lax.scan`:
 goal attraction at the walking speed, repulsion (with a tangential slide) from tables and other
-people, a speed limit, and a final projection that keeps people out of tables and apart from each
-other. People stand still before their delay and after reaching their goal.
+people, a speed limit, and a final projection that keeps people out of tables, apart from each
+other and inside the walls. People stand still before their delay (nobody pushes a waiting person;
+the walker goes around) and after reaching their goal.
 """
 
 from __future__ import annotations
@@ -75,7 +76,8 @@ class CrowdModel:
     table_influence: float = 0.6  # repulsion acts within this clearance to a table
     human_influence: float = 0.5
     tangential: float = 1.0  # weight of the sideways slide around obstacles
-    projection_iters: int = 12
+    projection_iters: int = 48
+    separation_margin: float = 1e-2  # people are kept this much further apart than 2 r_d
 
 
 def _unit(v: Array, eps: float = 1e-6) -> Array:
@@ -86,20 +88,37 @@ def _rot90(v: Array) -> Array:
     return jnp.stack([-v[..., 1], v[..., 0]], axis=-1)
 
 
-def _project(p: Array, tables: Array, min_table: float, min_human: float, iters: int) -> Array:
-    """Push people [H, 2] out of the table discs and apart from each other."""
+def _project(
+    p: Array,
+    tables: Array,
+    min_table: float,
+    min_human: float,
+    iters: int,
+    bounds: tuple[Array, Array],
+    mobile: Array | None = None,
+) -> Array:
+    """Push people [H, 2] out of the table discs, apart from each other and inside `bounds`.
+
+    `mobile` [H] bool marks who may be pushed (default: everyone); a person who is not mobile
+    (still waiting for their start) stays put and the other one of an overlapping pair moves.
+    """
+    m = jnp.ones(p.shape[0]) if mobile is None else mobile.astype(p.dtype)
+    # share of an overlap taken by i in the pair (i, j): 1/2 if both mobile, 1 if j is not
+    share = m[:, None] / jnp.maximum(m[:, None] + m[None, :], 1e-6)
 
     def one(p, _):
-        # people apart (Jacobi, half the overlap each)
+        # people apart (Jacobi)
         diff = p[:, None, :] - p[None, :, :]
         dist = jnp.linalg.norm(diff, axis=-1) + jnp.eye(p.shape[0]) * 1e3
         overlap = jnp.maximum(min_human - dist, 0.0)
-        p = p + 0.5 * jnp.sum(overlap[..., None] * _unit(diff), axis=1)
+        p = p + jnp.sum((share * overlap)[..., None] * _unit(diff), axis=1)
         # out of tables (exact)
         d = p[:, None, :] - tables[None, :, :]
         dn = jnp.linalg.norm(d, axis=-1)
         push = jnp.maximum(min_table - dn, 0.0)
         p = p + jnp.sum(push[..., None] * _unit(d), axis=1)
+        # inside the walls (tables stand well away from them)
+        p = jnp.clip(p, bounds[0], bounds[1])
         return p, None
 
     p, _ = jax.lax.scan(one, p, None, length=iters)
@@ -121,8 +140,13 @@ def simulate_crowd(
       start, goal: [H, 2]; delay: [H] int steps; speed: [H] m/s; tables: [S, 2] centres.
     """
     dt = cfg.dt
-    min_table = TABLE_RADIUS + cfg.human_radius + 1e-3
-    min_human = 2 * cfg.human_radius + 1e-3
+    min_table = TABLE_RADIUS + cfg.human_radius + 1e-3  # the table push is exact
+    # the pairwise push is iterative and the table push may undo a little of it: aim wider
+    min_human = 2 * cfg.human_radius + model.separation_margin
+    bounds = (
+        jnp.asarray(cfg.arena_lo) + cfg.human_radius,
+        jnp.asarray(cfg.arena_hi) - cfg.human_radius,
+    )
 
     def step(p, t):
         to_goal = goal - p
@@ -146,11 +170,14 @@ def simulate_crowd(
         v = v * jnp.minimum(1.0, speed[:, None] / (v_norm + 1e-6))
         moving = (t >= delay) & (dist_goal[:, 0] > 1e-3)
         p_new = jnp.where(moving[:, None], p + dt * v, p)
-        p_new = _project(p_new, tables, min_table, min_human, model.projection_iters)
-        # people who are not moving hold still unless pushed
+        p_new = _project(
+            p_new, tables, min_table, min_human, model.projection_iters, bounds, t >= delay
+        )
+        # people who have started but stand (at their goal) may be pushed aside
         return p_new, p_new
 
-    p0 = _project(start, tables, min_table, min_human, model.projection_iters)
+    # start from a converged arrangement, so that waiting people are not nudged later
+    p0 = _project(start, tables, min_table, min_human, 8 * model.projection_iters, bounds)
     _, path = jax.lax.scan(step, p0, jnp.arange(cfg.horizon))
     return jnp.concatenate([p0[None], path], axis=0)
 
