@@ -72,8 +72,20 @@ def _register_builtin() -> None:
 
 _register_builtin()
 
+_LAZY = {"BraxNavEnv": "brax_adapter"}  # brax is imported only when the adapter is used
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 __all__ = [
     "SPLITS",
+    "BraxNavEnv",
     "ConfigError",
     "EnvState",
     "NavConfig",
