@@ -1,0 +1,179 @@
+"""Meta-training end to end at tiny scale: tracing, resume, checkpoints, load_policy, CLI."""
+
+import json
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mpcpearl_jax.checkpoint import CheckpointError, load_policy
+from mpcpearl_jax.config import ExperimentConfig, PearlConfig, TrainConfig, preset
+from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.run import train
+from mpcpearl_jax.trainer import Trainer
+
+TINY = ExperimentConfig(
+    seeds=2,
+    pearl=PearlConfig(hidden=(16, 16), encoder_hidden=(16,), latent_dim=3, meta_batch=3,
+                      batch_size=16, context_size=8),
+    train=TrainConfig(iterations=3, initial_episodes=1, tasks_per_iteration=2, prior_episodes=1,
+                      posterior_episodes=1, updates_per_iteration=3, rl_capacity=400,
+                      eps=0.0, eval_interval=0, checkpoint_interval=1, keep_checkpoints=2),
+)
+
+
+@pytest.fixture(scope="module")
+def trainer():
+    return Trainer(TINY)
+
+
+def _leaves_equal(a, b):
+    la, lb = jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)
+    assert len(la) == len(lb)
+    for x, y in zip(la, lb, strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_collection_and_update_trace_once(trainer):
+    state = trainer.init_state()
+    state, _ = trainer.initial_collection(state)
+    upd = jax.jit(chex.assert_max_traces(trainer._update_phase, n=1))
+    for _ in range(2):
+        state, m = upd(state)
+    assert np.all(np.isfinite(np.asarray(m["q_loss"])))
+    coll = jax.jit(chex.assert_max_traces(trainer._collector, n=1))
+    rows = jnp.array([[0, 1], [2, 3]])
+    tasks = jax.tree_util.tree_map(lambda x: x[rows], trainer.train_tasks)
+    for i in range(2):
+        z = jax.random.normal(jax.random.PRNGKey(i), (2, 2, 3))
+        ep = coll(jax.random.PRNGKey(i), state.learner.params["policy"], z, tasks)
+    assert ep.transitions.obs.shape == (2, 2, trainer.horizon, trainer.obs_dim)
+    assert ep.position.shape == (2, 2, trainer.horizon + 1, 2)
+    chex.clear_trace_counter()
+
+
+def test_buffers_fill_and_encoder_buffer_resets(trainer):
+    state = trainer.init_state()
+    state, log = trainer.iteration(state)
+    T = trainer.horizon
+    rl_size = np.asarray(state.rl.size)
+    enc_size = np.asarray(state.enc.size)
+    # iteration 1: all tasks got 1 initial episode; 2 tasks got 1 prior + 1 posterior more
+    assert rl_size.shape == (2, trainer.num_train)
+    assert np.all(np.isin(rl_size, [T, 3 * T]))
+    assert np.all((rl_size == 3 * T).sum(1) == 2)
+    # encoder buffer: only the most recent prior collection (cleared on the visit)
+    assert np.all(enc_size == T)
+    assert log["iteration"] == 1 and np.isfinite(log["q_loss"])
+
+
+def test_resume_equals_uninterrupted(tmp_path):
+    cfg = TINY
+    _, full = train(cfg, tmp_path / "full", progress=False)
+    short = cfg.replace(train=TrainConfig(**{**cfg.train.__dict__, "iterations": 2}))
+    train(short, tmp_path / "cut", progress=False)
+    _, resumed = train(cfg, tmp_path / "cut", resume=True, progress=False)
+    _leaves_equal(full, resumed)
+    log = [json.loads(x) for x in (tmp_path / "cut" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in log] == [1, 2, 3]
+
+
+def test_resume_with_other_config_is_a_clear_error(tmp_path):
+    train(TINY, tmp_path / "run", progress=False)
+    other = TINY.replace(pearl=TINY.pearl.replace(lr=1e-3))
+    with pytest.raises(CheckpointError, match="pearl.lr"):
+        train(other, tmp_path / "run", resume=True, progress=False)
+    with pytest.raises(CheckpointError, match="--resume"):
+        train(TINY, tmp_path / "run", progress=False)
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+    run = tmp_path / "run"
+    train(TINY, run, progress=False)
+    ckpts = sorted((run / "checkpoints").iterdir(), key=lambda p: int(p.name))
+    assert len(ckpts) == TINY.train.keep_checkpoints  # keeps only the last few
+    for p in ckpts[-1].rglob("*"):
+        if p.is_file() and p.stat().st_size > 0 and "metadata" not in p.name:
+            p.write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match="cannot restore"):
+        train(TINY.replace(train=TrainConfig(**{**TINY.train.__dict__, "iterations": 5})),
+              run, resume=True, progress=False)
+    (run / "policy.msgpack").write_bytes(b"junk")
+    with pytest.raises(CheckpointError, match="policy.msgpack"):
+        load_policy(run)
+
+
+def test_load_policy_acts_like_training_policy(tmp_path):
+    trainer, state = train(TINY, tmp_path / "run", progress=False)
+    pol = load_policy(tmp_path / "run", seed_index=1)
+    obs = jax.random.uniform(jax.random.PRNGKey(0), (5, trainer.obs_dim), minval=-1, maxval=1)
+    z = jax.random.normal(jax.random.PRNGKey(1), (5, 3))
+    params1 = jax.tree_util.tree_map(lambda x: x[1], state.learner.params["policy"])
+    ref = trainer.nets.act(params1, obs, z, None)
+    act, infer = pol.jit()
+    np.testing.assert_allclose(act(obs, z), ref, rtol=1e-6)
+    ctx = jax.random.normal(jax.random.PRNGKey(2), (8, trainer.nets.context_dim))
+    zc = infer(ctx)
+    assert zc.shape == (3,)
+    a = jax.jit(pol.__call__)(obs, ctx)
+    assert a.shape == (5, 2) and bool(jnp.all(jnp.abs(a) <= 1))
+    with pytest.raises(ValueError, match="seed_index"):
+        load_policy(tmp_path / "run", seed_index=2)
+
+
+@pytest.mark.parametrize(
+    "make",
+    [lambda: TrainConfig(eps=1.5), lambda: TrainConfig(updates_per_iteration=0),
+     lambda: TrainConfig(iterations=-3), lambda: ExperimentConfig(seeds=0)],
+)
+def test_invalid_train_config_is_rejected(make):
+    with pytest.raises(ConfigError, match=r"\.(eps|updates_per_iteration|iterations|seeds)"):
+        make()
+
+
+def test_cli_rejects_bad_values(capsys):
+    from experiments.common import main
+
+    assert main("restaurant", ["--preset", "smoke", "--eps", "2"]) == 2
+    assert "TrainConfig.eps" in capsys.readouterr().err
+    assert main("restaurant", ["--preset", "smoke", "--set", "pearl.nope=1"]) == 2
+    assert "nope" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main("restaurant", ["--preset", "nosuch"])
+
+
+def test_restaurant_cli_smoke(tmp_path):
+    """The README's main command at the smoke preset, PEARL and MPC-SAC variants (eps = 0)."""
+    from experiments.common import main
+
+    out = tmp_path / "r"
+    assert main("restaurant", ["--preset", "smoke", "--eps", "0", "--iterations", "2",
+                               "--out", str(out), "--no-progress"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    for m in ("SR", "TT", "CFR", "SPL", "MGD"):
+        assert m in res["test_adapt"] and m in res["test_online"]
+    assert (out / "learning_curves.png").stat().st_size > 1000
+    assert len((out / "metrics.jsonl").read_text().splitlines()) == 2
+
+
+def test_presets_are_valid():
+    for name in ("smoke", "default", "cpu", "paper"):
+        cfg = preset(name)
+        assert cfg.train.iterations > 0
+    assert preset("paper").pearl == PearlConfig()
+    assert preset("paper").train == TrainConfig()
+
+
+@pytest.mark.slow
+def test_short_run_improves_training_return(tmp_path):
+    """A few minutes of PEARL training raise the return on the training tasks."""
+    cfg = preset("default").replace(
+        train=TrainConfig(**{**preset("default").train.__dict__, "eps": 0.0, "iterations": 40,
+                             "eval_interval": 0}))
+    train(cfg, tmp_path / "run", progress=False)
+    rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    first = np.mean([r["train_return"] for r in rows[:5]])
+    last = np.mean([r["train_return"] for r in rows[-5:]])
+    assert last > first + 50, (first, last)
