@@ -1,0 +1,234 @@
+"""The bridge from jitted rollouts to the host MPC (SPEC 6).
+
+One batch-level `lax.cond(jnp.any(fire))` guards the GP prediction (JAX) and a single
+`jax.pure_callback` that receives the whole env batch plus the fire mask; the host solves only the
+fired rows. Usable inside `jit` and a `lax.scan` over time with a flat batch B (seeds x tasks x
+envs folded into one axis; an outer vmap would batch the predicate and is refused).
+
+Per-row memory on the host (previous plan and the step it was made at) gives warm starts: a row
+whose t is the previous t + 1 starts from the shifted plan, otherwise from a cold start.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from mpcpearl_jax.envs.navigation import NavEnv
+from mpcpearl_jax.envs.types import EnvState, TaskParams
+from mpcpearl_jax.mpc.config import MPCConfig
+from mpcpearl_jax.mpc.gp import predict_row
+from mpcpearl_jax.mpc.solver import (
+    RowProblem,
+    SolveResult,
+    SQPSolver,
+    solve_in_worker,
+    solver_params,
+)
+
+# per-row status codes returned by the bridge
+NOT_FIRED = 0
+SOLVED = 1  # the MPC action of a safe solve
+FALLBACK_PLAN = 2  # solve failed or unsafe: the previous plan shifted by one step
+FALLBACK_POLICY = 3  # solve failed or unsafe and no previous plan: the policy action
+STATUS_NAMES = {
+    NOT_FIRED: "not_fired",
+    SOLVED: "solved",
+    FALLBACK_PLAN: "fallback_plan",
+    FALLBACK_POLICY: "fallback_policy",
+}
+
+
+class MPCBridge:
+    """`bridge(key, fire, states, params, policy_actions) -> (actions, used_mpc, status)`.
+
+    fire [B] bool; states EnvState with pose [B, 3], t [B]; params TaskParams batched [B];
+    policy_actions [B, 2] normalized. Returns actions [B, 2] normalized (the MPC action on fired
+    rows with a safe solve, else the fallback), used_mpc [B] bool (fired and solved), status [B]
+    int32 (codes above). `stats()` / `reset_stats()` expose host-side counters.
+    """
+
+    def __init__(self, env: NavEnv, cfg: MPCConfig):
+        if not isinstance(cfg, MPCConfig):
+            raise TypeError(f"cfg must be an MPCConfig, got {type(cfg).__name__}")
+        self.env = env
+        self.cfg = cfg
+        self._solvers: dict[Any, SQPSolver] = {}
+        self._pool: ProcessPoolExecutor | None = None
+        self._plans = np.zeros((0, cfg.horizon, 2))
+        self._plan_t = np.zeros(0, np.int64)
+        self.reset_stats()
+
+    # ---------------------------------------------------------------- JAX side
+    def __call__(
+        self, key: Array, fire: Array, states: EnvState, params: TaskParams, policy_actions: Array
+    ) -> tuple[Array, Array, Array]:
+        batch = fire.shape[0]
+        out_shapes = (
+            jax.ShapeDtypeStruct((batch, 2), jnp.float32),
+            jax.ShapeDtypeStruct((batch,), jnp.bool_),
+            jax.ShapeDtypeStruct((batch,), jnp.int32),
+        )
+
+        def solve(_):
+            samples, valid = self.predict(key, states, params)
+            return jax.pure_callback(
+                self._host,
+                out_shapes,
+                fire,
+                states.pose,
+                states.t,
+                params.goal,
+                params.static_lo,
+                params.static_hi,
+                params.static_radius,
+                samples,
+                valid,
+                policy_actions.astype(jnp.float32),
+            )
+
+        def skip(_):
+            return (
+                policy_actions.astype(jnp.float32),
+                jnp.zeros(batch, bool),
+                jnp.zeros(batch, jnp.int32),
+            )
+
+        return jax.lax.cond(jnp.any(fire), solve, skip, None)
+
+    def predict(self, key: Array, states: EnvState, params: TaskParams) -> tuple[Array, Array]:
+        """GP samples for every row: [B, K, N_adapt, M, 2] and valid [B, N_adapt]."""
+        keys = jax.random.split(key, states.t.shape[0])
+        row = lambda k, pose, t, hp, hm: predict_row(k, pose, t, hp, hm, self.cfg)  # noqa: E731
+        return jax.vmap(row)(keys, states.pose, states.t, params.human_pos, params.human_mask)
+
+    # ---------------------------------------------------------------- host side
+    def _host(self, fire, pose, t, goal, lo, hi, rad, samples, valid, policy):
+        t_start = time.perf_counter()
+        fire, t = np.asarray(fire, bool), np.asarray(t, np.int64)
+        self._resize(fire.shape[0])
+        actions = np.array(policy, np.float32)
+        status = np.zeros(fire.shape[0], np.int32)
+        rows = np.flatnonzero(fire)
+        f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
+        probs = [
+            RowProblem(
+                f64(pose[b]),
+                f64(goal[b]),
+                f64(samples[b]),
+                np.asarray(valid[b], bool),
+                f64(lo[b]),
+                f64(hi[b]),
+                f64(rad[b]),
+            )
+            for b in rows
+        ]
+        inits = [self._warm_plan(b, t[b]) for b in rows]
+        results = self._solve_rows(probs, inits, lo.shape[1])
+        for b, res in zip(rows, results, strict=True):
+            status[b], act = self._merge_row(b, t[b], res)
+            if act is not None:
+                actions[b] = act
+        self._record(results, status[rows], time.perf_counter() - t_start)
+        return actions, status == SOLVED, status
+
+    def _resize(self, batch: int) -> None:
+        if self._plans.shape[0] != batch:
+            self._plans = np.zeros((batch, self.cfg.horizon, 2))
+            self._plan_t = np.full(batch, -10, np.int64)
+
+    def _warm_plan(self, b: int, t: int) -> np.ndarray | None:
+        """The row's previous plan shifted by one step if it was made at t - 1, else None."""
+        if self._plan_t[b] != t - 1:
+            return None
+        return np.concatenate([self._plans[b, 1:], self._plans[b, -1:]], axis=0)
+
+    def _merge_row(self, b: int, t: int, res: SolveResult) -> tuple[int, np.ndarray | None]:
+        """Update the row's memory; return (status, normalized action or None for the policy)."""
+        if res.ok:
+            self._plans[b], self._plan_t[b] = res.u, t
+            return SOLVED, self._normalize(res.u[0])
+        shifted = self._warm_plan(b, t)
+        if shifted is not None:  # SPEC 6 fallback: the previous plan shifted by one step
+            self._plans[b], self._plan_t[b] = shifted, t
+            return FALLBACK_PLAN, self._normalize(shifted[0])
+        self._plan_t[b] = -10
+        return FALLBACK_POLICY, None
+
+    def _normalize(self, u: np.ndarray) -> np.ndarray:
+        """Physical (v, delta) -> normalized action of the env (as dynamics.to_normalized)."""
+        v = np.clip(u[0], 0.0, self.env.config.v_max)
+        d = np.clip(u[1], -np.pi / 2, np.pi / 2)
+        return np.array([2.0 * v / self.env.config.v_max - 1.0, d / (np.pi / 2)], np.float32)
+
+    def _solve_rows(self, probs, inits, num_static: int) -> list[SolveResult]:
+        params = solver_params(self.cfg, self.env.config, num_static)
+        if self.cfg.n_workers > 1 and len(probs) > 1:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(
+                    self.cfg.n_workers, mp_context=get_context("spawn")
+                )
+            return list(self._pool.map(solve_in_worker, [params] * len(probs), probs, inits))
+        solver = self._solvers.get(params)
+        if solver is None:
+            solver = self._solvers[params] = SQPSolver(params)
+        return [solver.solve(p, u0) for p, u0 in zip(probs, inits, strict=True)]
+
+    # ---------------------------------------------------------------- stats
+    def _record(self, results: list[SolveResult], status: np.ndarray, host_s: float) -> None:
+        s = self._stats
+        s["calls"] += 1
+        s["rows_solved"] += len(results)
+        s["host_call_s"].append(host_s)
+        s["status"].update(STATUS_NAMES[int(c)] for c in status)
+        s["reasons"].update(r.reason for r in results)
+        s["solve_s"].extend(r.solve_time for r in results)
+        s["qp_iters"].extend(r.qp_iters for r in results)
+        s["n_qp"].extend(r.n_qp for r in results)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters since the last reset: calls (host callbacks), rows_solved, fallbacks, status
+        and reason counts, per-row solve times (s), QP iterations and QPs per row, host time per
+        call (s)."""
+        s = self._stats
+        out = {
+            k: (dict(v) if isinstance(v, Counter) else (list(v) if isinstance(v, list) else v))
+            for k, v in s.items()
+        }
+        out["fallbacks"] = s["status"]["fallback_plan"] + s["status"]["fallback_policy"]
+        return out
+
+    def reset_stats(self) -> None:
+        self._stats: dict[str, Any] = {
+            "calls": 0,
+            "rows_solved": 0,
+            "status": Counter(),
+            "reasons": Counter(),
+            "solve_s": [],
+            "qp_iters": [],
+            "n_qp": [],
+            "host_call_s": [],
+        }
+
+    def reset_memory(self) -> None:
+        """Forget every row's previous plan (the next solves start cold)."""
+        self._plan_t[:] = -10
+
+    def close(self) -> None:
+        """Shut the worker pool down (if any)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+
+def make_mpc_bridge(env: NavEnv, cfg: MPCConfig | None = None) -> MPCBridge:
+    """The MPC bridge of SPEC 6 for an env (see `MPCBridge`)."""
+    return MPCBridge(env, cfg or MPCConfig())
