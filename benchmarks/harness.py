@@ -1,11 +1,17 @@
-"""Shared helpers for benchmark scripts: timing, machine info, tables and JSON records.
+"""Shared helpers for benchmark scripts: threads, timing, machine info, tables and JSON records.
 
 Every script prints a table and writes a JSON record with the machine, versions, config, raw
-timings, medians and ratios (measured in the same run).
+timings, medians and ratios (measured in the same run). Scripts share the command-line flags of
+`common_parser`: `--tiny` (seconds, used by the tests), default (the `benchmarks.all` size),
+`--full` (the paper's sizes), `--out DIR` and `--threads N`.
+
+Call `configure_threads` *before* JAX or PyTorch start their thread pools (i.e. before the first
+JAX computation), so that both libraries get the same number of cores.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -17,15 +23,97 @@ from pathlib import Path
 from typing import Any
 
 DEFAULT_OUT = Path("benchmarks") / "results"
+SIZES = ("tiny", "default", "full")
 
 
+# ------------------------------------------------------------------------------ CLI
+def common_parser(description: str) -> argparse.ArgumentParser:
+    """Parser with the flags every benchmark script understands."""
+    p = argparse.ArgumentParser(description=description)
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--tiny", action="store_true", help="seconds-long smoke run (tests)")
+    size.add_argument("--full", action="store_true", help="the paper's sizes (slow)")
+    p.add_argument("--out", default=str(DEFAULT_OUT), help="directory of the JSON record")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="CPU cores for JAX and PyTorch alike (default: all cores this process may use)",
+    )
+    return p
+
+
+def size_of(args: argparse.Namespace) -> str:
+    """'tiny', 'default' or 'full' from parsed `common_parser` flags."""
+    return "tiny" if args.tiny else "full" if args.full else "default"
+
+
+# -------------------------------------------------------------------------- threads
+def available_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def configure_threads(n: int | None) -> dict[str, Any]:
+    """Give JAX (XLA) and PyTorch the same `n` CPU cores; returns what was set, for the record.
+
+    The process is pinned to `n` cores (XLA sizes its intra-op pool from the schedulable cores);
+    with n == 1 XLA's multi-threaded Eigen is also switched off. PyTorch gets
+    `set_num_threads(n)` when it is imported later through `torch_threads`.
+    """
+    n = n or available_cores()
+    info: dict[str, Any] = {"threads": n}
+    jax_started = "jax" in sys.modules
+    if hasattr(os, "sched_setaffinity"):
+        cores = sorted(os.sched_getaffinity(0))
+        if n > len(cores):
+            raise ValueError(f"--threads {n} but only {len(cores)} cores are available")
+        os.sched_setaffinity(0, cores[:n])
+        info["affinity"] = cores[:n]
+    if n == 1:
+        flags = os.environ.get("XLA_FLAGS", "")
+        extra = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+        os.environ["XLA_FLAGS"] = (flags + " " + extra).strip()
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = str(n)
+    info["xla_flags"] = os.environ.get("XLA_FLAGS", "")
+    if jax_started:
+        info["note"] = "jax was imported before configure_threads; XLA flags may not apply"
+    return info
+
+
+def torch_threads(n: int) -> dict[str, Any] | None:
+    """Import PyTorch with `n` intra-op threads; None when it is not installed."""
+    try:
+        import torch
+    except ImportError:
+        return None
+    torch.set_num_threads(n)
+    try:
+        torch.set_num_interop_threads(1)
+    except RuntimeError:  # already set in this process
+        pass
+    return {"torch": torch.__version__, "torch_threads": torch.get_num_threads()}
+
+
+TORCH_MISSING = (
+    "PyTorch is not installed: skipping the PyTorch comparison "
+    "(install the optional extra: pip install -e '.[bench]', i.e. torch==2.13.0 CPU)"
+)
+
+
+# -------------------------------------------------------------------------- machine
 def machine_info() -> dict[str, Any]:
     """CPU, thread and library versions of this run."""
     info: dict[str, Any] = {
         "platform": platform.platform(),
         "python": sys.version.split()[0],
         "cpu_count": os.cpu_count(),
+        "cores_available": available_cores(),
         "processor": platform.processor() or platform.machine(),
+        "loadavg_1m_5m_15m": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
     }
     try:
         with open("/proc/cpuinfo") as f:
@@ -36,6 +124,8 @@ def machine_info() -> dict[str, Any]:
     except OSError:
         pass
     for mod in ("jax", "jaxlib", "flax", "optax", "numpy", "osqp", "torch"):
+        if mod == "torch" and "torch" not in sys.modules:
+            continue  # do not import torch just to print its version
         try:
             info[mod] = __import__(mod).__version__
         except Exception:  # noqa: BLE001 - optional packages
@@ -49,13 +139,34 @@ def machine_info() -> dict[str, Any]:
     return info
 
 
+# --------------------------------------------------------------------------- timing
+def summarize(raw: Sequence[float]) -> dict[str, Any]:
+    """Median, quartiles, min and max of raw samples."""
+    xs = sorted(raw)
+    q = statistics.quantiles(xs, n=4, method="inclusive") if len(xs) >= 2 else [xs[0]] * 3
+    return {
+        "raw_s": list(raw),
+        "median_s": statistics.median(xs),
+        "p25_s": q[0],
+        "p75_s": q[2],
+        "min_s": xs[0],
+        "max_s": xs[-1],
+    }
+
+
 def time_fn(
-    fn: Callable[[], Any], *, repeats: int = 5, warmup: int = 1, block: Callable[[Any], Any] | None = None
+    fn: Callable[[], Any],
+    *,
+    repeats: int = 5,
+    warmup: int = 1,
+    block: Callable[[Any], Any] | None = None,
+    inner: int = 1,
 ) -> dict[str, Any]:
     """Time `fn()` `repeats` times after `warmup` calls (the first call's time = compile time).
 
     `block` is applied to the result to wait for asynchronous work (e.g. jax.block_until_ready).
-    Returns seconds: first_call_s, raw, median, min, max.
+    Each sample runs `fn` `inner` times and is divided by `inner` (seconds per call).
+    Returns seconds per call: first_call_s, raw_s, median_s, p25_s, p75_s, min_s, max_s.
     """
     block = block or (lambda x: x)
     t0 = time.perf_counter()
@@ -66,17 +177,26 @@ def time_fn(
     raw = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        block(fn())
-        raw.append(time.perf_counter() - t0)
-    return {
-        "first_call_s": first,
-        "raw_s": raw,
-        "median_s": statistics.median(raw),
-        "min_s": min(raw),
-        "max_s": max(raw),
-    }
+        for _ in range(inner):
+            out = fn()
+        block(out)
+        raw.append((time.perf_counter() - t0) / inner)
+    return {"first_call_s": first, "inner": inner, **summarize(raw)}
 
 
+def calls_for(seconds_per_call: float, target_s: float) -> int:
+    """How many calls make one timing sample last about `target_s` seconds."""
+    return max(1, int(target_s / max(seconds_per_call, 1e-9)))
+
+
+def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
+    """(fn(), seconds) for a one-off measurement such as a compilation."""
+    t0 = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t0
+
+
+# ---------------------------------------------------------------------------- output
 def print_table(rows: Sequence[dict[str, Any]], columns: Sequence[str], title: str = "") -> str:
     """Print rows as a Markdown table (also returned)."""
 
@@ -95,13 +215,27 @@ def print_table(rows: Sequence[dict[str, Any]], columns: Sequence[str], title: s
     return text
 
 
-def write_record(name: str, config: dict[str, Any], results: Any, out_dir: str | Path | None = None) -> Path:
+def write_record(
+    name: str, config: dict[str, Any], results: Any, out_dir: str | Path | None = None
+) -> Path:
     """Write {machine, config, results} to OUT/name.json and return the path."""
     out = Path(out_dir) if out_dir else DEFAULT_OUT
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{name}.json"
-    record = {"benchmark": name, "machine": machine_info(), "config": config, "results": results,
-              "time": time.strftime("%Y-%m-%dT%H:%M:%S")}
-    path.write_text(json.dumps(record, indent=2, default=float))
+    record = {
+        "benchmark": name,
+        "machine": machine_info(),
+        "config": config,
+        "results": results,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+    path.write_text(json.dumps(record, indent=2, default=_jsonable))
     print(f"wrote {path}", flush=True)
     return path
+
+
+def _jsonable(x: Any) -> Any:
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return str(x)

@@ -1,0 +1,84 @@
+"""Run every benchmark script, each in its own process, and collect their JSON records.
+
+    python -m benchmarks.all            # about 10 minutes on a 2-core CPU
+    python -m benchmarks.all --full     # the paper's sizes (hours)
+    python -m benchmarks.all --tiny     # seconds per script (smoke test)
+    options: --out DIR (default benchmarks/results), --threads N, --only NAME [NAME ...]
+
+Each script gets the same size flag, `--out` and `--threads`. With `--full`, the PEARL step is
+also measured with 1 thread (into OUT/threads1/), as in the authors' same-CPU anchor. A script
+that fails is reported and the others still run; the exit status is non-zero if any failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from benchmarks import harness
+
+# Run order: cheap and independent first. mpc_latency.py belongs to the MPC module.
+SCRIPTS = (
+    "env_throughput",
+    "pearl_step",
+    "policy_latency",
+    "mpc_latency",
+    "memory",
+    "iteration",
+)
+
+
+def run_script(name: str, size_flag: list[str], out: Path, threads: int | None) -> dict:
+    """Run `python -m benchmarks.NAME`; returns {name, rc, wall_s}."""
+    cmd = [sys.executable, "-m", f"benchmarks.{name}", *size_flag, "--out", str(out)]
+    if threads:
+        cmd += ["--threads", str(threads)]
+    print(f"\n=== {' '.join(cmd[1:])}", flush=True)
+    t0 = time.perf_counter()
+    rc = subprocess.run(cmd, check=False, cwd=Path(__file__).resolve().parents[1]).returncode
+    wall = time.perf_counter() - t0
+    print(f"=== {name}: {'ok' if rc == 0 else f'FAILED (exit {rc})'} in {wall:.0f} s", flush=True)
+    return {"name": name, "rc": rc, "wall_s": wall, "cmd": cmd[1:]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--tiny", action="store_true")
+    size.add_argument("--full", action="store_true")
+    p.add_argument("--out", default=str(harness.DEFAULT_OUT))
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--only", nargs="+", choices=SCRIPTS, default=None)
+    args = p.parse_args(argv)
+    flag = ["--tiny"] if args.tiny else ["--full"] if args.full else []
+    out = Path(args.out)
+    here = Path(__file__).parent
+    runs = []
+    t0 = time.perf_counter()
+    for name in args.only or SCRIPTS:
+        if not (here / f"{name}.py").is_file():
+            print(f"\n=== {name}: skipped (benchmarks/{name}.py is not present)", flush=True)
+            runs.append({"name": name, "rc": None, "wall_s": 0.0})
+            continue
+        runs.append(run_script(name, flag, out, args.threads))
+        if name == "pearl_step" and args.full and args.threads != 1:
+            runs.append(run_script(name, flag, out / "threads1", 1))
+    total = time.perf_counter() - t0
+    harness.print_table(runs, ["name", "rc", "wall_s"], f"benchmarks.all ({total:.0f} s)")
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {
+        "runs": runs,
+        "total_s": total,
+        "machine": harness.machine_info(),
+        "size": flag[0][2:] if flag else "default",
+    }
+    (out / "all.json").write_text(json.dumps(summary, indent=2))
+    return 1 if any(r["rc"] not in (0, None) for r in runs) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,68 @@
+"""Every benchmark script runs at its tiny size and writes its JSON record (so none can rot).
+
+Numbers from these runs mean nothing: the sizes are chosen only to exercise the code.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import os
+from pathlib import Path
+
+import pytest
+
+SCRIPTS = ["env_throughput", "pearl_step", "policy_latency", "memory", "iteration"]
+
+
+@pytest.fixture
+def clean_environ():
+    """Restore the environment variables the scripts set, and compile with few optimisations."""
+    import jax
+
+    saved = dict(os.environ)
+    os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"  # for child processes
+    jax.config.update("jax_disable_most_optimizations", True)
+    yield
+    jax.config.update("jax_disable_most_optimizations", False)
+    os.environ.clear()
+    os.environ.update(saved)
+
+
+@pytest.mark.parametrize("name", SCRIPTS)
+def test_script_runs_tiny(name: str, tmp_path: Path, clean_environ) -> None:
+    module = importlib.import_module(f"benchmarks.{name}")
+    module.main(["--tiny", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / f"{name}.json").read_text())
+    assert record["benchmark"] == name
+    assert record["config"]["size"] == "tiny"
+    assert {"platform", "cpu_count", "jax"} <= set(record["machine"])
+    assert record["results"]
+
+
+def test_torch_baseline_step_changes_parameters() -> None:
+    torch = pytest.importorskip("torch")
+    from benchmarks.torch_pearl import TorchPearl, TorchPearlSizes, random_batch
+
+    sizes = TorchPearlSizes(hidden=(16, 16), encoder_hidden=(16, 16), latent_dim=3)
+    model = TorchPearl(5, 2, sizes)
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    enc_before = [p.detach().clone() for p in model.encoder.parameters()]
+    losses = model.step(*random_batch(2, 8, 4, 5, 2))
+    assert all(math.isfinite(v) for v in losses.values())
+    assert any(
+        not torch.equal(a, b) for a, b in zip(before, model.policy.parameters(), strict=True)
+    )
+    assert any(
+        not torch.equal(a, b) for a, b in zip(enc_before, model.encoder.parameters(), strict=True)
+    )
+
+
+def test_all_lists_every_script() -> None:
+    from benchmarks import all as bench_all
+
+    root = Path(bench_all.__file__).parent
+    assert set(SCRIPTS) <= set(bench_all.SCRIPTS)
+    for name in SCRIPTS:
+        assert (root / f"{name}.py").is_file()
