@@ -46,6 +46,9 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
         "--set pearl.hidden=[256,256] --set mpc.v_max=4 (JSON values)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    if env == "sidewalk":
+        p.add_argument("--data", type=Path, help="an ETH/UCY trajectory file (e.g. UCY "
+                       "crowds_zara01.txt); default: the built-in synthetic crowd")
     return p
 
 
@@ -73,6 +76,10 @@ def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfi
         sections[""]["seeds"] = args.seeds
     if args.seed is not None:
         sections[""]["seed"] = args.seed
+    if getattr(args, "data", None) is not None:
+        if not Path(args.data).is_file():
+            raise ConfigError(f"--data {args.data}: no such file")
+        sections[""]["data"] = str(args.data)
     if args.algo == "sac":
         sections["pearl"]["use_context"] = False
     for item in args.set:
