@@ -42,7 +42,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(prog="python -m experiments.gp_mpc", description=__doc__)
     ap.add_argument("--env", default="restaurant")
     ap.add_argument("--split", default="test")
-    ap.add_argument("--seed", type=int, default=0, help="task seed and sampling seed")
+    ap.add_argument("--seed", type=int, default=0, help="task-set seed")
+    ap.add_argument("--sample-seed", type=int, default=0, help="seed of the GP samples")
     ap.add_argument(
         "--set",
         action="append",
@@ -59,7 +60,7 @@ def main() -> None:
     cfg = MPCConfig(**parse_overrides(args.set))
     bridge = make_mpc_bridge(env, cfg)
     t0 = time.perf_counter()
-    traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(args.seed), tasks)
+    traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(args.sample_seed), tasks)
     traj = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(traj))
     wall = time.perf_counter() - t0
     bridge.close()
@@ -81,6 +82,7 @@ def main() -> None:
         "env": args.env,
         "split": args.split,
         "seed": args.seed,
+        "sample_seed": args.sample_seed,
         "mpc": cfg.to_dict(),
         "metrics": m,
         "paper": paper,
