@@ -194,7 +194,8 @@ class Trainer:
         tc = self.cfg.train
         log: dict[str, Any] = {}
         t0 = time.perf_counter()
-        mpc0 = self.bridge.stats() if self.bridge is not None else None
+        if self.bridge is not None:
+            self.bridge.reset_stats()
         if int(state.iteration[0]) == 0:
             state, _ = self.initial_collection(state)
         state, ids = self._choose_tasks(state, tc.tasks_per_iteration)
@@ -221,11 +222,13 @@ class Trainer:
         for name in ("return", "success", "collision_free", "event_rate", "mpc_share"):
             log[f"train_{name}"] = float(np.mean(jax.device_get(src[name])))
         log["train_prior_return"] = float(np.mean(jax.device_get(prior["return"])))
-        if mpc0 is not None:
-            mpc1 = self.bridge.stats()
-            log["mpc_solve_s"] = mpc1.get("solve_time_s", 0.0) - mpc0.get("solve_time_s", 0.0)
-            log["mpc_rows"] = mpc1.get("rows_solved", 0) - mpc0.get("rows_solved", 0)
-            log["mpc_fallbacks"] = mpc1.get("fallbacks", 0) - mpc0.get("fallbacks", 0)
+        if self.bridge is not None:
+            st = self.bridge.stats()
+            log["mpc_calls"] = st["calls"]
+            log["mpc_rows"] = st["rows_solved"]
+            log["mpc_fallbacks"] = st["fallbacks"]
+            log["mpc_solve_s"] = float(sum(st["solve_s"]))
+            log["mpc_host_s"] = float(sum(st["host_call_s"]))
         log.update({k: float(np.mean(v)) for k, v in losses.items()})
         return state, log
 
