@@ -1,0 +1,108 @@
+"""Compare finished (or checkpointed) runs: learning curves side by side and one results table.
+
+    python -m experiments.compare RUN_DIR [RUN_DIR ...] --out results/restaurant-cpu \
+        [--gp-mpc runs/gp_mpc/restaurant_test.json]
+
+Reads each run's metrics.jsonl and results.json (written by experiments.restaurant/sidewalk) and
+writes curves.png (train return, test return, SR, CFR against iteration and gradient steps), a
+table.md with this project's numbers next to the paper's, and summary.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from mpcpearl_jax.metrics import METRIC_NAMES
+
+
+def _load(run: Path) -> tuple[dict, list[dict], dict | None]:
+    cfg = json.loads((run / "config.json").read_text())
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x.strip()]
+    res_path = run / "results.json"
+    res = json.loads(res_path.read_text()) if res_path.is_file() else None
+    return cfg, rows, res
+
+
+def _label(cfg: dict) -> str:
+    eps = cfg["train"]["eps"]
+    base = "MPC-PEARL" if cfg["pearl"]["use_context"] else "MPC-SAC"
+    if eps == 0:
+        return "PEARL" if cfg["pearl"]["use_context"] else "SAC"
+    return f"{base} {eps:g}"
+
+
+def plot(runs: list[tuple[str, dict, list[dict]]], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 4, figsize=(17, 3.6))
+    for label, cfg, rows in runs:
+        it = [r["iteration"] for r in rows]
+        axes[0].plot(it, [r["train_return"] for r in rows], lw=0.8, label=label)
+        ev = [r for r in rows if "test_SR" in r]
+        x = [r["iteration"] for r in ev]
+        for ax, key in zip(axes[1:], ("test_return", "test_SR", "test_CFR"), strict=True):
+            ax.plot(x, [r[key] for r in ev], marker="o", ms=3, label=label)
+    titles = ("train return (posterior-z episodes)", "test return", "test SR", "test CFR")
+    for ax, title in zip(axes, titles, strict=True):
+        ax.set_title(title)
+        ax.set_xlabel("iteration")
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(out / "curves.png", dpi=110)
+    plt.close(fig)
+
+
+def table(results: list[tuple[str, dict]], paper: dict) -> str:
+    cols = []
+    for label, res in results:
+        cols.append((f"{label} (2 adapt. eps.)", res["test_adapt"]))
+        cols.append((f"{label} (online)", res["test_online"]))
+    cols += [(f"paper {k}", v) for k, v in paper.items()]
+    lines = ["| metric | " + " | ".join(c for c, _ in cols) + " |", "|---|" + "---|" * len(cols)]
+    for m in METRIC_NAMES:
+        cells = ["-" if d.get(m) is None else f"{d[m]:.2f}" for _, d in cols]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m experiments.compare", description=__doc__)
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--gp-mpc", type=Path, help="JSON written by experiments.gp_mpc")
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    loaded = [(r, *_load(r)) for r in args.runs]
+    plot([(_label(c), c, rows) for _, c, rows, _ in loaded], args.out)
+    finished = [(_label(c), res) for _, c, _, res in loaded if res is not None]
+    paper = finished[0][1].get("paper", {}) if finished else {}
+    text = table(finished, paper)
+    if args.gp_mpc and args.gp_mpc.is_file():
+        gp = json.loads(args.gp_mpc.read_text())
+        m = gp.get("metrics", gp)
+        text += "\n\nGP-MPC (this project, same test tasks): " + ", ".join(
+            f"{k} {m[k]:.2f}" for k in METRIC_NAMES if k in m)
+    (args.out / "table.md").write_text(text + "\n")
+    summary = {
+        "runs": [
+            {"run": str(r), "label": _label(c), "iterations": rows[-1]["iteration"] if rows else 0,
+             "gradient_steps_per_seed": (rows[-1]["iteration"] if rows else 0)
+             * c["train"]["updates_per_iteration"], "seeds": c["seeds"],
+             "wall_s": rows[-1].get("wall_s") if rows else None,
+             "results": res}
+            for r, c, rows, res in loaded
+        ]
+    }
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
