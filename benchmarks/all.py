@@ -32,11 +32,25 @@ SCRIPTS = (
 )
 
 
-def run_script(name: str, size_flag: list[str], out: Path, threads: int | None) -> dict:
-    """Run `python -m benchmarks.NAME`; returns {name, rc, wall_s}."""
-    cmd = [sys.executable, "-m", f"benchmarks.{name}", *size_flag, "--out", str(out)]
-    if threads:
-        cmd += ["--threads", str(threads)]
+# Scripts with their own command line (no --tiny/--full/--threads): arguments per size.
+OWN_ARGS = {
+    "mpc_latency": {
+        "tiny": ["--tasks", "1"],
+        "default": ["--tasks", "8"],
+        "full": ["--tasks", "24"],
+    }
+}
+
+
+def run_script(name: str, size: str, out: Path, threads: int | None) -> dict:
+    """Run `python -m benchmarks.NAME` at `size`; returns {name, rc, wall_s, cmd}."""
+    cmd = [sys.executable, "-m", f"benchmarks.{name}", "--out", str(out)]
+    if name in OWN_ARGS:
+        cmd += OWN_ARGS[name][size]
+    else:
+        cmd += [] if size == "default" else [f"--{size}"]
+        if threads:
+            cmd += ["--threads", str(threads)]
     print(f"\n=== {' '.join(cmd[1:])}", flush=True)
     t0 = time.perf_counter()
     rc = subprocess.run(cmd, check=False, cwd=Path(__file__).resolve().parents[1]).returncode
@@ -47,14 +61,14 @@ def run_script(name: str, size_flag: list[str], out: Path, threads: int | None) 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    size = p.add_mutually_exclusive_group()
-    size.add_argument("--tiny", action="store_true")
-    size.add_argument("--full", action="store_true")
+    sizes = p.add_mutually_exclusive_group()
+    sizes.add_argument("--tiny", action="store_true")
+    sizes.add_argument("--full", action="store_true")
     p.add_argument("--out", default=str(harness.DEFAULT_OUT))
     p.add_argument("--threads", type=int, default=None)
     p.add_argument("--only", nargs="+", choices=SCRIPTS, default=None)
     args = p.parse_args(argv)
-    flag = ["--tiny"] if args.tiny else ["--full"] if args.full else []
+    size = "tiny" if args.tiny else "full" if args.full else "default"
     out = Path(args.out)
     here = Path(__file__).parent
     runs = []
@@ -64,9 +78,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"\n=== {name}: skipped (benchmarks/{name}.py is not present)", flush=True)
             runs.append({"name": name, "rc": None, "wall_s": 0.0})
             continue
-        runs.append(run_script(name, flag, out, args.threads))
+        runs.append(run_script(name, size, out, args.threads))
         if name == "pearl_step" and args.full and args.threads != 1:
-            runs.append(run_script(name, flag, out / "threads1", 1))
+            runs.append(run_script(name, size, out / "threads1", 1))
     total = time.perf_counter() - t0
     harness.print_table(runs, ["name", "rc", "wall_s"], f"benchmarks.all ({total:.0f} s)")
     out.mkdir(parents=True, exist_ok=True)
@@ -74,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         "runs": runs,
         "total_s": total,
         "machine": harness.machine_info(),
-        "size": flag[0][2:] if flag else "default",
+        "size": size,
     }
     (out / "all.json").write_text(json.dumps(summary, indent=2))
     return 1 if any(r["rc"] not in (0, None) for r in runs) else 0

@@ -65,6 +65,8 @@ def configure_threads(n: int | None) -> dict[str, Any]:
     """
     n = n or available_cores()
     info: dict[str, Any] = {"threads": n}
+    if hasattr(os, "getloadavg"):  # other work on the machine skews every timing: record it
+        info["loadavg_at_start_1m_5m_15m"] = list(os.getloadavg())
     jax_started = "jax" in sys.modules
     if hasattr(os, "sched_setaffinity"):
         cores = sorted(os.sched_getaffinity(0))
