@@ -47,8 +47,12 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     if env == "sidewalk":
-        p.add_argument("--data", type=Path, help="an ETH/UCY trajectory file (e.g. UCY "
-                       "crowds_zara01.txt); default: the built-in synthetic crowd")
+        p.add_argument(
+            "--data",
+            type=Path,
+            help="an ETH/UCY trajectory file (e.g. UCY "
+            "crowds_zara01.txt); default: the built-in synthetic crowd",
+        )
     return p
 
 

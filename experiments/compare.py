@@ -40,7 +40,7 @@ def plot(runs: list[tuple[str, dict, list[dict]]], out: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 4, figsize=(17, 3.6))
-    for label, cfg, rows in runs:
+    for label, _cfg, rows in runs:
         it = [r["iteration"] for r in rows]
         axes[0].plot(it, [r["train_return"] for r in rows], lw=0.8, label=label)
         ev = [r for r in rows if "test_SR" in r]
@@ -87,15 +87,21 @@ def main(argv: list[str] | None = None) -> int:
         gp = json.loads(args.gp_mpc.read_text())
         m = gp.get("metrics", gp)
         text += "\n\nGP-MPC (this project, same test tasks): " + ", ".join(
-            f"{k} {m[k]:.2f}" for k in METRIC_NAMES if k in m)
+            f"{k} {m[k]:.2f}" for k in METRIC_NAMES if k in m
+        )
     (args.out / "table.md").write_text(text + "\n")
     summary = {
         "runs": [
-            {"run": str(r), "label": _label(c), "iterations": rows[-1]["iteration"] if rows else 0,
-             "gradient_steps_per_seed": (rows[-1]["iteration"] if rows else 0)
-             * c["train"]["updates_per_iteration"], "seeds": c["seeds"],
-             "wall_s": rows[-1].get("wall_s") if rows else None,
-             "results": res}
+            {
+                "run": str(r),
+                "label": _label(c),
+                "iterations": rows[-1]["iteration"] if rows else 0,
+                "gradient_steps_per_seed": (rows[-1]["iteration"] if rows else 0)
+                * c["train"]["updates_per_iteration"],
+                "seeds": c["seeds"],
+                "wall_s": rows[-1].get("wall_s") if rows else None,
+                "results": res,
+            }
             for r, c, rows, res in loaded
         ]
     }

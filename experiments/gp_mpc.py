@@ -56,8 +56,9 @@ def main() -> None:
     )
     ap.add_argument("--out", type=Path, default=Path("runs") / "gp_mpc")
     ap.add_argument("--plot-task", type=int, default=0)
-    ap.add_argument("--data", type=Path, help="ETH/UCY file for the sidewalk env (default: "
-                    "the synthetic crowd)")
+    ap.add_argument(
+        "--data", type=Path, help="ETH/UCY file for the sidewalk env (default: the synthetic crowd)"
+    )
     args = ap.parse_args()
 
     env = make_env(args.env)

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from mpcpearl_jax.envs.types import ConfigError
-from mpcpearl_jax.pearl import PearlConfig, Transitions, init_learner, make_update_fn
-from mpcpearl_jax.pearl import losses
+from mpcpearl_jax.pearl import PearlConfig, Transitions, init_learner, losses, make_update_fn
 from mpcpearl_jax.pearl.networks import (
     Networks,
     kl_to_standard_normal,
@@ -16,21 +15,31 @@ from mpcpearl_jax.pearl.networks import (
     tanh_gaussian,
 )
 
-SMALL = PearlConfig(hidden=(32, 32), encoder_hidden=(16, 16), latent_dim=3, meta_batch=2,
-                    batch_size=8, context_size=5)
-O, A = 7, 2
+SMALL = PearlConfig(
+    hidden=(32, 32),
+    encoder_hidden=(16, 16),
+    latent_dim=3,
+    meta_batch=2,
+    batch_size=8,
+    context_size=5,
+)
+OBS, A = 7, 2
 
 
 def _batch(key, cfg=SMALL):
     k = jax.random.split(key, 4)
     mb, b = cfg.meta_batch, cfg.batch_size
     return Transitions(
-        jax.random.normal(k[0], (mb, b, O)), jnp.tanh(jax.random.normal(k[1], (mb, b, A))),
-        jax.random.normal(k[2], (mb, b)), jax.random.normal(k[3], (mb, b, O)), jnp.zeros((mb, b)))
+        jax.random.normal(k[0], (mb, b, OBS)),
+        jnp.tanh(jax.random.normal(k[1], (mb, b, A))),
+        jax.random.normal(k[2], (mb, b)),
+        jax.random.normal(k[3], (mb, b, OBS)),
+        jnp.zeros((mb, b)),
+    )
 
 
 def _context(key, cfg=SMALL):
-    return jax.random.normal(key, (cfg.meta_batch, cfg.context_size, 2 * O + A + 1))
+    return jax.random.normal(key, (cfg.meta_batch, cfg.context_size, 2 * OBS + A + 1))
 
 
 def test_product_of_gaussians_matches_numpy():
@@ -55,8 +64,9 @@ def test_kl_to_standard_normal_matches_numpy():
     mean = rng.normal(size=(5, 4))
     var = rng.uniform(0.05, 3.0, size=(5, 4))
     kl_ref = 0.5 * np.sum(var + mean**2 - 1.0 - np.log(var), axis=-1)
-    np.testing.assert_allclose(kl_to_standard_normal(jnp.asarray(mean), jnp.asarray(var)), kl_ref,
-                               rtol=1e-5)
+    np.testing.assert_allclose(
+        kl_to_standard_normal(jnp.asarray(mean), jnp.asarray(var)), kl_ref, rtol=1e-5
+    )
     assert float(kl_to_standard_normal(jnp.zeros(4), jnp.ones(4))) == pytest.approx(0.0)
 
 
@@ -71,7 +81,7 @@ def test_tanh_gaussian_logprob_finite_at_bounds():
     d = tanh_gaussian(jnp.zeros(2), jnp.zeros(2))
     x, lp = d.sample_and_log_prob(seed=jax.random.PRNGKey(3))
     pre = jnp.arctanh(x)
-    ref = jnp.sum(jax.scipy.stats.norm.logpdf(pre) - jnp.log1p(-x**2))
+    ref = jnp.sum(jax.scipy.stats.norm.logpdf(pre) - jnp.log1p(-(x**2)))
     assert float(lp) == pytest.approx(float(ref), rel=1e-4, abs=1e-4)
 
 
@@ -80,15 +90,18 @@ def _nonzero(tree):
 
 
 def test_gradients_reach_exactly_the_right_parameters():
-    nets = Networks(SMALL, O, A)
+    nets = Networks(SMALL, OBS, A)
     params = nets.init(jax.random.PRNGKey(0))
     batch, ctx = _batch(jax.random.PRNGKey(1)), _context(jax.random.PRNGKey(2))
     key = jax.random.PRNGKey(3)
     # critic + KL: gradients into Q and the encoder, none into the target V
     q_enc = {"q": params["q"], "encoder": params["encoder"]}
-    g = jax.grad(lambda qe, tv: losses.critic_encoder_loss(qe, tv, nets, batch, ctx, key, 0.99,
-                                                           100.0, 0.1)[0], argnums=(0, 1))(
-        q_enc, params["v"])
+    g = jax.grad(
+        lambda qe, tv: losses.critic_encoder_loss(qe, tv, nets, batch, ctx, key, 0.99, 100.0, 0.1)[
+            0
+        ],
+        argnums=(0, 1),
+    )(q_enc, params["v"])
     assert _nonzero(g[0]["q"]) and _nonzero(g[0]["encoder"])
     assert not _nonzero(g[1])
     # policy loss: no gradient into Q params or the encoder (z detached)
@@ -98,28 +111,32 @@ def test_gradients_reach_exactly_the_right_parameters():
     def pol(p_pi, p_q, p_enc):
         zz, _, _ = losses.sample_task_z(nets, p_enc, ctx, key)
         zz = jnp.broadcast_to(jax.lax.stop_gradient(zz)[:, None], zb.shape)
-        return losses.policy_loss(p_pi, nets, jax.lax.stop_gradient(p_q), batch.obs, zz, key,
-                                  1e-3, 1e-3)[0]
+        return losses.policy_loss(
+            p_pi, nets, jax.lax.stop_gradient(p_q), batch.obs, zz, key, 1e-3, 1e-3
+        )[0]
 
     gp = jax.grad(pol, argnums=(0, 1, 2))(params["policy"], params["q"], params["encoder"])
     assert _nonzero(gp[0]) and not _nonzero(gp[1]) and not _nonzero(gp[2])
     # value loss: only V
     a = jnp.tanh(batch.action)
-    gv = jax.grad(lambda pv, pq: losses.value_loss(pv, nets, pq, batch.obs, zb, a,
-                                                   jnp.zeros(zb.shape[:2])), argnums=(0, 1))(
-        params["v"], params["q"])
+    gv = jax.grad(
+        lambda pv, pq: losses.value_loss(pv, nets, pq, batch.obs, zb, a, jnp.zeros(zb.shape[:2])),
+        argnums=(0, 1),
+    )(params["v"], params["q"])
     assert _nonzero(gv[0]) and not _nonzero(gv[1])
 
 
 def test_update_changes_params_and_respects_detach():
     """One full update: policy and V change; the encoder changes only through Q + KL."""
-    state = init_learner(jax.random.PRNGKey(0), SMALL, O, A)
-    update = make_update_fn(SMALL, O, A)
-    new, m = update(state, _batch(jax.random.PRNGKey(1)), _context(jax.random.PRNGKey(2)),
-                    jax.random.PRNGKey(3))
+    state = init_learner(jax.random.PRNGKey(0), SMALL, OBS, A)
+    update = make_update_fn(SMALL, OBS, A)
+    new, m = update(
+        state, _batch(jax.random.PRNGKey(1)), _context(jax.random.PRNGKey(2)), jax.random.PRNGKey(3)
+    )
     for name in ("policy", "q", "v", "encoder"):
-        diff = jax.tree_util.tree_map(lambda a, b: jnp.max(jnp.abs(a - b)), new.params[name],
-                                      state.params[name])
+        diff = jax.tree_util.tree_map(
+            lambda a, b: jnp.max(jnp.abs(a - b)), new.params[name], state.params[name]
+        )
         assert max(jax.tree_util.tree_leaves(diff)) > 0, name
     assert all(np.isfinite(float(v)) for v in m.values())
     # with the KL weight and the Q loss zeroed out the encoder would get no gradient at all:
@@ -128,30 +145,42 @@ def test_update_changes_params_and_respects_detach():
 
 
 def test_update_traces_once():
-    state = init_learner(jax.random.PRNGKey(0), SMALL, O, A)
+    state = init_learner(jax.random.PRNGKey(0), SMALL, OBS, A)
     from mpcpearl_jax.pearl.learner import make_update_body
 
-    body = chex.assert_max_traces(make_update_body(SMALL, O, A), n=1)
+    body = chex.assert_max_traces(make_update_body(SMALL, OBS, A), n=1)
     upd = jax.jit(body)
     for i in range(3):
-        state, _ = upd(state, _batch(jax.random.PRNGKey(i)), _context(jax.random.PRNGKey(10 + i)),
-                       jax.random.PRNGKey(20 + i))
+        state, _ = upd(
+            state,
+            _batch(jax.random.PRNGKey(i)),
+            _context(jax.random.PRNGKey(10 + i)),
+            jax.random.PRNGKey(20 + i),
+        )
     chex.clear_trace_counter()
 
 
 def test_sac_mode_uses_constant_latent():
     cfg = SMALL.replace(use_context=False)
-    nets = Networks(cfg, O, A)
+    nets = Networks(cfg, OBS, A)
     params = nets.init(jax.random.PRNGKey(0))
-    z, mean, var = losses.sample_task_z(nets, params["encoder"], _context(jax.random.PRNGKey(1)),
-                                        jax.random.PRNGKey(2))
+    z, mean, var = losses.sample_task_z(
+        nets, params["encoder"], _context(jax.random.PRNGKey(1)), jax.random.PRNGKey(2)
+    )
     assert not jnp.any(z) and float(jnp.sum(kl_to_standard_normal(mean, var))) == 0.0
 
 
 @pytest.mark.parametrize(
     "field,value",
-    [("latent_dim", 0), ("hidden", ()), ("lr", -1.0), ("gamma", 1.5), ("kl_weight", -0.1),
-     ("batch_size", 2.5), ("log_std_min", 5.0)],
+    [
+        ("latent_dim", 0),
+        ("hidden", ()),
+        ("lr", -1.0),
+        ("gamma", 1.5),
+        ("kl_weight", -0.1),
+        ("batch_size", 2.5),
+        ("log_std_min", 5.0),
+    ],
 )
 def test_invalid_pearl_config_names_field(field, value):
     with pytest.raises(ConfigError, match=field):

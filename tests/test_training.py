@@ -16,11 +16,27 @@ from mpcpearl_jax.trainer import Trainer
 
 TINY = ExperimentConfig(
     seeds=2,
-    pearl=PearlConfig(hidden=(16, 16), encoder_hidden=(16,), latent_dim=3, meta_batch=3,
-                      batch_size=16, context_size=8),
-    train=TrainConfig(iterations=3, initial_episodes=1, tasks_per_iteration=2, prior_episodes=1,
-                      posterior_episodes=1, updates_per_iteration=3, rl_capacity=400,
-                      eps=0.0, eval_interval=0, checkpoint_interval=1, keep_checkpoints=2),
+    pearl=PearlConfig(
+        hidden=(16, 16),
+        encoder_hidden=(16,),
+        latent_dim=3,
+        meta_batch=3,
+        batch_size=16,
+        context_size=8,
+    ),
+    train=TrainConfig(
+        iterations=3,
+        initial_episodes=1,
+        tasks_per_iteration=2,
+        prior_episodes=1,
+        posterior_episodes=1,
+        updates_per_iteration=3,
+        rl_capacity=400,
+        eps=0.0,
+        eval_interval=0,
+        checkpoint_interval=1,
+        keep_checkpoints=2,
+    ),
 )
 
 
@@ -98,8 +114,12 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
         if p.is_file() and p.stat().st_size > 0 and "metadata" not in p.name:
             p.write_bytes(b"garbage")
     with pytest.raises(CheckpointError, match="cannot restore"):
-        train(TINY.replace(train=TrainConfig(**{**TINY.train.__dict__, "iterations": 5})),
-              run, resume=True, progress=False)
+        train(
+            TINY.replace(train=TrainConfig(**{**TINY.train.__dict__, "iterations": 5})),
+            run,
+            resume=True,
+            progress=False,
+        )
     (run / "policy.msgpack").write_bytes(b"junk")
     with pytest.raises(CheckpointError, match="policy.msgpack"):
         load_policy(run)
@@ -125,8 +145,12 @@ def test_load_policy_acts_like_training_policy(tmp_path):
 
 @pytest.mark.parametrize(
     "make",
-    [lambda: TrainConfig(eps=1.5), lambda: TrainConfig(updates_per_iteration=0),
-     lambda: TrainConfig(iterations=-3), lambda: ExperimentConfig(seeds=0)],
+    [
+        lambda: TrainConfig(eps=1.5),
+        lambda: TrainConfig(updates_per_iteration=0),
+        lambda: TrainConfig(iterations=-3),
+        lambda: ExperimentConfig(seeds=0),
+    ],
 )
 def test_invalid_train_config_is_rejected(make):
     with pytest.raises(ConfigError, match=r"\.(eps|updates_per_iteration|iterations|seeds)"):
@@ -149,8 +173,23 @@ def test_restaurant_cli_smoke(tmp_path):
     from experiments.common import main
 
     out = tmp_path / "r"
-    assert main("restaurant", ["--preset", "smoke", "--eps", "0", "--iterations", "2",
-                               "--out", str(out), "--no-progress"]) == 0
+    assert (
+        main(
+            "restaurant",
+            [
+                "--preset",
+                "smoke",
+                "--eps",
+                "0",
+                "--iterations",
+                "2",
+                "--out",
+                str(out),
+                "--no-progress",
+            ],
+        )
+        == 0
+    )
     res = json.loads((out / "results.json").read_text())
     for m in ("SR", "TT", "CFR", "SPL", "MGD"):
         assert m in res["test_adapt"] and m in res["test_online"]
@@ -170,8 +209,10 @@ def test_presets_are_valid():
 def test_short_run_improves_training_return(tmp_path):
     """A few minutes of PEARL training raise the return on the training tasks."""
     cfg = preset("default").replace(
-        train=TrainConfig(**{**preset("default").train.__dict__, "eps": 0.0, "iterations": 40,
-                             "eval_interval": 0}))
+        train=TrainConfig(
+            **{**preset("default").train.__dict__, "eps": 0.0, "iterations": 40, "eval_interval": 0}
+        )
+    )
     train(cfg, tmp_path / "run", progress=False)
     rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     first = np.mean([r["train_return"] for r in rows[:5]])

@@ -57,7 +57,8 @@ def check_resumable(saved: ExperimentConfig, cfg: ExperimentConfig, run_dir: Pat
     if diff:
         raise CheckpointError(
             f"{run_dir}: the saved config differs from the requested one in {diff}; "
-            "resume with the same settings (only --iterations may change) or use a new --out")
+            "resume with the same settings (only --iterations may change) or use a new --out"
+        )
 
 
 def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:

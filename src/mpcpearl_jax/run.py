@@ -63,7 +63,7 @@ def _eval_row(trainer: Trainer, state: TrainState) -> dict[str, Any]:
 def train(
     cfg: ExperimentConfig, out: str | Path, resume: bool = False, progress: bool = True
 ) -> tuple[Trainer, TrainState]:
-    """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl). Returns (trainer, state)."""
+    """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl); -> (trainer, state)."""
     run_dir = Path(out)
     if resume:
         saved = load_config(run_dir)

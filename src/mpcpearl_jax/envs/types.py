@@ -96,7 +96,10 @@ class NavConfig:
             v = getattr(self, f)
             _check(len(v) == 2, n, f, f"must be a pair (x, y), got {v!r}")
         _check(
-            all(lo + 2 * self.robot_radius < hi for lo, hi in zip(self.arena_lo, self.arena_hi)),
+            all(
+                lo + 2 * self.robot_radius < hi
+                for lo, hi in zip(self.arena_lo, self.arena_hi, strict=True)
+            ),
             n,
             "arena_hi",
             "must exceed arena_lo by more than the robot diameter",

@@ -1,4 +1,4 @@
-"""PEARL (SAC + probabilistic context encoder) in JAX: config, networks, losses, buffers, learner."""
+"""PEARL (SAC + probabilistic context encoder) in JAX: networks, losses, buffers, learner."""
 
 from mpcpearl_jax.pearl.config import PearlConfig
 from mpcpearl_jax.pearl.learner import (
