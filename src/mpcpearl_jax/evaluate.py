@@ -6,6 +6,8 @@ vmapped over seeds and test tasks.
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -128,6 +130,6 @@ def summarize(result: dict, tasks: TaskParams, robot_radius: float) -> dict:
         "MGD": jnp.mean(m.mgd, axis=-1),
         "return": jnp.mean(result["return"], axis=-1),
     }
-    out = {k: float(jnp.mean(v)) for k, v in per_seed.items()}
+    out: dict[str, Any] = {k: float(jnp.mean(v)) for k, v in per_seed.items()}
     out.update({f"{k}_per_seed": [float(x) for x in v] for k, v in per_seed.items()})
     return out

@@ -35,8 +35,7 @@ class TrainingDiverged(RuntimeError):
     """A loss became NaN/inf; the last good checkpoint is kept."""
 
 
-@struct.dataclass
-class TrainState:
+class TrainState(struct.PyTreeNode):
     """Everything that evolves during training; every leaf has a leading seed axis [S]."""
 
     learner: LearnerState

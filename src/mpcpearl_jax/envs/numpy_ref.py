@@ -212,7 +212,7 @@ class NumpyNavEnv:
         """Observation [3 + 2H (+ 2S)]: pose, people (absent ones at (-1, -1)), static centres."""
         humans, mask = self._humans(self.t)
         h = np.where(mask[:, None], self._scale(humans), -1.0)
-        parts = [self._scale(self.pose[:2]), [self.pose[2] / math.pi], h.ravel()]
+        parts = [self._scale(self.pose[:2]), np.array([self.pose[2] / math.pi]), h.ravel()]
         if self.cfg.observe_static:
             centres = 0.5 * (self.task["static_lo"] + self.task["static_hi"])
             parts.append(self._scale(centres).ravel())

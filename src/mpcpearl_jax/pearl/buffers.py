@@ -15,8 +15,7 @@ from jax import Array
 from mpcpearl_jax.pearl.learner import Transitions
 
 
-@struct.dataclass
-class TaskBuffer:
+class TaskBuffer(struct.PyTreeNode):
     """Arrays: data fields [N, cap, ...]; size, ptr [N] int32."""
 
     data: Transitions

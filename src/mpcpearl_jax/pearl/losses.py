@@ -43,8 +43,8 @@ def critic_encoder_loss(
     """
     z, mean, var = sample_task_z(nets, q_enc_params["encoder"], context, key)
     zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])  # [MB, B, L]
-    q1, q2 = nets.q.apply(q_enc_params["q"], batch.obs, batch.action, zb)
-    target_v = nets.v.apply(target_v_params, batch.next_obs, jax.lax.stop_gradient(zb))
+    q1, q2 = nets.q_values(q_enc_params["q"], batch.obs, batch.action, zb)
+    target_v = nets.value(target_v_params, batch.next_obs, jax.lax.stop_gradient(zb))
     q_target = reward_scale * batch.reward + (1.0 - batch.done) * gamma * target_v
     q_target = jax.lax.stop_gradient(q_target)
     q_loss = jnp.mean((q1 - q_target) ** 2) + jnp.mean((q2 - q_target) ** 2)
@@ -55,8 +55,8 @@ def critic_encoder_loss(
 
 def value_loss(v_params, nets: Networks, q_params, obs, z, new_action, log_pi):
     """SAC value loss: (V(s, z) - [min_i Q_i(s, a~pi, z) - log pi(a|s, z)])^2 with z detached."""
-    v = nets.v.apply(v_params, obs, z)
-    q1, q2 = nets.q.apply(q_params, obs, new_action, z)
+    v = nets.value(v_params, obs, z)
+    q1, q2 = nets.q_values(q_params, obs, new_action, z)
     v_target = jax.lax.stop_gradient(jnp.minimum(q1, q2) - log_pi)
     return jnp.mean((v - v_target) ** 2)
 
@@ -66,9 +66,9 @@ def policy_loss(policy_params, nets: Networks, q_params, obs, z, key, mean_reg, 
 
     z is detached (no policy gradient into the encoder). Returns (loss, aux).
     """
-    mean, log_std = nets.policy.apply(policy_params, obs, z)
+    mean, log_std = nets.policy_out(policy_params, obs, z)
     action, log_pi = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=key)
-    q1, q2 = nets.q.apply(q_params, obs, action, z)
+    q1, q2 = nets.q_values(q_params, obs, action, z)
     min_q = jnp.minimum(q1, q2)
     loss = jnp.mean(log_pi - min_q)
     loss += mean_reg * jnp.mean(mean**2) + std_reg * jnp.mean(log_std**2)

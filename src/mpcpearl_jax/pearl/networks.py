@@ -7,6 +7,7 @@ hidden biases 0.1, last layer weights and biases uniform in +-3e-3.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any, cast
 
 import distrax
 import flax.linen as nn
@@ -152,14 +153,29 @@ class Networks:
             "encoder": self.encoder.init(k_e, ctx),
         }
 
-    def posterior(self, enc_params, context: Array, mask: Array | None = None):
+    # typed applies: flax's `apply` is untyped
+    def policy_out(self, params: Any, obs: Array, z: Array) -> tuple[Array, Array]:
+        """(mean, log_std) [..., A] of the pre-tanh Gaussian."""
+        return cast(tuple[Array, Array], self.policy.apply(params, obs, z))
+
+    def q_values(self, params: Any, obs: Array, action: Array, z: Array) -> tuple[Array, Array]:
+        return cast(tuple[Array, Array], self.q.apply(params, obs, action, z))
+
+    def value(self, params: Any, obs: Array, z: Array) -> Array:
+        return cast(Array, self.v.apply(params, obs, z))
+
+    def factors(self, params: Any, context: Array) -> tuple[Array, Array]:
+        """Per-transition (mean, var) [..., C, L]."""
+        return cast(tuple[Array, Array], self.encoder.apply(params, context))
+
+    def posterior(self, enc_params: Any, context: Array, mask: Array | None = None):
         """(mean, var) [..., L] of q(z | context [..., C, D])."""
-        mean, var = self.encoder.apply(enc_params, context)
+        mean, var = self.factors(enc_params, context)
         return product_of_gaussians(mean, var, mask)
 
-    def act(self, policy_params, obs: Array, z: Array, key: Array | None) -> Array:
+    def act(self, policy_params: Any, obs: Array, z: Array, key: Array | None) -> Array:
         """Normalized action [..., A]: a tanh-Gaussian sample, or tanh(mean) when key is None."""
-        mean, log_std = self.policy.apply(policy_params, obs, z)
+        mean, log_std = self.policy_out(policy_params, obs, z)
         if key is None:
             return jnp.tanh(mean)
         return tanh_gaussian(mean, log_std).sample(seed=key)
