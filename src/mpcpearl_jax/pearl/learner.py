@@ -90,11 +90,9 @@ def _update(
     )
     upd, os_pi = opt.update(g_pi, state.opt_state["policy"], p["policy"])
     policy = optax.apply_updates(p["policy"], upd)
-    # 3. value (z detached), target from the same policy sample.
-    new_a = jax.lax.stop_gradient(pi_aux["action"])
-    log_pi = jax.lax.stop_gradient(pi_aux["log_pi_all"])
+    # 3. value (z detached), target from the same policy sample and updated Q.
     v_loss, g_v = jax.value_and_grad(losses.value_loss)(
-        p["v"], nets, q_enc["q"], batch.obs, zb, new_a, log_pi
+        p["v"], nets, batch.obs, zb, jax.lax.stop_gradient(pi_aux["v_target"])
     )
     upd, os_v = opt.update(g_v, state.opt_state["v"], p["v"])
     v = optax.apply_updates(p["v"], upd)

@@ -53,12 +53,14 @@ def critic_encoder_loss(
     return loss, {"q_loss": q_loss, "kl": kl, "z": z, "q1_mean": jnp.mean(q1)}
 
 
-def value_loss(v_params, nets: Networks, q_params, obs, z, new_action, log_pi):
-    """SAC value loss: (V(s, z) - [min_i Q_i(s, a~pi, z) - log pi(a|s, z)])^2 with z detached."""
+def value_loss(v_params, nets: Networks, obs, z, v_target):
+    """SAC value loss: (V(s, z) - [min_i Q_i(s, a~pi, z) - log pi(a|s, z)])^2, z detached.
+
+    `v_target` [MB, B] is precomputed from the policy loss's sample and min-Q (the authors' code
+    reuses the same `min_q_new_actions` for both losses).
+    """
     v = nets.value(v_params, obs, z)
-    q1, q2 = nets.q_values(q_params, obs, new_action, z)
-    v_target = jax.lax.stop_gradient(jnp.minimum(q1, q2) - log_pi)
-    return jnp.mean((v - v_target) ** 2)
+    return jnp.mean((v - jax.lax.stop_gradient(v_target)) ** 2)
 
 
 def policy_loss(policy_params, nets: Networks, q_params, obs, z, key, mean_reg, std_reg):
@@ -72,4 +74,5 @@ def policy_loss(policy_params, nets: Networks, q_params, obs, z, key, mean_reg, 
     min_q = jnp.minimum(q1, q2)
     loss = jnp.mean(log_pi - min_q)
     loss += mean_reg * jnp.mean(mean**2) + std_reg * jnp.mean(log_std**2)
-    return loss, {"log_pi": jnp.mean(log_pi), "action": action, "log_pi_all": log_pi}
+    aux = {"log_pi": jnp.mean(log_pi), "v_target": min_q - log_pi}
+    return loss, aux
