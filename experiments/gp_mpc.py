@@ -41,7 +41,7 @@ def parse_overrides(items: list[str]) -> dict:
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m experiments.gp_mpc", description=__doc__)
     ap.add_argument("--env", default="restaurant")
     ap.add_argument("--split", default="test")
@@ -56,14 +56,17 @@ def main() -> None:
     )
     ap.add_argument("--out", type=Path, default=Path("runs") / "gp_mpc")
     ap.add_argument("--plot-task", type=int, default=0)
+    ap.add_argument("--max-tasks", type=int, help="only the first N tasks of the split")
     ap.add_argument(
         "--data", type=Path, help="ETH/UCY file for the sidewalk env (default: the synthetic crowd)"
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     env = make_env(args.env)
     kw = {"data": str(args.data)} if args.data else {}
     tasks = make_tasks(args.env, args.split, seed=args.seed, **kw)
+    if args.max_tasks:
+        tasks = jax.tree_util.tree_map(lambda a: a[: args.max_tasks], tasks)
     overrides = parse_overrides(args.set)
     if args.env != "restaurant":  # the authors' speed cap of 5 m/s is a restaurant setting
         overrides.setdefault("v_max", None)

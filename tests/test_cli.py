@@ -1,0 +1,50 @@
+"""End-to-end smoke runs of the README's other commands, at tiny sizes."""
+
+import json
+
+
+def test_sidewalk_cli_with_mpc_infusion(tmp_path):
+    """`python -m experiments.sidewalk` (synthetic crowd) with eps > 0: the MPC really acts."""
+    from experiments.common import main
+
+    out = tmp_path / "s"
+    argv = [
+        "--preset",
+        "smoke",
+        "--eps",
+        "0.5",
+        "--iterations",
+        "1",
+        "--out",
+        str(out),
+        "--no-progress",
+        "--set",
+        "train.initial_episodes=1",
+        "--set",
+        "train.tasks_per_iteration=2",
+    ]
+    assert main("sidewalk", argv, online_eval=True, mpc={"v_max": None}) == 0
+    log = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    assert log[0]["mpc_rows"] > 0 and log[0]["train_mpc_share"] > 0
+    assert log[0]["mpc_host_s"] > 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["env"] == "sidewalk" and "SR" in res["test_online"]
+    assert res["config"]["online_eval"] is True
+
+
+def test_sidewalk_cli_rejects_missing_data(tmp_path, capsys):
+    from experiments.common import main
+
+    assert main("sidewalk", ["--preset", "smoke", "--data", str(tmp_path / "nope.txt")]) == 2
+    assert "nope.txt" in capsys.readouterr().err
+
+
+def test_gp_mpc_cli(tmp_path):
+    from experiments import gp_mpc
+
+    gp_mpc.main(
+        ["--env", "restaurant", "--split", "test", "--max-tasks", "2", "--out", str(tmp_path)]
+    )
+    rec = json.loads((tmp_path / "restaurant_test.json").read_text())
+    assert set(rec["metrics"]) >= {"SR", "TT", "CFR", "SPL", "MGD"}
+    assert rec["status"].get("solved", 0) > 0
