@@ -212,16 +212,19 @@ def plot_learning_curves(run_dir: Path) -> Path | None:
 
 
 def _trajectory_figure(trainer: Trainer, raw: dict, run_dir: Path, n: int = 4) -> None:
-    try:
-        from mpcpearl_jax import viz
-    except ImportError:
-        return
+    """The first n test tasks with seed 0's evaluated episode (paper-style figures)."""
+    from mpcpearl_jax import viz
+
     for i in range(min(n, int(trainer.test_tasks.start.shape[0]))):
         task = jax.tree_util.tree_map(lambda x, i=i: x[i], trainer.test_tasks)
-        viz.save_trajectory_figure(
-            run_dir / f"trajectory_test{i}.png",
-            task,
-            {"policy (seed 0)": np.asarray(raw["position"][0, i])},
-            {"policy (seed 0)": np.asarray(raw["collision"][0, i])},
-            trainer.env.config,
-        )
+        pos = np.asarray(raw["position"][0, i])
+        col = np.asarray(raw["collision"][0, i])
+        path = run_dir / f"trajectory_test{i}.png"
+        if trainer.cfg.env == "sidewalk":  # the paper's sidewalk style: pedestrians as circles
+            from mpcpearl_jax.envs.sidewalk import plot_sidewalk
+
+            plot_sidewalk(task, trainer.env.config, {"policy (seed 0)": (pos, col)}, path)
+        else:
+            viz.save_trajectory_figure(
+                path, task, {"policy (seed 0)": pos}, {"policy (seed 0)": col}, trainer.env.config
+            )
