@@ -93,13 +93,13 @@ class Trainer:
         learner = jax.vmap(lambda k: init_learner(k, cfg.pearl, self.obs_dim, self.action_dim))(
             sub[:, 0]
         )
-        n, od, ad = self.num_train, self.obs_dim, self.action_dim
-        stack = lambda b: jax.tree_util.tree_map(lambda x: jnp.stack([x] * cfg.seeds), b)
-        rl = stack(buffers.init_buffer(n, cfg.train.rl_capacity, od, ad))
-        enc = stack(buffers.init_buffer(n, self.enc_capacity, od, ad))
-        state = TrainState(learner, rl, enc, keys, jnp.zeros((cfg.seeds,), jnp.int32))
-        # distinct device buffers for every leaf (phases donate their input state)
-        return jax.tree_util.tree_map(lambda x: jnp.array(x, copy=True), state)
+        # phases donate their input state: give the learner's aliased leaves (target V = V at
+        # init) their own buffers; the replay buffers are created unaliased and at full size once
+        learner = jax.tree_util.tree_map(lambda x: jnp.array(x, copy=True), learner)
+        n, od, ad, lead = self.num_train, self.obs_dim, self.action_dim, (cfg.seeds,)
+        rl = buffers.init_buffer(n, cfg.train.rl_capacity, od, ad, lead)
+        enc = buffers.init_buffer(n, self.enc_capacity, od, ad, lead)
+        return TrainState(learner, rl, enc, keys, jnp.zeros((cfg.seeds,), jnp.int32))
 
     # ------------------------------------------------------------- collection
     def _row_z(self, state: TrainState, keys: Array, rows: Array, posterior: bool) -> Array:

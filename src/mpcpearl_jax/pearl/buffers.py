@@ -27,11 +27,14 @@ class TaskBuffer(struct.PyTreeNode):
         return int(self.data.reward.shape[-1])
 
 
-def init_buffer(num_tasks: int, capacity: int, obs_dim: int, action_dim: int) -> TaskBuffer:
-    z = lambda *s: jnp.zeros((num_tasks, capacity, *s), jnp.float32)
+def init_buffer(
+    num_tasks: int, capacity: int, obs_dim: int, action_dim: int, lead: tuple[int, ...] = ()
+) -> TaskBuffer:
+    """Empty buffers [*lead, N, cap, ...]; every leaf is its own device array (no aliasing)."""
+    z = lambda *s: jnp.zeros((*lead, num_tasks, capacity, *s), jnp.float32)  # noqa: E731
     data = Transitions(z(obs_dim), z(action_dim), z(), z(obs_dim), z())
-    zeros = jnp.zeros((num_tasks,), jnp.int32)
-    return TaskBuffer(data, zeros, zeros)
+    count = lambda: jnp.zeros((*lead, num_tasks), jnp.int32)  # noqa: E731
+    return TaskBuffer(data, count(), count())
 
 
 def clear(buf: TaskBuffer, task_ids: Array) -> TaskBuffer:
