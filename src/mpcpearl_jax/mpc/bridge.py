@@ -79,7 +79,7 @@ class MPCBridge:
         )
 
         def solve(_):
-            samples, valid = self.predict(key, states, params)
+            samples, valid = self.predict_fired(key, fire, states, params)
             return jax.pure_callback(
                 self._host,
                 out_shapes,
@@ -104,9 +104,46 @@ class MPCBridge:
 
         return jax.lax.cond(jnp.any(fire), solve, skip, None)
 
-    def predict(self, key: Array, states: EnvState, params: TaskParams) -> tuple[Array, Array]:
-        """GP samples for every row: [B, K, N_adapt, M, 2] and valid [B, N_adapt]."""
-        keys = jax.random.split(key, states.t.shape[0])
+    def predict_fired(
+        self, key: Array, fire: Array, states: EnvState, params: TaskParams
+    ) -> tuple[Array, Array]:
+        """GP samples [B, K, N_adapt, M, 2] and valid [B, N_adapt], computed for fired rows only.
+
+        Up to `cap` fired rows are gathered into a small batch (static size), predicted and
+        scattered back (other rows hold zeros, which the host never reads); if more rows fire,
+        every row is predicted.
+        """
+        batch = fire.shape[0]
+        cap = min(batch, max(16, -(-batch // 4)))
+        if cap == batch:
+            return self.predict(key, states, params)
+
+        def compact(_):
+            idx = jnp.nonzero(fire, size=cap, fill_value=batch)[0]  # [cap], batch = padding
+            take = lambda x: jnp.take(x, idx, axis=0, mode="clip")  # noqa: E731
+            sub_s = jax.tree_util.tree_map(take, states)
+            sub_p = jax.tree_util.tree_map(take, params)
+            samples, valid = self.predict(key, sub_s, sub_p, idx)
+            put = lambda full, part: full.at[idx].set(part, mode="drop")  # noqa: E731
+            full_samples = jnp.zeros((batch, *samples.shape[1:]), samples.dtype)
+            full_valid = jnp.zeros((batch, *valid.shape[1:]), valid.dtype)
+            return put(full_samples, samples), put(full_valid, valid)
+
+        return jax.lax.cond(
+            jnp.sum(fire) <= cap, compact, lambda _: self.predict(key, states, params), None
+        )
+
+    def predict(
+        self, key: Array, states: EnvState, params: TaskParams, rows: Array | None = None
+    ) -> tuple[Array, Array]:
+        """GP samples for every row: [B, K, N_adapt, M, 2] and valid [B, N_adapt].
+
+        Row b samples with fold_in(key, rows[b]) (rows defaults to arange(B)), so a row's samples
+        do not depend on which other rows are predicted with it.
+        """
+        if rows is None:
+            rows = jnp.arange(states.t.shape[0])
+        keys = jax.vmap(lambda r: jax.random.fold_in(key, r))(rows)
         row = lambda k, pose, t, hp, hm: predict_row(k, pose, t, hp, hm, self.cfg)  # noqa: E731
         return jax.vmap(row)(keys, states.pose, states.t, params.human_pos, params.human_mask)
 
