@@ -63,7 +63,9 @@ def _draw_people(ax, params: TaskParams, cfg: NavConfig) -> None:
             ax.add_patch(Circle(last, cfg.human_radius, color=HUMAN_COLOR, alpha=0.35, zorder=2))
 
 
-def _draw_robot(ax, label: str, positions, collisions, color: str) -> None:
+def draw_robot_path(
+    ax, label: str, positions, collisions, color: str, star_color: str = "gold"
+) -> None:
     """One robot path positions [T + 1, 2]; collisions [T] bool starred at the blocked pose."""
     p = np.asarray(positions, dtype=float)
     ax.plot(p[:, 0], p[:, 1], "-", color=color, lw=2.0, zorder=3, label=label)
@@ -80,7 +82,7 @@ def _draw_robot(ax, label: str, positions, collisions, color: str) -> None:
             where[:, 1],
             marker="*",
             s=180,
-            color="gold",
+            color=star_color,
             zorder=4,
             edgecolors="k",
             linewidths=0.6,
@@ -122,7 +124,7 @@ def plot_episode(
     _draw_people(ax, params, cfg)
     for i, (label, path) in enumerate(robot_paths.items()):
         hits = None if collisions is None else collisions.get(label)
-        _draw_robot(ax, label, path, hits, ROBOT_COLORS[i % len(ROBOT_COLORS)])
+        draw_robot_path(ax, label, path, hits, ROBOT_COLORS[i % len(ROBOT_COLORS)])
     _draw_start_goal(ax, params, cfg)
     ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
     if title:

@@ -44,25 +44,6 @@ def _draw_people(ax, params: TaskParams, stride: int) -> None:
         )
 
 
-def _draw_robot(ax, name: str, positions, collisions, color: str) -> None:
-    p = np.asarray(positions)
-    ax.plot(p[:, 0], p[:, 1], "-", color=color, lw=2.0, zorder=3, label=name)
-    ax.plot(p[-1, 0], p[-1, 1], "o", color=color, ms=5, zorder=3)
-    if collisions is not None:
-        hit = np.asarray(collisions, bool)
-        where = p[1:][hit] if hit.shape[0] == p.shape[0] - 1 else p[hit]
-        if len(where):
-            ax.scatter(
-                where[:, 0],
-                where[:, 1],
-                marker="*",
-                s=220,
-                color="red",
-                edgecolors="black",
-                zorder=4,
-            )
-
-
 def plot_sidewalk(
     params: TaskParams,
     cfg: NavConfig,
@@ -83,6 +64,8 @@ def plot_sidewalk(
     """
     from matplotlib.figure import Figure
 
+    from mpcpearl_jax.viz import draw_robot_path
+
     fig = Figure(figsize=(6.4, 5.4))
     ax = fig.add_subplot()
     _draw_boxes(ax, params, cfg)
@@ -91,7 +74,8 @@ def plot_sidewalk(
     ax.plot(*start[:2], "ks", ms=7, zorder=5, label="start")
     ax.add_patch(_goal_patch(goal, cfg.goal_radius))
     for i, (name, (positions, collisions)) in enumerate(robots.items()):
-        _draw_robot(ax, name, positions, collisions, ROBOT_COLORS[i % len(ROBOT_COLORS)])
+        color = ROBOT_COLORS[i % len(ROBOT_COLORS)]
+        draw_robot_path(ax, name, positions, collisions, color, star_color="red")
     ax.set_xlim(cfg.arena_lo[0], cfg.arena_hi[0])
     ax.set_ylim(cfg.arena_lo[1], cfg.arena_hi[1])
     ax.set_aspect("equal")
