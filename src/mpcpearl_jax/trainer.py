@@ -11,7 +11,6 @@ pytree, checkpointed by `mpcpearl_jax.checkpoint`.
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any
 
@@ -254,7 +253,3 @@ class Trainer:
         tc = self.cfg.train
         per = tc.tasks_per_iteration * (tc.prior_episodes + tc.posterior_episodes)
         return per * self.horizon
-
-
-def num_params(tree) -> int:
-    return int(sum(math.prod(x.shape) for x in jax.tree_util.tree_leaves(tree)))

@@ -15,6 +15,7 @@ import dataclasses
 import math
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 from flax import struct
 from jax import Array
@@ -175,6 +176,4 @@ class StepInfo:
 
 def stack_params(params: list[TaskParams]) -> TaskParams:
     """Stack single-task params on a new leading axis."""
-    import jax
-
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *params)

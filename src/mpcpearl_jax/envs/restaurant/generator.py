@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from mpcpearl_jax.envs.types import NavConfig, TaskParams
+from mpcpearl_jax.envs.types import NavConfig, TaskParams, stack_params
 
 GRID_SPACING = 2.5
 # 3x3 grid, row-major from the top-left (SPEC 3).
@@ -289,4 +289,4 @@ def make_restaurant_tasks(split: str, seed: int, cfg: NavConfig) -> TaskParams:
             shift = float(rng.uniform(0.5, 1.0)) if split == "ood" else 0.0
             pairs += [(c, b, shift) for b in held_out]
     tasks = [build_task(table_layout(c, s), behs[b], cfg) for c, b, s in pairs]
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *tasks)
+    return stack_params(tasks)
