@@ -1,6 +1,8 @@
-"""Restaurant task sets (SPEC 3): sizes, structure, determinism and the crowd's invariants."""
+"""Restaurant task sets (paper Sec. V-A): sizes, structure, determinism and the crowd's motion."""
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import numpy as np
@@ -8,17 +10,20 @@ import pytest
 
 from mpcpearl_jax.envs import make_env, make_tasks
 from mpcpearl_jax.envs.restaurant.generator import (
-    NUM_TRAIN_BEHAVIOURS,
+    LANDMARKS,
+    ROUTES,
     TABLE_CONFIGS,
     TABLE_RADIUS,
     CrowdModel,
     behaviours,
     table_layout,
+    task_pairs,
+    task_plans,
 )
 
 CFG = make_env("restaurant").config
 SPLITS = ("train", "test", "ood")
-INVARIANT_SPLITS = (*SPLITS, "ood@3")  # the crowd invariants also on another seed
+INVARIANT_SPLITS = (*SPLITS, "train@3", "test@3", "ood@3")  # the crowd also on another seed
 
 
 def _numpy_tasks(split, seed):
@@ -27,16 +32,23 @@ def _numpy_tasks(split, seed):
 
 @pytest.fixture(scope="module")
 def tasks():
-    """{split: TaskParams as NumPy} for seed 0, plus "ood@3": the ood split of seed 3."""
+    """{split: TaskParams as NumPy} for seed 0, plus "split@3": the splits of seed 3."""
     out = {s: _numpy_tasks(s, 0) for s in SPLITS}
-    out["ood@3"] = _numpy_tasks("ood", 3)
+    out.update({f"{s}@3": _numpy_tasks(s, 3) for s in SPLITS})
     return out
 
 
+@functools.cache
+def _plans(split):
+    """The plans (endpoints, delays, speeds) behind the tasks of `split` ("name" or "name@seed")."""
+    split, _, seed = split.partition("@")
+    return task_plans(split, int(seed or 0), CFG)
+
+
 def test_sizes_and_shapes(tasks):
-    sizes = {"train": 120, "test": 24, "ood": 24, "ood@3": 24}
+    sizes = {"train": 120, "test": 24, "ood": 24}
     for split, p in tasks.items():
-        n = sizes[split]
+        n = sizes[split.partition("@")[0]]
         assert p.human_pos.shape == (n, CFG.horizon + 1, 6, 2)
         assert p.human_mask.shape == (n, CFG.horizon + 1, 6) and p.human_mask.all()
         assert p.static_lo.shape == p.static_hi.shape == (n, 5, 2)
@@ -126,22 +138,70 @@ def test_walking_speed_about_3_m_per_s(tasks, split):
     assert np.mean(travelled > 3.0) > 0.8
 
 
-def _delays(split):
-    split, _, seed = split.partition("@")
-    behs = behaviours(int(seed or 0))
-    if split == "train":
-        return np.stack([behs[k % NUM_TRAIN_BEHAVIOURS].delay for k in range(120)])
-    return np.stack([behs[NUM_TRAIN_BEHAVIOURS + k % 3].delay for k in range(24)])
-
-
 @pytest.mark.parametrize("split", INVARIANT_SPLITS)
 def test_people_still_before_their_delay(tasks, split):
     hp = tasks[split].human_pos
-    delays = _delays(split)
+    delays = np.stack([plan.delay for plan in _plans(split)])  # [N, H]
     assert delays.max() > 5  # the check below is not vacuous
-    for k in range(hp.shape[0]):
-        for h in range(hp.shape[2]):
-            d = delays[k, h]
-            waiting = hp[k, : d + 1, h] - hp[k, 0, h]
-            np.testing.assert_allclose(waiting, 0.0, atol=1e-5, err_msg=f"task {k} person {h}")
-            assert np.linalg.norm(hp[k, -1, h] - hp[k, 0, h]) > 0.5  # and then they walk
+    waiting = np.arange(hp.shape[1])[None, :, None] <= delays[:, None, :]  # [N, T + 1, H]
+    moved = np.linalg.norm(hp - hp[:, :1], axis=-1)
+    assert np.all(moved[waiting] < 1e-5)
+    assert np.all(moved[:, -1] > 0.5)  # and then they walk
+
+
+def _moves(hp):
+    """[N, T, H] bool: who moves (more than float noise) in each step."""
+    return np.linalg.norm(np.diff(hp, axis=1), axis=-1) > 1e-5
+
+
+@pytest.mark.parametrize("split", INVARIANT_SPLITS)
+def test_people_walk_in_the_first_half_then_stand(tasks, split):
+    """As in the authors' scenarios: people walk for roughly the first 36 of the 80 steps."""
+    moves = _moves(tasks[split].human_pos)
+    assert np.mean(moves[:, 45:].any(axis=1)) < 0.10  # still moving after step 45
+    last = moves.shape[1] - 1 - np.argmax(moves[:, ::-1], axis=1)  # last step with a move
+    assert moves.any(axis=1).all() and 25 <= np.median(last) <= 45
+
+
+@pytest.mark.parametrize("split", INVARIANT_SPLITS)
+def test_mean_walking_speed_in_authors_range(tasks, split):
+    hp = tasks[split].human_pos
+    speed = np.linalg.norm(np.diff(hp, axis=1), axis=-1) / CFG.dt  # [N, T, H]
+    lo, hi = CrowdModel().speed_range
+    assert lo <= np.mean(speed[_moves(hp)]) <= hi
+    # the planned speeds are in the range as well
+    speeds = np.stack([plan.speed for plan in _plans(split)])
+    assert np.all((speeds >= lo - 1e-6) & (speeds <= hi + 1e-6))
+
+
+@pytest.mark.parametrize("split", INVARIANT_SPLITS)
+def test_people_end_at_their_goal_and_stay(tasks, split):
+    hp = tasks[split].human_pos
+    goals = np.stack([plan.goal for plan in _plans(split)])  # [N, H, 2]
+    err = np.linalg.norm(hp - goals[:, None], axis=-1)  # [N, T + 1, H]
+    assert np.all(err[:, -1] < 0.3)  # every person ends near the intended goal ...
+    at_goal = err < 1e-6
+    assert np.mean(at_goal[:, -1]) >= 0.99  # ... and (nearly) all exactly on it
+    # once on the goal a person stands there for the rest of the episode
+    arrived = np.maximum.accumulate(at_goal, axis=1)
+    assert np.array_equal(arrived, at_goal)
+    # standing people stay out of each other's way: goals are apart by at least 2 r_d + 0.5
+    d = np.linalg.norm(goals[:, :, None] - goals[:, None], axis=-1) + np.eye(goals.shape[1]) * 1e3
+    assert d.min() >= 2 * CFG.human_radius + CrowdModel().goal_gap - 1e-5
+
+
+@pytest.mark.parametrize("split", SPLITS)
+def test_endpoints_are_seats_and_landmarks(split):
+    behs = behaviours(0)
+    model = CrowdModel()
+    seat = TABLE_RADIUS + CFG.human_radius + model.seat_gap
+    for (c, b, shift), plan in zip(task_pairs(split, 0), _plans(split), strict=True):
+        tables = table_layout(c, shift)
+        for h, r in enumerate(behs[b].route):
+            for name, pt in zip(ROUTES[r], (plan.start[h], plan.goal[h]), strict=True):
+                d = np.linalg.norm(tables - pt, axis=-1)
+                if name == "table":  # a seat just off a table edge
+                    np.testing.assert_allclose(d.min(), seat, atol=1e-5)
+                else:  # a point near the landmark, clear of the tables
+                    assert d.min() >= seat - 1e-5
+                    assert np.linalg.norm(pt - LANDMARKS[name]) < 4 * model.landmark_jitter
