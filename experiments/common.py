@@ -12,12 +12,19 @@ from pathlib import Path
 from mpcpearl_jax.config import PRESETS, ExperimentConfig, preset
 from mpcpearl_jax.envs.types import ConfigError
 
+# Config extras each environment's entry point passes to `build_config` (and `main`).
+ENV_EXTRAS: dict[str, dict] = {
+    "restaurant": {},
+    # online adaptation is the sidewalk headline (as in the paper); MPC speed cap = env v_max
+    "sidewalk": {"online_eval": True, "mpc": {"v_max": None}},
+}
 
-def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog=f"python -m experiments.{env}",
-        description=f"Train and evaluate MPC-PEARL (and its baselines) on the {env} tasks.",
-    )
+
+def add_config_options(
+    p: argparse.ArgumentParser, env: str, default_preset: str = "default"
+) -> None:
+    """The options `build_config` reads: --preset, --eps, --seeds, --seed, --algo, --set
+    (and --data for the sidewalk). Shared with `benchmarks.learning`."""
     p.add_argument(
         "--preset",
         default=default_preset,
@@ -28,15 +35,12 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
     p.add_argument("--eps", type=float, help="MPC probability on an event (0 = PEARL)")
     p.add_argument("--seeds", type=int, help="independent seeds trained in one program")
     p.add_argument("--seed", type=int, help="base seed (seed s uses seed + s)")
-    p.add_argument("--iterations", type=int, help="meta-training iterations")
     p.add_argument(
         "--algo",
         choices=("pearl", "sac"),
         default="pearl",
         help="sac = no context encoder (the paper's MPC-SAC baseline)",
     )
-    p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-eps<eps>)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument(
         "--set",
         action="append",
@@ -45,7 +49,6 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
         help="override any config field, e.g. --set train.updates_per_iteration=200 "
         "--set pearl.hidden=[256,256] --set mpc.v_max=4 (JSON values)",
     )
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     if env == "sidewalk":
         p.add_argument(
             "--data",
@@ -53,6 +56,18 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
             help="an ETH/UCY trajectory file (e.g. UCY "
             "crowds_zara01.txt); default: the built-in synthetic crowd",
         )
+
+
+def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=f"python -m experiments.{env}",
+        description=f"Train and evaluate MPC-PEARL (and its baselines) on the {env} tasks.",
+    )
+    add_config_options(p, env, default_preset)
+    p.add_argument("--iterations", type=int, help="meta-training iterations")
+    p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-eps<eps>)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
 
@@ -74,7 +89,7 @@ def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfi
     }
     if args.eps is not None:
         sections["train"]["eps"] = args.eps
-    if args.iterations is not None:
+    if getattr(args, "iterations", None) is not None:
         sections["train"]["iterations"] = args.iterations
     if args.seeds is not None:
         sections[""]["seeds"] = args.seeds

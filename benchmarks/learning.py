@@ -1,0 +1,549 @@
+"""Learning curve against wall-clock time: how good does the policy get in M minutes of training?
+
+    python -m benchmarks.learning --preset P --eps E --minutes M [--algo sac] [--env ENV]
+        [--set SECTION.FIELD=VALUE ...] [--eval-minutes X] [--out DIR] [--seed N]
+        [--seeds S] [--label NAME] [--overwrite] [--policy-only]
+
+Builds `Trainer(cfg)` (same presets, --eps, --algo and --set as `experiments.*`) and calls
+`trainer.iteration` until M minutes of training have passed, counted from the start of the first
+iteration (its compilation included, and reported on its own). Every X minutes of training
+(default M / 8; at most M / 2) and once more at the end the policy is evaluated
+deterministically on the test tasks (the run's headline protocol: adaptation, or online for the
+sidewalk; for reporting only) and on a validation set that is not the test set, the first 24
+training tasks. The clock stops while evaluating; evaluation seconds are recorded separately.
+There is also an evaluation of the untrained policy at minute 0.
+
+Writes into --out (default runs/learning/<label>): curve.json (config, machine, load average,
+eval points, time to the first success and to SR 0.5 / 0.75 on test and val), curve.png,
+metrics.jsonl (one line per iteration, as `run.train` writes it), config.json, the policy and
+training state as `run.train` saves them (`mpcpearl_jax.load_policy(out)` works;
+`experiments.<env> --resume --out DIR --iterations N` continues the run), and what
+`run.final_evaluation` writes (results.json, learning_curves.png, trajectory figures).
+
+Train alone: other work on the machine slows every iteration down and so shifts the whole curve.
+The 1-minute load average at the start is recorded, with a warning above LOAD_WARN.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from experiments.common import ENV_EXTRAS, add_config_options, build_config, label_of
+
+METRICS = ("SR", "CFR", "TT", "SPL", "MGD", "return")
+SPLITS = ("test", "val")
+VAL_TASKS = 24  # the first VAL_TASKS training tasks are the validation set
+LOAD_WARN = 1.5  # 1-minute load average above which another job is probably running
+# (name, metric, threshold, strict): the first eval point with metric > / >= threshold
+TARGETS = (
+    ("first_success", "SR", 0.0, True),
+    ("SR_0.5", "SR", 0.5, False),
+    ("SR_0.75", "SR", 0.75, False),
+)
+# files this script writes; --overwrite removes them (and only them) first
+OUTPUTS = (
+    "curve.json",
+    "curve.png",
+    "metrics.jsonl",
+    "config.json",
+    "policy.msgpack",
+    "results.json",
+    "learning_curves.png",
+)
+
+
+# ------------------------------------------------------------------------------ CLI
+def make_parser(env: str = "restaurant") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.learning",
+        description="Learning curve against wall-clock training time (SR / CFR / return on "
+        "the test tasks and on a validation set of training tasks).",
+    )
+    p.add_argument(
+        "--env",
+        choices=sorted(ENV_EXTRAS),
+        default="restaurant",
+        help="task family (the sidewalk adds --data FILE, as in experiments.sidewalk)",
+    )
+    add_config_options(p, env)
+    p.add_argument(
+        "--minutes",
+        type=float,
+        required=True,
+        help="training budget in minutes (from the start of the first iteration, compilation "
+        "included, evaluation excluded)",
+    )
+    p.add_argument(
+        "--eval-minutes",
+        type=float,
+        help="minutes of training between evaluations (default: --minutes / 8; at most "
+        "--minutes / 2); there is always one at minute 0 and one at the end",
+    )
+    p.add_argument(
+        "--label", help="run name (default <env>-<preset>-<algo>-eps<eps>); names the --out"
+    )
+    p.add_argument("--out", type=Path, help="output folder (default runs/learning/<label>)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="reuse a non-empty --out (this script's earlier outputs there are removed)",
+    )
+    p.add_argument(
+        "--policy-only",
+        action="store_true",
+        help="save policy.msgpack only, not the orbax checkpoint of the whole training state "
+        "(replay buffers: hundreds of MB for the cpu/paper presets; needed only for --resume)",
+    )
+    return p
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--env", choices=sorted(ENV_EXTRAS), default="restaurant")
+    env = pre.parse_known_args(argv)[0].env  # the sidewalk has an extra option (--data)
+    args = make_parser(env).parse_args(argv)
+    args.argv = argv
+    return args
+
+
+# ------------------------------------------------------------------- pure helpers
+def time_to_threshold(
+    points: Sequence[dict[str, Any]], key: str, threshold: float, strict: bool = False
+) -> dict[str, Any] | None:
+    """The first eval point with points[key] >= threshold (> if strict), as
+    {"minutes", "grad_steps", "iteration", "value"}; None if no point reaches it.
+
+    `points` are in training order; NaN or missing values never count.
+    """
+    for p in points:
+        v = p.get(key)
+        if v is None or (isinstance(v, float) and math.isnan(v)):
+            continue
+        if v > threshold or (not strict and v == threshold):
+            return {
+                "minutes": p["minutes"],
+                "grad_steps": p["grad_steps"],
+                "iteration": p["iteration"],
+                "value": v,
+            }
+    return None
+
+
+def time_to_targets(points: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """{split: {target: time_to_threshold(...)}} for the TARGETS on test and val."""
+    return {
+        split: {
+            name: time_to_threshold(points, f"{split}_{metric}", thr, strict)
+            for name, metric, thr, strict in TARGETS
+        }
+        for split in SPLITS
+    }
+
+
+def first_train_success(rows: Sequence[dict[str, Any]], updates_per_iteration: int):
+    """The first iteration whose training episodes (posterior z, MPC infusion on) reached the
+    goal without collision, from metrics.jsonl rows; None if none did."""
+    for r in rows:
+        if r.get("train_success", 0) > 0:
+            return {
+                "minutes": r["train_s"] / 60.0,
+                "grad_steps": r["iteration"] * updates_per_iteration,
+                "iteration": r["iteration"],
+                "value": r["train_success"],
+            }
+    return None
+
+
+def eval_every_minutes(minutes: float, eval_minutes: float | None) -> float:
+    """Minutes of training between evaluations: default M / 8, at most M / 2."""
+    every = minutes / 8 if eval_minutes is None else eval_minutes
+    return min(every, minutes / 2)
+
+
+def default_label(env: str, preset: str, algo: str, eps: float) -> str:
+    return f"{env}-{preset}-{algo}-eps{eps:g}"
+
+
+def check_out(out: Path, overwrite: bool) -> str | None:
+    """Make `out` ready (create it; with overwrite, remove this script's old outputs).
+    Returns a one-line error, or None."""
+    if out.exists() and not out.is_dir():
+        return f"--out {out}: exists and is not a folder"
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            return f"--out {out}: exists and is not empty (pass --overwrite or another --out)"
+        for name in OUTPUTS:
+            (out / name).unlink(missing_ok=True)
+        for fig in out.glob("trajectory_test*.png"):
+            fig.unlink()
+        shutil.rmtree(out / "checkpoints", ignore_errors=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
+            pass
+    except OSError as e:
+        return f"--out {out}: not writable ({e.strerror or e})"
+    return None
+
+
+def _loadavg() -> list[float] | None:
+    return list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+
+
+# -------------------------------------------------------------------------- running
+def _evaluate(trainer, state, val_tasks, online: bool) -> dict[str, float]:
+    row: dict[str, float] = {}
+    for split, tasks in (("test", None), ("val", val_tasks)):
+        ev = trainer.evaluate(state, tasks=tasks, online=online)
+        row.update({f"{split}_{k}": ev[k] for k in METRICS})
+    return row
+
+
+def _train_logs(log: dict[str, Any] | None) -> dict[str, Any]:
+    if log is None:
+        return {}
+    keep = ("mpc_fallbacks", "mpc_fallback_rate")
+    return {k: v for k, v in log.items() if k.startswith("train_") or k in keep}
+
+
+def plot_curve(points: Sequence[dict[str, Any]], path: Path, title: str) -> Path:
+    """curve.png: SR, CFR and return on test and val against minutes (top) and gradient steps
+    (bottom)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(14, 7), squeeze=False)
+    for row, (xkey, xlabel) in enumerate(
+        (("minutes", "training minutes (compile included)"), ("grad_steps", "gradient steps"))
+    ):
+        x = [p[xkey] for p in points]
+        for ax, metric in zip(axes[row], ("SR", "CFR", "return"), strict=True):
+            for split, style in (("test", "-o"), ("val", "--s")):
+                ax.plot(x, [p[f"{split}_{metric}"] for p in points], style, ms=3, label=split)
+            ax.set_title(metric)
+            ax.set_xlabel(xlabel)
+            ax.grid(alpha=0.3)
+            if metric in ("SR", "CFR"):
+                ax.set_ylim(-0.05, 1.05)
+            ax.legend(fontsize=8)
+    sub = "test: the unseen test tasks; val: the first training tasks"
+    fig.suptitle(f"{title}\n{sub}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def summary_rows(record: dict[str, Any]) -> list[dict[str, Any]]:
+    rows = []
+    for split in SPLITS:
+        for name, _, _, _ in TARGETS:
+            hit = record["time_to"][split][name]
+            rows.append(
+                {
+                    "split": split,
+                    "target": name,
+                    "minutes": "never" if hit is None else round(hit["minutes"], 2),
+                    "grad steps": "-" if hit is None else hit["grad_steps"],
+                    "iteration": "-" if hit is None else hit["iteration"],
+                }
+            )
+    return rows
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse_args(argv)
+    from mpcpearl_jax.envs.types import ConfigError
+
+    try:
+        cfg = build_config(args, args.env, **ENV_EXTRAS[args.env])
+    except (ConfigError, TypeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if not (args.minutes > 0 and math.isfinite(args.minutes)):
+        print(f"error: --minutes must be positive, got {args.minutes}", file=sys.stderr)
+        return 2
+    if args.eval_minutes is not None and not args.eval_minutes > 0:
+        print(f"error: --eval-minutes must be positive, got {args.eval_minutes}", file=sys.stderr)
+        return 2
+    label = args.label or default_label(args.env, args.preset, args.algo, cfg.train.eps)
+    out = args.out or Path("runs") / "learning" / label
+    err = check_out(out, args.overwrite)
+    if err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return run(args, cfg, label, out)
+
+
+def env_steps(trainer, iterations: int) -> int:
+    """Environment steps collected per seed after `iterations` (initial collection included)."""
+    if iterations == 0:
+        return 0
+    tc, horizon = trainer.cfg.train, trainer.horizon
+    per_iter = min(tc.tasks_per_iteration, trainer.num_train)
+    per_iter *= (tc.prior_episodes + tc.posterior_episodes) * horizon
+    return trainer.num_train * tc.initial_episodes * horizon + iterations * per_iter
+
+
+def _print_point(p: dict[str, Any]) -> None:
+    print(
+        f"[learning] {p['minutes']:7.2f} min  it {p['iteration']:6d}  grad {p['grad_steps']:8d}"
+        f"  test SR {p['test_SR']:.2f} CFR {p['test_CFR']:.2f} ret {p['test_return']:8.1f}"
+        f"  val SR {p['val_SR']:.2f} CFR {p['val_CFR']:.2f}  (eval {p['eval_s']:.1f} s)",
+        flush=True,
+    )
+
+
+def train_for(
+    trainer,
+    state,
+    *,
+    budget_s: float,
+    every_s: float,
+    val_tasks,
+    log_path: Path,
+    online: bool = False,
+    clock=time.perf_counter,
+    on_point=_print_point,
+) -> tuple[Any, list[dict[str, Any]], dict[str, Any]]:
+    """Train until `budget_s` seconds of `trainer.iteration` calls have passed; evaluate at 0,
+    every `every_s` training seconds and at the end (evaluation is off the clock).
+
+    Appends one JSON line per iteration to `log_path`. Returns (state, eval points, info) with
+    info = {iterations, train_s, eval_s, first_iteration_s, stopped}; stopped is "budget" or
+    "diverged: ..." (then `state` is the last one evaluated and must not be used any more: the
+    failed iteration donated it).
+    """
+    from mpcpearl_jax.trainer import TrainingDiverged
+
+    ups = trainer.cfg.train.updates_per_iteration
+    points: list[dict[str, Any]] = []
+    info: dict[str, Any] = {
+        "iterations": 0,
+        "train_s": 0.0,
+        "eval_s": 0.0,
+        "first_iteration_s": None,
+        "stopped": "budget",
+    }
+    t_loop0 = clock()
+    log: dict[str, Any] | None = None
+
+    def evaluate() -> dict[str, Any]:
+        t = clock()
+        row = _evaluate(trainer, state, val_tasks, online)
+        dt = clock() - t
+        info["eval_s"] += dt
+        done = info["iterations"]
+        point = {
+            "minutes": info["train_s"] / 60.0,
+            "wall_minutes": (clock() - t_loop0) / 60.0,
+            "iteration": done,
+            "grad_steps": done * ups,
+            "env_steps": env_steps(trainer, done),
+            "eval_s": dt,
+            **row,
+            **_train_logs(log),
+        }
+        points.append(point)
+        if on_point is not None:
+            on_point(point)
+        return point
+
+    evaluate()  # the untrained policy at minute 0 (compiles the evaluator, off the clock)
+    next_eval_s = every_s
+    while True:
+        t = clock()
+        try:
+            state, log = trainer.iteration(state)
+        except TrainingDiverged as e:
+            info["stopped"] = f"diverged: {e}"
+            print(f"error: {e}", file=sys.stderr, flush=True)
+            break
+        dt = clock() - t
+        info["train_s"] += dt
+        if info["first_iteration_s"] is None:
+            info["first_iteration_s"] = dt
+        info["iterations"] = log["iteration"]
+        row = dict(log, train_s=info["train_s"], wall_s=clock() - t_loop0)
+        last = info["train_s"] >= budget_s
+        if last or info["train_s"] >= next_eval_s:
+            point = evaluate()
+            row.update({k: v for k, v in point.items() if k.startswith(("test_", "val_"))})
+            row["eval_s"] = point["eval_s"]
+            next_eval_s = (math.floor(info["train_s"] / every_s) + 1) * every_s
+        with log_path.open("a") as f:
+            f.write(json.dumps(row) + "\n")
+        if last:
+            break
+    return state, points, info
+
+
+def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
+    import dataclasses
+
+    import jax
+
+    from benchmarks.harness import available_cores, machine_info, print_table
+    from mpcpearl_jax.checkpoint import POLICY_FILE, Checkpointer, save_config
+    from mpcpearl_jax.run import LOG_FILE, _policy_params, final_evaluation
+    from mpcpearl_jax.trainer import Trainer
+
+    budget_s = args.minutes * 60.0
+    every_s = eval_every_minutes(args.minutes, args.eval_minutes) * 60.0
+    load_start = _loadavg()
+    if load_start is not None and load_start[0] > LOAD_WARN:
+        print(
+            f"warning: 1-minute load average {load_start[0]:.2f} > {LOAD_WARN}: another job is "
+            "running; timings (and so the whole curve) will be slower than on a quiet machine",
+            file=sys.stderr,
+            flush=True,
+        )
+    online = cfg.online_eval
+    print(
+        f"[learning] {label_of(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
+        f"budget={args.minutes:g} min, eval every {every_s / 60:.3g} min "
+        f"({'online' if online else 'adaptation'} protocol), out={out}",
+        flush=True,
+    )
+    save_config(out, cfg)
+    t_wall0 = time.perf_counter()
+    trainer = Trainer(cfg)
+    build_s = time.perf_counter() - t_wall0
+    t0 = time.perf_counter()
+    state = trainer.init_state()
+    jax.block_until_ready(state)
+    init_s = time.perf_counter() - t0
+    val_tasks = jax.tree_util.tree_map(lambda x: x[:VAL_TASKS], trainer.train_tasks)
+    tc = cfg.train
+    log_path = out / LOG_FILE
+    log_path.write_text("")
+    state, points, info = train_for(
+        trainer,
+        state,
+        budget_s=budget_s,
+        every_s=every_s,
+        val_tasks=val_tasks,
+        log_path=log_path,
+        online=online,
+    )
+    done, train_s, eval_s = info["iterations"], info["train_s"], info["eval_s"]
+    stopped, first_iteration_s = info["stopped"], info["first_iteration_s"]
+    load_end = _loadavg()
+    if done:  # the config as run: iterations = those done (a --resume continues from here)
+        cfg = cfg.replace(train=dataclasses.replace(cfg.train, iterations=done))
+        trainer.cfg = cfg  # only train.iterations differs, which the trainer never reads
+    save_config(out, cfg)
+    record: dict[str, Any] = {
+        "label": label,
+        "algo": label_of(cfg),
+        "env": cfg.env,
+        "preset": args.preset,
+        "argv": args.argv,
+        "budget_minutes": args.minutes,
+        "eval_every_minutes": every_s / 60.0,
+        "eval_protocol": "online" if online else "adapt",
+        "test_tasks": int(trainer.test_tasks.start.shape[0]),
+        "val_tasks": int(val_tasks.start.shape[0]),
+        "val_set": f"the first {VAL_TASKS} training tasks (or all if fewer)",
+        "stopped": stopped,
+        "iterations": done,
+        "updates_per_iteration": tc.updates_per_iteration,
+        "grad_steps": done * tc.updates_per_iteration,
+        "env_steps": env_steps(trainer, done),
+        "timing": {
+            "build_s": build_s,
+            "init_state_s": init_s,
+            "first_iteration_s": first_iteration_s,
+            "train_s": train_s,
+            "eval_s": eval_s,
+            "first_eval_s": points[0]["eval_s"],
+        },
+        "loadavg_start_1m_5m_15m": load_start,
+        "loadavg_end_1m_5m_15m": load_end,
+        "load_warning": bool(load_start and load_start[0] > LOAD_WARN),
+        "machine": machine_info(),
+        "threads": {
+            "cores_available": available_cores(),
+            **{
+                v: os.environ.get(v)
+                for v in ("XLA_FLAGS", "OMP_NUM_THREADS", "JAX_PLATFORMS")
+                if os.environ.get(v)
+            },
+        },
+        "config": cfg.to_dict(),
+        "time_to": time_to_targets(points),
+        "points": points,
+    }
+    rows = _read_rows(log_path)
+    record["time_to"]["train"] = {
+        "first_success": first_train_success(rows, tc.updates_per_iteration)
+    }
+    steady = [b["train_s"] - a["train_s"] for a, b in zip(rows, rows[1:], strict=False)]
+    # compilation ~ first iteration minus a steady one (the first also does the initial collection)
+    record["timing"]["iteration_s_median"] = statistics.median(steady) if steady else None
+    curve_path = out / "curve.json"
+    curve_path.write_text(json.dumps(record, indent=2))
+    plot_curve(points, out / "curve.png", f"{label}: {label_of(cfg)}, {args.minutes:g} min")
+    if done == 0:
+        print(f"error: no iteration finished; {curve_path} written", file=sys.stderr)
+        return 1
+
+    t = time.perf_counter()
+    if stopped == "budget":
+        if args.policy_only:
+            from flax import serialization
+
+            (out / POLICY_FILE).write_bytes(serialization.to_bytes(_policy_params(state)))
+        else:  # exactly as run.train: orbax checkpoint of the TrainState + policy.msgpack
+            ckpt = Checkpointer(out, keep=tc.keep_checkpoints)
+            ckpt.save(done, state, _policy_params(state))
+            ckpt.close()
+    record["timing"]["save_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if stopped == "budget":
+        final_evaluation(trainer, state, out, label)
+    record["timing"]["final_evaluation_s"] = time.perf_counter() - t
+    record["timing"]["total_wall_s"] = time.perf_counter() - t_wall0
+    curve_path.write_text(json.dumps(record, indent=2))
+
+    tm = record["timing"]
+    print_table(
+        summary_rows(record),
+        ["split", "target", "minutes", "grad steps", "iteration"],
+        title=f"{label}: time to target (training minutes, compile included)",
+    )
+    hit = record["time_to"]["train"]["first_success"]
+    first = "never" if hit is None else f"{hit['minutes']:.2f} min"
+    print(
+        f"trained {train_s / 60:.2f} min ({done} iterations, {record['grad_steps']} gradient "
+        f"steps, {record['env_steps']} env steps per seed; first iteration incl. compile "
+        f"{first_iteration_s:.1f} s); evaluation {eval_s:.1f} s off the clock; first training "
+        f"success: {first}; "
+        f"final test SR {points[-1]['test_SR']:.2f}, val SR {points[-1]['val_SR']:.2f}; "
+        f"total wall {tm['total_wall_s']:.1f} s",
+        flush=True,
+    )
+    print(f"curve, policy and results in {out}", flush=True)
+    return 0 if stopped == "budget" else 1
+
+
+def _read_rows(path: Path) -> list[dict[str, Any]]:
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+
+
+if __name__ == "__main__":
+    sys.exit(main())
