@@ -44,14 +44,15 @@ def make_collector(
     eps: float = 0.0,
     deterministic: bool = False,
 ) -> Callable:
-    """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R]) -> Episodes`.
+    """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R], demo=None) -> Episodes`.
 
     With `bridge` (see `mpcpearl_jax.mpc.make_mpc_bridge`) and eps > 0, MPC acts on the rows where
-    an event fires and a uniform draw is <= eps; its (normalized) actions go into the episodes
-    unmarked, except for the `used_mpc` log.
+    an event fires and a uniform draw is <= eps (paper Algorithm 1); its (normalized) actions go
+    into the episodes unmarked, except for the `used_mpc` log. `demo` [S, R] bool (the MPC warm
+    start extension, `TrainConfig.mpc_demo_share`) makes the MPC act on every step of those rows.
     """
     horizon = env.config.horizon
-    use_mpc = bridge is not None and eps > 0
+    use_mpc = bridge is not None
 
     def policy_actions(policy_params, obs, z, key):
         # obs [S, R, O], z [S, R, L] -> [S, R, A]
@@ -59,9 +60,12 @@ def make_collector(
         act = lambda p, o, zz, k: nets.act(p, o, zz, None if deterministic else k)
         return jax.vmap(act)(policy_params, obs, z, keys)
 
-    def collect(key: Array, policy_params, z: Array, tasks: TaskParams) -> Episodes:
+    def collect(
+        key: Array, policy_params, z: Array, tasks: TaskParams, demo: Array | None = None
+    ) -> Episodes:
         s, r = z.shape[:2]
         flat = jax.tree_util.tree_map(lambda x: x.reshape((s * r, *x.shape[2:])), tasks)
+        demo_flat = jnp.zeros((s * r,), bool) if demo is None else demo.reshape(s * r)
         obs0, state0 = jax.vmap(env.reset)(jax.random.split(key, s * r), flat)
 
         def body(carry, k):
@@ -70,7 +74,11 @@ def make_collector(
             a_pi = policy_actions(policy_params, obs.reshape(s, r, -1), z, k_pi).reshape(s * r, -1)
             fire = jax.vmap(env.event)(state, flat)
             if use_mpc:
-                fire = fire & (jax.random.uniform(k_eps, (s * r,)) <= eps)
+                if eps > 0:
+                    fire = fire & (jax.random.uniform(k_eps, (s * r,)) <= eps)
+                else:
+                    fire = jnp.zeros_like(fire)
+                fire = fire | demo_flat
                 action, used, _ = bridge(k_mpc, fire, state, flat, a_pi)
             else:
                 action, used = a_pi, jnp.zeros((s * r,), bool)

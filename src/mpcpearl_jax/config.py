@@ -39,6 +39,19 @@ class TrainConfig:
     t_update: int = 5  # online adaptation
     checkpoint_interval: int = 10
     keep_checkpoints: int = 3
+    # ---- extensions beyond the paper (all off by default and in the `paper` preset; docs/
+    # extensions.md describes and measures each one)
+    # MPC warm start: a share of the collection rows is driven by the MPC on every step (not
+    # only on events); the share starts at mpc_demo_share and falls linearly to 0 at iteration
+    # mpc_demo_iterations (the initial collection is iteration 0), after which only the paper's
+    # event-triggered infusion with probability eps remains.
+    mpc_demo_share: float = 0.0
+    mpc_demo_iterations: int = 0
+    # MPC transitions kept apart: every transition the MPC produced (solved, not a fallback) is
+    # also stored in a per-task MPC buffer of mpc_buffer_capacity, and this fraction of every
+    # RL batch is drawn from it (symmetric sampling as in RLPD when 0.5).
+    mpc_buffer_fraction: float = 0.0
+    mpc_buffer_capacity: int = 4000
 
     def __post_init__(self) -> None:
         _pos_int(
@@ -54,7 +67,7 @@ class TrainConfig:
             "keep_checkpoints",
             "eval_adapt_episodes",
         )
-        for f in ("posterior_episodes", "eval_interval"):
+        for f in ("posterior_episodes", "eval_interval", "mpc_demo_iterations"):
             v = getattr(self, f)
             if not (isinstance(v, int) and v >= 0):
                 raise ConfigError(f"TrainConfig.{f}: must be a non-negative int, got {v!r}")
@@ -64,6 +77,25 @@ class TrainConfig:
             and 0.0 <= self.eps <= 1.0
         ):
             raise ConfigError(f"TrainConfig.eps: must lie in [0, 1], got {self.eps!r}")
+        for f in ("mpc_demo_share", "mpc_buffer_fraction"):
+            v = getattr(self, f)
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            if not (ok and 0.0 <= v <= 1.0):
+                raise ConfigError(f"TrainConfig.{f}: must lie in [0, 1], got {v!r}")
+        _pos_int(self, "mpc_buffer_capacity")
+        if self.mpc_buffer_fraction >= 1.0:
+            raise ConfigError("TrainConfig.mpc_buffer_fraction: must be below 1")
+
+    @property
+    def uses_mpc(self) -> bool:
+        """Whether collection ever calls the MPC (event infusion or the warm start)."""
+        return self.eps > 0 or (self.mpc_demo_share > 0 and self.mpc_demo_iterations > 0)
+
+    def demo_share(self, iteration: int) -> float:
+        """Share of collection rows driven by the MPC on every step at `iteration`."""
+        if self.mpc_demo_iterations <= 0:
+            return 0.0
+        return self.mpc_demo_share * max(0.0, 1.0 - iteration / self.mpc_demo_iterations)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +122,16 @@ class ExperimentConfig:
             raise ConfigError("ExperimentConfig.pearl: must be a PearlConfig")
         if not isinstance(self.train, TrainConfig):
             raise ConfigError("ExperimentConfig.train: must be a TrainConfig")
+        if self.pearl.bc_weight > 0 and self.train.mpc_buffer_fraction == 0:
+            raise ConfigError(
+                "PearlConfig.bc_weight: behaviour cloning needs MPC samples in the batch "
+                "(set train.mpc_buffer_fraction > 0)"
+            )
+        if self.train.mpc_buffer_fraction > 0 and not self.train.uses_mpc:
+            raise ConfigError(
+                "TrainConfig.mpc_buffer_fraction: the MPC never acts "
+                "(set train.eps > 0 or train.mpc_demo_share and train.mpc_demo_iterations)"
+            )
 
     def replace(self, **changes: Any) -> ExperimentConfig:
         return dataclasses.replace(self, **changes)

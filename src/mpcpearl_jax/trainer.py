@@ -40,6 +40,7 @@ class TrainState(struct.PyTreeNode):
     learner: LearnerState
     rl: buffers.TaskBuffer
     enc: buffers.TaskBuffer
+    mpc: buffers.TaskBuffer  # MPC transitions kept apart (extension; capacity 1 when unused)
     key: Array  # [S, 2] PRNG keys
     iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
 
@@ -67,7 +68,7 @@ class Trainer:
         tc = cfg.train
         self.enc_capacity = tc.prior_episodes * self.horizon
         self.bridge = None
-        if tc.eps > 0:
+        if tc.uses_mpc:
             from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
 
             self.bridge = make_mpc_bridge(self.env, MPCConfig(**cfg.mpc))
@@ -76,6 +77,7 @@ class Trainer:
         self.collect_phase = jax.jit(
             self._collect_phase, static_argnums=(2, 3, 4, 5), donate_argnums=0
         )
+        self.mpc_capacity = tc.mpc_buffer_capacity if tc.mpc_buffer_fraction > 0 else 1
         self.update_phase = jax.jit(self._update_phase, donate_argnums=0)
         self.evaluate_adapt = eval_lib.make_evaluator(
             self.env, self.nets, tc.eval_adapt_episodes, online=False
@@ -98,7 +100,8 @@ class Trainer:
         n, od, ad, lead = self.num_train, self.obs_dim, self.action_dim, (cfg.seeds,)
         rl = buffers.init_buffer(n, cfg.train.rl_capacity, od, ad, lead)
         enc = buffers.init_buffer(n, self.enc_capacity, od, ad, lead)
-        return TrainState(learner, rl, enc, keys, jnp.zeros((cfg.seeds,), jnp.int32))
+        mpc = buffers.init_buffer(n, self.mpc_capacity, od, ad, lead)
+        return TrainState(learner, rl, enc, mpc, keys, jnp.zeros((cfg.seeds,), jnp.int32))
 
     # ------------------------------------------------------------- collection
     def _row_z(self, state: TrainState, keys: Array, rows: Array, posterior: bool) -> Array:
@@ -127,8 +130,13 @@ class Trainer:
         posterior: bool,
         to_encoder: bool,
         clear_encoder: bool,
+        demo_share: Array | float = 0.0,
     ) -> tuple[TrainState, dict]:
-        """Collect `episodes` per task of task_ids [S, k] and store them. Returns (state, stats)."""
+        """Collect `episodes` per task of task_ids [S, k] and store them. Returns (state, stats).
+
+        demo_share: probability that a row is driven by the MPC on every step (warm start
+        extension; 0 = the paper's event-triggered infusion only).
+        """
         keys, sub = _split_keys(state.key, 2)
         rows = jnp.repeat(task_ids, episodes, axis=1)  # [S, k * E]
         enc = state.enc
@@ -137,23 +145,30 @@ class Trainer:
         state = state.replace(enc=enc)
         z = self._row_z(state, sub[:, 0], rows, posterior)
         tasks = collect_lib.rows_of(self.train_tasks, rows)
-        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks)
+        demo = None
+        if self.bridge is not None:
+            k_demo = jax.random.fold_in(sub[0, 1], 7)
+            demo = jax.random.uniform(k_demo, rows.shape) < demo_share
+        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, demo)
         s, k = task_ids.shape
-        per_task = jax.tree_util.tree_map(
-            lambda x: x.reshape((s, k, episodes * self.horizon, *x.shape[3:])), ep.transitions
-        )
+        to_task = lambda x: x.reshape((s, k, episodes * self.horizon, *x.shape[3:]))  # noqa: E731
+        per_task = jax.tree_util.tree_map(to_task, ep.transitions)
         rl = jax.vmap(buffers.insert)(state.rl, task_ids, per_task)
         if to_encoder:
             enc = jax.vmap(buffers.insert)(enc, task_ids, per_task)
+        mpc = state.mpc
+        if self.cfg.train.mpc_buffer_fraction > 0:
+            mpc = jax.vmap(buffers.insert_masked)(mpc, task_ids, per_task, to_task(ep.used_mpc))
         stats = {
             "return": jnp.mean(jnp.sum(ep.transitions.reward, axis=-1), axis=-1),  # [S]
             "success": jnp.mean(jnp.any(ep.in_goal, -1) & ~jnp.any(ep.collision, -1), axis=-1),
             "collision_free": jnp.mean(~jnp.any(ep.collision, -1), axis=-1),
             "event_rate": jnp.mean(ep.event, axis=(-1, -2)),
             "mpc_share": jnp.mean(ep.used_mpc, axis=(-1, -2)),
+            "demo_rows": jnp.mean(demo, axis=-1) if demo is not None else jnp.zeros(s),
             "steps": jnp.asarray(ep.transitions.reward[0].size),
         }
-        return state.replace(rl=rl, enc=enc, key=keys), stats
+        return state.replace(rl=rl, enc=enc, mpc=mpc, key=keys), stats
 
     def _choose_tasks(self, state: TrainState, k: int) -> tuple[TrainState, Array]:
         keys, sub = _split_keys(state.key, 1)
@@ -166,26 +181,46 @@ class Trainer:
         cfg, n = self.cfg.pearl, self.num_train
         steps = self.cfg.train.updates_per_iteration
 
-        def per_seed(learner, rl, enc, key):
+        frac = self.cfg.train.mpc_buffer_fraction
+        n_mpc = int(round(cfg.batch_size * frac)) if frac > 0 else 0
+
+        def per_seed(learner, rl, enc, mpc, key):
             def body(learner, k):
                 k_t, k_b, k_c, k_u = jax.random.split(k, 4)
                 tids = jax.random.choice(k_t, n, (cfg.meta_batch,), replace=cfg.meta_batch > n)
                 batch = buffers.sample(rl, k_b, tids, cfg.batch_size)
                 ctx = context_from(buffers.sample(enc, k_c, tids, cfg.context_size))
-                return self._update_body(learner, batch, ctx, k_u)
+                if n_mpc == 0:
+                    return self._update_body(learner, batch, ctx, k_u)
+                # extension: the last n_mpc rows of each task's batch come from its MPC buffer
+                # (tasks whose MPC buffer is still empty keep their RL rows)
+                demo = buffers.sample(mpc, jax.random.fold_in(k_b, 1), tids, n_mpc)
+                has = (mpc.size[tids] > 0)[:, None]  # [MB, 1]
+                mix = (
+                    lambda b, d: b.at[:, -n_mpc:].set(  # noqa: E731
+                        jnp.where(has.reshape(has.shape + (1,) * (d.ndim - 2)), d, b[:, -n_mpc:])
+                    )
+                )
+                batch = jax.tree_util.tree_map(mix, batch, demo)
+                col = jnp.arange(cfg.batch_size)[None, :] >= cfg.batch_size - n_mpc
+                demo_mask = (col & has).astype(jnp.float32)
+                return self._update_body(learner, batch, ctx, k_u, demo_mask)
 
             learner, ms = jax.lax.scan(body, learner, jax.random.split(key, steps))
             return learner, jax.tree_util.tree_map(jnp.mean, ms)
 
         keys, sub = _split_keys(state.key, 1)
-        learner, ms = jax.vmap(per_seed)(state.learner, state.rl, state.enc, sub[:, 0])
+        learner, ms = jax.vmap(per_seed)(state.learner, state.rl, state.enc, state.mpc, sub[:, 0])
         return state.replace(learner=learner, key=keys), ms
 
     # -------------------------------------------------------------- iteration
     def initial_collection(self, state: TrainState) -> tuple[TrainState, dict]:
         """Iteration 0: every training task, prior z, RL + encoder buffers."""
         ids = jnp.broadcast_to(jnp.arange(self.num_train), (self.cfg.seeds, self.num_train))
-        return self.collect_phase(state, ids, self.cfg.train.initial_episodes, False, True, True)
+        share = jnp.float32(self.cfg.train.demo_share(0))
+        return self.collect_phase(
+            state, ids, self.cfg.train.initial_episodes, False, True, True, share
+        )
 
     def iteration(self, state: TrainState) -> tuple[TrainState, dict]:
         """One meta-training iteration: collect (prior, posterior), then N_train updates."""
@@ -194,13 +229,17 @@ class Trainer:
         t0 = time.perf_counter()
         if self.bridge is not None:
             self.bridge.reset_stats()
-        if int(state.iteration[0]) == 0:
+        it = int(state.iteration[0])
+        if it == 0:
             state, _ = self.initial_collection(state)
+        share = jnp.float32(tc.demo_share(it + 1))
         state, ids = self._choose_tasks(state, tc.tasks_per_iteration)
-        state, prior = self.collect_phase(state, ids, tc.prior_episodes, False, True, True)
+        state, prior = self.collect_phase(state, ids, tc.prior_episodes, False, True, True, share)
         post = None
         if tc.posterior_episodes > 0:
-            state, post = self.collect_phase(state, ids, tc.posterior_episodes, True, False, False)
+            state, post = self.collect_phase(
+                state, ids, tc.posterior_episodes, True, False, False, share
+            )
         jax.block_until_ready(state.rl.size)
         t1 = time.perf_counter()
         state, losses = self.update_phase(state)
@@ -217,7 +256,7 @@ class Trainer:
         log["collect_s"] = t1 - t0
         log["update_s"] = t2 - t1
         src = post if post is not None else prior
-        for name in ("return", "success", "collision_free", "event_rate", "mpc_share"):
+        for name in ("return", "success", "collision_free", "event_rate", "mpc_share", "demo_rows"):
             log[f"train_{name}"] = float(np.mean(jax.device_get(src[name])))
         log["train_prior_return"] = float(np.mean(jax.device_get(prior["return"])))
         if self.bridge is not None:
@@ -225,6 +264,8 @@ class Trainer:
             log["mpc_calls"] = st["calls"]
             log["mpc_rows"] = st["rows_solved"]
             log["mpc_fallbacks"] = st["fallbacks"]
+            log["mpc_fallback_rate"] = st["fallbacks"] / max(st["rows_solved"], 1)
+            log["mpc_reasons"] = st["reasons"]
             log["mpc_solve_s"] = float(sum(st["solve_s"]))
             log["mpc_host_s"] = float(sum(st["host_call_s"]))
         log.update({k: float(np.mean(v)) for k, v in losses.items()})

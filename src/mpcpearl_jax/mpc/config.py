@@ -48,6 +48,10 @@ class MPCConfig:
     line_search_steps: int = 3  # step sizes 1, 1/2, 1/4, ... on the exact SAA merit
     cold_speed: float = 2.5  # speed of the cold-start plan, m/s
     unsafe_tol: float = 0.02  # first-stage violation (m) above which a plan counts as unsafe
+    # extension (off = SPEC 6): an unsafe plan is re-solved once from the least-violating first
+    # move of a 3 x 3 input grid; a plan whose first move is as safe as the best of that grid is
+    # used (reason "least_violation") instead of falling back
+    unsafe_recovery: bool = False
     osqp_eps_abs: float = 1e-3
     osqp_eps_rel: float = 1e-3
     osqp_max_iter: int = 200
@@ -89,6 +93,8 @@ class MPCConfig:
             v = getattr(self, f)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
                 _fail(f, f"must be an int >= 0, got {v!r}")
+        if not isinstance(self.unsafe_recovery, bool):
+            _fail("unsafe_recovery", f"must be true or false, got {self.unsafe_recovery!r}")
         if not (isinstance(self.n_workers, int) and self.n_workers >= 1):
             _fail("n_workers", f"must be an int >= 1, got {self.n_workers!r}")
         if not (0.0 < self.alpha < 1.0):

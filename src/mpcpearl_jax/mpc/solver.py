@@ -66,6 +66,7 @@ class SolverParams:
     line_search_steps: int
     cold_speed: float
     unsafe_tol: float
+    unsafe_recovery: bool
     osqp_settings: tuple[tuple[str, float | int | bool], ...]
 
 
@@ -108,6 +109,7 @@ def solver_params(cfg: MPCConfig, nav: NavConfig, num_static: int) -> SolverPara
         line_search_steps=cfg.line_search_steps,
         cold_speed=min(cfg.cold_speed, v_max),
         unsafe_tol=cfg.unsafe_tol,
+        unsafe_recovery=cfg.unsafe_recovery,
         osqp_settings=osqp_settings,
     )
 
@@ -408,10 +410,36 @@ class SQPSolver:
         return res.x[self.lay.u : self.lay.x].reshape(-1, 2), int(status), int(res.info.iter)
 
     def solve(self, prob: RowProblem, u_init: np.ndarray | None = None) -> SolveResult:
-        """SQP from the plan u_init [K, 2] (cold start if None); never raises on solver failure."""
+        """SQP from the plan u_init [K, 2] (cold start if None); never raises on solver failure.
+
+        With `unsafe_recovery` (extension), a plan whose first stage is unsafe is solved once more
+        from the least-violating first move of a 3 x 3 input grid, and a plan whose first move is
+        itself the least violating one available is used (reason "least_violation").
+        """
         t0 = time.perf_counter()
         p = self.p
         u = clip_inputs(p, cold_start(p, prob) if u_init is None else np.asarray(u_init, float))
+        u, xs, cur, iters, n_qp, reason = self._sqp(prob, u)
+        if reason == "unsafe" and p.unsafe_recovery:
+            best, best_u = self._grid_first_moves(prob, u)
+            u2, xs2, cur2, it2, nq2, reason2 = self._sqp(prob, best_u)
+            iters, n_qp = iters + it2, n_qp + nq2
+            if reason2 == "solved":
+                u, xs, cur, reason = u2, xs2, cur2, reason2
+            else:
+                for cand in ((u, xs, cur), (u2, xs2, cur2)):
+                    if np.all(np.isfinite(cand[0])) and self._first_violation(prob, cand[1]) <= (
+                        best + p.unsafe_tol
+                    ):
+                        u, xs, cur = cand
+                        reason = "least_violation"
+                        break
+        ok = reason in ("solved", "least_violation")
+        return SolveResult(u, xs, ok, reason, iters, n_qp, time.perf_counter() - t0, cur)
+
+    def _sqp(self, prob: RowProblem, u: np.ndarray):
+        """SQP iterations from u; -> (u, xs, merit, qp iterations, QPs, reason)."""
+        p = self.p
         xs = model.rollout(prob.x0, u, p.dt, p.wheelbase)
         cur = merit(p, prob, u, xs)
         iters, n_qp, reason = 0, 0, "solved"
@@ -431,9 +459,25 @@ class SQPSolver:
             reason = "nonfinite"
         if reason == "solved" and not self.first_stage_safe(prob, xs):
             reason = "unsafe"
-        return SolveResult(
-            u, xs, reason == "solved", reason, iters, n_qp, time.perf_counter() - t0, cur
-        )
+        return u, xs, cur, iters, n_qp, reason
+
+    def _first_violation(self, prob: RowProblem, xs: np.ndarray) -> float:
+        static, cvar = violations(self.p, prob, xs)
+        return float(max(static[0].max(initial=0.0), cvar[0]))
+
+    def _grid_first_moves(self, prob: RowProblem, u: np.ndarray) -> tuple[float, np.ndarray]:
+        """The least first-stage violation over first inputs (0, v_max / 2, v_max) x (-max, 0,
+        +max steering) with the rest of plan u, and that plan."""
+        p = self.p
+        best, best_u = np.inf, u
+        for v in (0.0, 0.5 * p.v_max, p.v_max):
+            for d in (-p.steer_max, 0.0, p.steer_max):
+                u_c = u.copy()
+                u_c[0] = (v, d)
+                viol = self._first_violation(prob, model.rollout(prob.x0, u_c, p.dt, p.wheelbase))
+                if viol < best:
+                    best, best_u = viol, u_c
+        return best, best_u
 
     def _line_search(self, prob: RowProblem, u: np.ndarray, du: np.ndarray, cur: float):
         """Backtracking on the exact SAA merit; (u, xs, merit, |step|_inf) or None."""

@@ -56,6 +56,34 @@ def insert(buf: TaskBuffer, task_ids: Array, data: Transitions) -> TaskBuffer:
     )
 
 
+def insert_masked(buf: TaskBuffer, task_ids: Array, data: Transitions, mask: Array) -> TaskBuffer:
+    """Append only the rows of `data` [k, n, ...] where `mask` [k, n] is true, in order.
+
+    The kept rows of each task are moved to the front (stable) and written at the ring pointer;
+    the others are dropped (scatter with mode="drop"), so a full buffer loses only as many old
+    transitions as new ones arrive.
+    """
+    cap = buf.capacity
+    n = data.reward.shape[1]
+    order = jnp.argsort(~mask, axis=1, stable=True)  # kept rows first
+    count = jnp.sum(mask, axis=1).astype(jnp.int32)  # [k]
+    j = jnp.arange(n)[None, :]
+    idx = (buf.ptr[task_ids][:, None] + j) % cap
+    idx = jnp.where(j < jnp.minimum(count, cap)[:, None], idx, cap)  # cap = out of range: dropped
+    rows = task_ids[:, None]
+    gather = lambda d: jnp.take_along_axis(  # noqa: E731
+        d, order.reshape(order.shape + (1,) * (d.ndim - 2)), axis=1
+    )
+    new = jax.tree_util.tree_map(
+        lambda b, d: b.at[rows, idx].set(gather(d), mode="drop"), buf.data, data
+    )
+    return TaskBuffer(
+        new,
+        buf.size.at[task_ids].set(jnp.minimum(buf.size[task_ids] + count, cap)),
+        buf.ptr.at[task_ids].set((buf.ptr[task_ids] + count) % cap),
+    )
+
+
 def sample(buf: TaskBuffer, key: Array, task_ids: Array, n: int) -> Transitions:
     """Uniform sample with replacement of `n` transitions for each of `task_ids` [k] -> [k, n].
 

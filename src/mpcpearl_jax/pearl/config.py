@@ -34,6 +34,11 @@ class PearlConfig:
     context_size: int = 64  # context transitions per task
     max_grad_norm: float | None = None  # None = no clipping (authors)
     use_context: bool = True  # False: z = 0 always, no encoder (the paper's MPC-SAC baseline)
+    # ---- extensions beyond the paper (off by default and in the `paper` preset)
+    # Q-filtered behaviour cloning on MPC transitions (Nair et al. 2018): the policy loss adds
+    # bc_weight * mean over MPC samples of 1[Q(s, a_mpc) > Q(s, pi(s))] |tanh(mu(s)) - a_mpc|^2.
+    bc_weight: float = 0.0
+    layer_norm: bool = False  # LayerNorm after every hidden layer of the Q and V networks
 
     def __post_init__(self) -> None:
         n = type(self).__name__
@@ -54,10 +59,13 @@ class PearlConfig:
             v = getattr(self, f)
             if not (isinstance(v, (int, float)) and 0 <= v <= 1):
                 raise ConfigError(f"{n}.{f}: must lie in [0, 1], got {v!r}")
-        for f in ("kl_weight", "policy_mean_reg", "policy_std_reg"):
+        for f in ("kl_weight", "policy_mean_reg", "policy_std_reg", "bc_weight"):
             v = getattr(self, f)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{n}.{f}: must be a non-negative number, got {v!r}")
+        for f in ("use_context", "layer_norm"):
+            if not isinstance(getattr(self, f), bool):
+                raise ConfigError(f"{n}.{f}: must be true or false, got {getattr(self, f)!r}")
         if not self.log_std_min < self.log_std_max:
             raise ConfigError(f"{n}.log_std_min: must be below log_std_max")
         if self.max_grad_norm is not None and not self.max_grad_norm > 0:

@@ -71,8 +71,13 @@ def _update(
     batch: Transitions,
     context: Array,
     key: Array,
+    demo_mask: Array | None = None,
 ) -> tuple[LearnerState, dict]:
-    """One PEARL gradient step (order as in the authors' code: Q+encoder, then V, policy)."""
+    """One PEARL gradient step (order as in the authors' code: Q+encoder, then V, policy).
+
+    demo_mask [MB, B] marks the batch rows drawn from the MPC buffer (only used by the
+    behaviour-cloning extension, `PearlConfig.bc_weight`).
+    """
     k_z, k_pi = jax.random.split(key)
     p = state.params
     # 1. Q and encoder: L_psi + beta KL (paper L_phi).
@@ -86,7 +91,17 @@ def _update(
     zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])
     # 2. policy (z detached), with the updated Q.
     (pi_loss, pi_aux), g_pi = jax.value_and_grad(losses.policy_loss, has_aux=True)(
-        p["policy"], nets, q_enc["q"], batch.obs, zb, k_pi, cfg.policy_mean_reg, cfg.policy_std_reg
+        p["policy"],
+        nets,
+        q_enc["q"],
+        batch.obs,
+        zb,
+        k_pi,
+        cfg.policy_mean_reg,
+        cfg.policy_std_reg,
+        batch.action,
+        demo_mask,
+        cfg.bc_weight,
     )
     upd, os_pi = opt.update(g_pi, state.opt_state["policy"], p["policy"])
     policy = optax.apply_updates(p["policy"], upd)
@@ -111,6 +126,8 @@ def _update(
         "q_mean": aux["q1_mean"],
         "loss_total": qe_loss,
     }
+    if "bc_kept" in pi_aux:
+        metrics["bc_kept"] = pi_aux["bc_kept"]
     return new_state, metrics
 
 
@@ -119,8 +136,14 @@ def make_update_fn(cfg: PearlConfig, obs_dim: int, action_dim: int):
     nets = Networks(cfg, obs_dim, action_dim)
     opt = _optimizer(cfg)
 
-    def update(state: LearnerState, batch: Transitions, context: Array, key: Array):
-        return _update(nets, cfg, opt, state, batch, context, key)
+    def update(
+        state: LearnerState,
+        batch: Transitions,
+        context: Array,
+        key: Array,
+        demo_mask: Array | None = None,
+    ):
+        return _update(nets, cfg, opt, state, batch, context, key, demo_mask)
 
     return jax.jit(update)
 
@@ -130,7 +153,13 @@ def make_update_body(cfg: PearlConfig, obs_dim: int, action_dim: int):
     nets = Networks(cfg, obs_dim, action_dim)
     opt = _optimizer(cfg)
 
-    def update(state: LearnerState, batch: Transitions, context: Array, key: Array):
-        return _update(nets, cfg, opt, state, batch, context, key)
+    def update(
+        state: LearnerState,
+        batch: Transitions,
+        context: Array,
+        key: Array,
+        demo_mask: Array | None = None,
+    ):
+        return _update(nets, cfg, opt, state, batch, context, key, demo_mask)
 
     return update

@@ -63,10 +63,27 @@ def value_loss(v_params, nets: Networks, obs, z, v_target):
     return jnp.mean((v - jax.lax.stop_gradient(v_target)) ** 2)
 
 
-def policy_loss(policy_params, nets: Networks, q_params, obs, z, key, mean_reg, std_reg):
+def policy_loss(
+    policy_params,
+    nets: Networks,
+    q_params,
+    obs,
+    z,
+    key,
+    mean_reg,
+    std_reg,
+    demo_action=None,
+    demo_mask=None,
+    bc_weight: float = 0.0,
+):
     """Paper's actor loss L_theta = KL(pi || exp(Q)/Z) = E[log pi - min_i Q_i] + regularisers.
 
-    z is detached (no policy gradient into the encoder). Returns (loss, aux).
+    z is detached (no policy gradient into the encoder). Extension (off in the paper): with
+    bc_weight > 0, a Q-filtered behaviour-cloning term on the MPC samples of the batch
+    (demo_mask [MB, B] = 1 where the stored action came from the MPC, demo_action [MB, B, A]):
+    bc_weight * mean|Q| * sum_demo 1[min Q(s, a_mpc) > min Q(s, tanh mu(s))] |tanh mu(s) - a_mpc|^2
+    / n_demo, with mean|Q| detached so that bc_weight is free of the reward scale (as TD3+BC's
+    lambda = alpha / mean|Q|; bc_weight 0.4 matches its alpha = 2.5). Returns (loss, aux).
     """
     mean, log_std = nets.policy_out(policy_params, obs, z)
     action, log_pi = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=key)
@@ -75,4 +92,14 @@ def policy_loss(policy_params, nets: Networks, q_params, obs, z, key, mean_reg, 
     loss = jnp.mean(log_pi - min_q)
     loss += mean_reg * jnp.mean(mean**2) + std_reg * jnp.mean(log_std**2)
     aux = {"log_pi": jnp.mean(log_pi), "v_target": min_q - log_pi}
+    if bc_weight > 0 and demo_action is not None and demo_mask is not None:
+        det = jnp.tanh(mean)
+        q_det = jnp.minimum(*nets.q_values(q_params, obs, jax.lax.stop_gradient(det), z))
+        q_demo = jnp.minimum(*nets.q_values(q_params, obs, demo_action, z))
+        keep = jax.lax.stop_gradient(demo_mask * (q_demo > q_det))
+        err = jnp.sum((det - demo_action) ** 2, axis=-1)
+        n = jnp.maximum(jnp.sum(demo_mask), 1.0)
+        q_scale = jax.lax.stop_gradient(jnp.mean(jnp.abs(min_q)))
+        loss += bc_weight * q_scale * jnp.sum(keep * err) / n
+        aux["bc_kept"] = jnp.sum(keep) / n
     return loss, aux

@@ -37,11 +37,14 @@ class MLP(nn.Module):
 
     hidden: Sequence[int]
     out_dim: int
+    layer_norm: bool = False  # extension: LayerNorm before each ReLU (off in the paper)
 
     @nn.compact
     def __call__(self, x: Array) -> Array:
         for h in self.hidden:
             x = nn.Dense(h, kernel_init=_fanin_init, bias_init=nn.initializers.constant(0.1))(x)
+            if self.layer_norm:
+                x = nn.LayerNorm()(x)
             x = nn.relu(x)
         return nn.Dense(
             self.out_dim, kernel_init=_uniform_init(LAST_INIT), bias_init=_uniform_init(LAST_INIT)
@@ -52,21 +55,23 @@ class TwinQ(nn.Module):
     """Two Q heads Q_i(s, a, z): returns ([...], [...])."""
 
     hidden: Sequence[int]
+    layer_norm: bool = False
 
     @nn.compact
     def __call__(self, obs: Array, action: Array, z: Array) -> tuple[Array, Array]:
         x = jnp.concatenate([obs, action, z], axis=-1)
-        q1 = MLP(self.hidden, 1, name="q1")(x)[..., 0]
-        q2 = MLP(self.hidden, 1, name="q2")(x)[..., 0]
+        q1 = MLP(self.hidden, 1, self.layer_norm, name="q1")(x)[..., 0]
+        q2 = MLP(self.hidden, 1, self.layer_norm, name="q2")(x)[..., 0]
         return q1, q2
 
 
 class ValueNet(nn.Module):
     hidden: Sequence[int]
+    layer_norm: bool = False
 
     @nn.compact
     def __call__(self, obs: Array, z: Array) -> Array:
-        return MLP(self.hidden, 1)(jnp.concatenate([obs, z], axis=-1))[..., 0]
+        return MLP(self.hidden, 1, self.layer_norm)(jnp.concatenate([obs, z], axis=-1))[..., 0]
 
 
 class PolicyNet(nn.Module):
@@ -135,8 +140,8 @@ class Networks:
         self.action_dim = action_dim
         self.context_dim = 2 * obs_dim + action_dim + 1
         self.policy = PolicyNet(cfg.hidden, action_dim, cfg.log_std_min, cfg.log_std_max)
-        self.q = TwinQ(cfg.hidden)
-        self.v = ValueNet(cfg.hidden)
+        self.q = TwinQ(cfg.hidden, cfg.layer_norm)
+        self.v = ValueNet(cfg.hidden, cfg.layer_norm)
         self.encoder = ContextEncoder(cfg.encoder_hidden, cfg.latent_dim, cfg.min_posterior_var)
 
     def init(self, key: Array) -> dict:

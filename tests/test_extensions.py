@@ -1,0 +1,240 @@
+"""Extensions beyond the paper (docs/extensions.md): MPC warm start, MPC buffer with masked
+inserts, Q-filtered behaviour cloning, LayerNorm critics, least-violation MPC moves. Each is off by
+default and in the `paper` preset."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mpcpearl_jax.config import ExperimentConfig, PearlConfig, TrainConfig, preset
+from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.pearl import Transitions, buffers, losses
+from mpcpearl_jax.pearl.networks import Networks
+
+OBS, A = 5, 2
+
+
+def _transitions(k, n, start=0.0):
+    r = jnp.arange(k * n, dtype=jnp.float32).reshape(k, n) + start
+    return Transitions(
+        jnp.repeat(r[..., None], OBS, -1),
+        jnp.repeat(r[..., None], A, -1),
+        r,
+        jnp.repeat(r[..., None], OBS, -1),
+        jnp.zeros((k, n)),
+    )
+
+
+def _insert_masked_ref(store, size, ptr, cap, task_ids, reward, mask):
+    """NumPy reference: append the kept rewards of each task to its ring buffer, in order."""
+    store, size, ptr = store.copy(), size.copy(), ptr.copy()
+    for i, t in enumerate(task_ids):
+        for v in reward[i][mask[i]]:
+            store[t, ptr[t]] = v
+            ptr[t] = (ptr[t] + 1) % cap
+            size[t] = min(size[t] + 1, cap)
+    return store, size, ptr
+
+
+def test_insert_masked_matches_numpy_ring_buffer():
+    rng = np.random.default_rng(0)
+    cap, n_tasks, n = 7, 4, 5
+    buf = buffers.init_buffer(n_tasks, cap, OBS, A)
+    store = np.zeros((n_tasks, cap), np.float32)
+    size = np.zeros(n_tasks, np.int64)
+    ptr = np.zeros(n_tasks, np.int64)
+    for step in range(6):  # wraps around several times
+        ids = rng.choice(n_tasks, 2, replace=False)
+        data = _transitions(2, n, start=100.0 * step)
+        mask = rng.uniform(size=(2, n)) < 0.6
+        buf = jax.jit(buffers.insert_masked)(buf, jnp.asarray(ids), data, jnp.asarray(mask))
+        store, size, ptr = _insert_masked_ref(
+            store, size, ptr, cap, ids, np.asarray(data.reward), mask
+        )
+        np.testing.assert_array_equal(np.asarray(buf.size), size)
+        np.testing.assert_array_equal(np.asarray(buf.ptr), ptr)
+        for t in range(n_tasks):  # only the valid slots are defined
+            np.testing.assert_array_equal(
+                np.asarray(buf.data.reward)[t, : size[t]], store[t, : size[t]]
+            )
+            np.testing.assert_array_equal(
+                np.asarray(buf.data.obs)[t, : size[t], 0], store[t, : size[t]]
+            )
+
+
+def test_insert_masked_all_true_equals_insert():
+    buf = buffers.init_buffer(3, 6, OBS, A)
+    data = _transitions(2, 4)
+    ids = jnp.array([2, 0])
+    a = buffers.insert(buffers.insert(buf, ids, data), ids, data)
+    m = jnp.ones((2, 4), bool)
+    b = buffers.insert_masked(buffers.insert_masked(buf, ids, data, m), ids, data, m)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def _bc_setup(bc_weight):
+    cfg = PearlConfig(hidden=(16, 16), encoder_hidden=(8,), latent_dim=2, bc_weight=bc_weight)
+    nets = Networks(cfg, OBS, A)
+    params = nets.init(jax.random.PRNGKey(0))
+    k = jax.random.split(jax.random.PRNGKey(1), 3)
+    obs = jax.random.normal(k[0], (2, 8, OBS))
+    z = jax.random.normal(k[1], (2, 8, 2))
+    demo_action = jnp.tanh(jax.random.normal(k[2], (2, 8, A)))
+    return cfg, nets, params, obs, z, demo_action
+
+
+def _policy_loss(cfg, nets, params, obs, z, demo_action, demo_mask, q_params=None):
+    return losses.policy_loss(
+        params["policy"],
+        nets,
+        params["q"] if q_params is None else q_params,
+        obs,
+        z,
+        jax.random.PRNGKey(3),
+        cfg.policy_mean_reg,
+        cfg.policy_std_reg,
+        demo_action,
+        demo_mask,
+        cfg.bc_weight,
+    )
+
+
+def test_bc_term_is_zero_when_off_or_without_demo_rows():
+    cfg0, nets, params, obs, z, demo = _bc_setup(0.0)
+    base, _ = _policy_loss(cfg0, nets, params, obs, z, demo, jnp.ones((2, 8)))
+    cfg1 = dataclasses.replace(cfg0, bc_weight=1.0)
+    none, aux = _policy_loss(cfg1, nets, params, obs, z, demo, jnp.zeros((2, 8)))
+    np.testing.assert_allclose(float(base), float(none), rtol=1e-6)
+    assert float(aux["bc_kept"]) == 0.0
+
+
+def test_bc_term_matches_hand_computation_and_q_filter():
+    cfg, nets, params, obs, z, demo = _bc_setup(0.5)
+    mask = jnp.zeros((2, 8)).at[:, :3].set(1.0)
+    base, _ = _policy_loss(
+        dataclasses.replace(cfg, bc_weight=0.0), nets, params, obs, z, demo, mask
+    )
+    loss, aux = _policy_loss(cfg, nets, params, obs, z, demo, mask)
+    mean, log_std = nets.policy_out(params["policy"], obs, z)
+    det = jnp.tanh(mean)
+    q_det = jnp.minimum(*nets.q_values(params["q"], obs, det, z))
+    q_demo = jnp.minimum(*nets.q_values(params["q"], obs, demo, z))
+    from mpcpearl_jax.pearl.networks import tanh_gaussian
+
+    a, _ = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=jax.random.PRNGKey(3))
+    q_scale = jnp.mean(jnp.abs(jnp.minimum(*nets.q_values(params["q"], obs, a, z))))
+    keep = mask * (q_demo > q_det)
+    want = 0.5 * q_scale * jnp.sum(keep * jnp.sum((det - demo) ** 2, -1)) / jnp.sum(mask)
+    np.testing.assert_allclose(float(loss - base), float(want), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(float(aux["bc_kept"]), float(jnp.sum(keep) / 6.0), rtol=1e-6)
+    # a critic that prefers the demo everywhere keeps every demo row; one that never does, none
+    prefer = jax.tree_util.tree_map(jnp.zeros_like, params["q"])
+    _, aux0 = _policy_loss(cfg, nets, params, obs, z, demo, mask, prefer)
+    assert float(aux0["bc_kept"]) == 0.0  # equal Q: the strict filter keeps nothing
+
+
+def test_bc_gradient_pulls_policy_mean_towards_mpc_action():
+    cfg, nets, params, obs, z, demo = _bc_setup(50.0)
+    mask = jnp.ones((2, 8))
+
+    # a Q that ranks the MPC action first: Q(s, a) = -|a - a_mpc|^2 through a stub network
+    def q_prefers_demo(p, o, a, zz):
+        q = -jnp.sum((a - demo) ** 2, -1) * 10.0
+        return q, q
+
+    stub = type("N", (), {})()
+    stub.policy_out = nets.policy_out
+    stub.q_values = q_prefers_demo
+
+    def bc_only(pp):
+        full, _ = losses.policy_loss(
+            pp, stub, None, obs, z, jax.random.PRNGKey(3), 0.0, 0.0, demo, mask, cfg.bc_weight
+        )
+        return full
+
+    g = jax.grad(bc_only)(params["policy"])
+    step = jax.tree_util.tree_map(lambda p, gg: p - 1e-3 * gg, params["policy"], g)
+    before = jnp.mean((jnp.tanh(nets.policy_out(params["policy"], obs, z)[0]) - demo) ** 2)
+    after = jnp.mean((jnp.tanh(nets.policy_out(step, obs, z)[0]) - demo) ** 2)
+    assert float(after) < float(before)
+
+
+def test_layer_norm_adds_scale_and_bias_to_critics_only():
+    cfg = PearlConfig(hidden=(8, 8), encoder_hidden=(4,), latent_dim=2, layer_norm=True)
+    p = Networks(cfg, OBS, A).init(jax.random.PRNGKey(0))
+    names = lambda tree: {  # noqa: E731
+        "/".join(str(getattr(k, "key", k)) for k in path)
+        for path, _ in jax.tree_util.tree_flatten_with_path(tree)[0]
+    }
+    assert any("LayerNorm" in n for n in names(p["q"]))
+    assert any("LayerNorm" in n for n in names(p["v"]))
+    assert not any("LayerNorm" in n for n in names(p["policy"]))
+    off = Networks(dataclasses.replace(cfg, layer_norm=False), OBS, A).init(jax.random.PRNGKey(0))
+    assert not any("LayerNorm" in n for n in names(off["q"]))
+
+
+def test_demo_share_schedule():
+    tc = TrainConfig(mpc_demo_share=0.8, mpc_demo_iterations=10)
+    assert tc.demo_share(0) == pytest.approx(0.8)
+    assert tc.demo_share(5) == pytest.approx(0.4)
+    assert tc.demo_share(10) == 0.0 and tc.demo_share(50) == 0.0
+    assert TrainConfig().demo_share(0) == 0.0
+    assert TrainConfig(eps=0.0, mpc_demo_share=0.5, mpc_demo_iterations=3).uses_mpc
+    assert not TrainConfig(eps=0.0).uses_mpc
+
+
+@pytest.mark.parametrize(
+    "make, field",
+    [
+        (lambda: TrainConfig(mpc_demo_share=1.5), "mpc_demo_share"),
+        (lambda: TrainConfig(mpc_buffer_fraction=1.0), "mpc_buffer_fraction"),
+        (lambda: TrainConfig(mpc_demo_iterations=-1), "mpc_demo_iterations"),
+        (lambda: PearlConfig(bc_weight=-1.0), "bc_weight"),
+        (lambda: PearlConfig(layer_norm="False"), "layer_norm"),
+        (
+            lambda: ExperimentConfig(pearl=PearlConfig(bc_weight=1.0)),
+            "bc_weight",
+        ),
+        (
+            lambda: ExperimentConfig(train=TrainConfig(eps=0.0, mpc_buffer_fraction=0.5)),
+            "mpc_buffer_fraction",
+        ),
+    ],
+)
+def test_invalid_extension_settings_name_the_field(make, field):
+    with pytest.raises(ConfigError, match=field):
+        make()
+
+
+def test_paper_preset_has_every_extension_off():
+    cfg = preset("paper")
+    assert cfg.train == TrainConfig() and cfg.pearl == PearlConfig()
+    assert cfg.train.mpc_demo_share == 0 and cfg.train.mpc_buffer_fraction == 0
+    assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
+    assert not cfg.mpc.get("unsafe_recovery", False)
+
+
+def test_unsafe_recovery_uses_the_least_violating_move_instead_of_falling_back():
+    from mpcpearl_jax.envs.types import EnvState, stack_params
+    from mpcpearl_jax.mpc import SOLVED, MPCConfig, make_mpc_bridge
+    from tests.test_mpc_closed_loop import ENV, crossing_task
+
+    task = crossing_task().replace(start=jnp.array([2.4, 3.5, np.pi]))  # 0.6 m from a table
+    params = stack_params([task])
+    state = EnvState(pose=params.start, t=jnp.zeros(1, jnp.int32))
+    policy = jnp.array([[0.25, -0.5]])
+    bridge = make_mpc_bridge(ENV, MPCConfig(unsafe_recovery=True))
+    act, used, status = jax.jit(bridge)(
+        jax.random.PRNGKey(0), jnp.array([True]), state, params, policy
+    )
+    assert int(status[0]) == SOLVED and bool(used[0])
+    assert bridge.stats()["reasons"] == {"least_violation": 1}
+    # the executed move does not bring the robot closer to the table than standing still
+    _, nstate, _, _, _ = ENV.step(jax.random.PRNGKey(0), EnvState(params.start[0], 0), act[0], task)
+    before = float(jnp.linalg.norm(params.start[0, :2] - jnp.array([3.0, 3.5])))
+    after = float(jnp.linalg.norm(nstate.pose[:2] - jnp.array([3.0, 3.5])))
+    assert after >= before - 1e-6
