@@ -399,6 +399,7 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
 
     from benchmarks.harness import available_cores, machine_info, print_table
     from mpcpearl_jax.checkpoint import POLICY_FILE, Checkpointer, save_config
+    from mpcpearl_jax.envs import make_tasks
     from mpcpearl_jax.run import LOG_FILE, _policy_params, final_evaluation
     from mpcpearl_jax.trainer import Trainer
 
@@ -427,7 +428,13 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
     state = trainer.init_state()
     jax.block_until_ready(state)
     init_s = time.perf_counter() - t0
-    val_tasks = jax.tree_util.tree_map(lambda x: x[:VAL_TASKS], trainer.train_tasks)
+    val_set = "the family's 'val' split (held-out behaviours, neither train nor test)"
+    try:  # a held-out validation split where the family has one (restaurant)
+        kw = {"data": cfg.data} if cfg.data else {}
+        val_tasks = make_tasks(cfg.env, "val", cfg.task_seed, config=trainer.env.config, **kw)
+    except ValueError:
+        val_tasks = jax.tree_util.tree_map(lambda x: x[:VAL_TASKS], trainer.train_tasks)
+        val_set = f"the first {VAL_TASKS} training tasks (or all if fewer)"
     tc = cfg.train
     log_path = out / LOG_FILE
     log_path.write_text("")
@@ -458,7 +465,7 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
         "eval_protocol": "online" if online else "adapt",
         "test_tasks": int(trainer.test_tasks.start.shape[0]),
         "val_tasks": int(val_tasks.start.shape[0]),
-        "val_set": f"the first {VAL_TASKS} training tasks (or all if fewer)",
+        "val_set": val_set,
         "stopped": stopped,
         "iterations": done,
         "updates_per_iteration": tc.updates_per_iteration,

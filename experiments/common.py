@@ -79,7 +79,10 @@ def _parse_value(text: str):
 
 
 def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfig:
-    cfg = preset(args.preset).replace(env=env, **extra)
+    base = preset(args.preset)
+    if "mpc" in extra:  # family defaults on top of the preset's MPC settings
+        extra = {**extra, "mpc": {**base.mpc, **extra["mpc"]}}
+    cfg = base.replace(env=env, **extra)
     sections: dict[str, dict] = {
         "pearl": {},
         "train": {},

@@ -183,8 +183,9 @@ def test_demo_share_schedule():
     assert tc.demo_share(5) == pytest.approx(0.4)
     assert tc.demo_share(10) == 0.0 and tc.demo_share(50) == 0.0
     assert TrainConfig().demo_share(0) == 0.0
-    assert TrainConfig(eps=0.0, mpc_demo_share=0.5, mpc_demo_iterations=3).uses_mpc
-    assert not TrainConfig(eps=0.0).uses_mpc
+    # eps = 0 is PEARL: no MPC, so no warm start either
+    pearl = TrainConfig(eps=0.0, mpc_demo_share=0.5, mpc_demo_iterations=3)
+    assert not pearl.uses_mpc and pearl.demo_share(0) == 0.0
 
 
 @pytest.mark.parametrize(
@@ -199,10 +200,8 @@ def test_demo_share_schedule():
             lambda: ExperimentConfig(pearl=PearlConfig(bc_weight=1.0)),
             "bc_weight",
         ),
-        (
-            lambda: ExperimentConfig(train=TrainConfig(eps=0.0, mpc_buffer_fraction=0.5)),
-            "mpc_buffer_fraction",
-        ),
+        (lambda: TrainConfig(mpc_demo_step_prob=-0.1), "mpc_demo_step_prob"),
+        (lambda: PearlConfig(bc_q_filter=1), "bc_q_filter"),
     ],
 )
 def test_invalid_extension_settings_name_the_field(make, field):
@@ -210,12 +209,30 @@ def test_invalid_extension_settings_name_the_field(make, field):
         make()
 
 
-def test_paper_preset_has_every_extension_off():
-    cfg = preset("paper")
-    assert cfg.train == TrainConfig() and cfg.pearl == PearlConfig()
+@pytest.mark.parametrize("name", ["paper", "cpu-paper", "smoke"])
+def test_paper_presets_have_every_extension_off(name):
+    cfg = preset(name)
+    if name == "paper":
+        assert cfg.train == TrainConfig() and cfg.pearl == PearlConfig()
     assert cfg.train.mpc_demo_share == 0 and cfg.train.mpc_buffer_fraction == 0
+    assert cfg.train.mpc_demo_step_prob == 1.0
     assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
     assert not cfg.mpc.get("unsafe_recovery", False)
+
+
+def test_cpu_presets_differ_only_in_the_extensions():
+    ext, paper = preset("cpu"), preset("cpu-paper")
+    assert ext.train.mpc_demo_share > 0 and ext.pearl.bc_weight > 0 and ext.pearl.layer_norm
+    assert ext.mpc["unsafe_recovery"]
+    same = dataclasses.replace(
+        ext.train,
+        mpc_demo_share=0.0,
+        mpc_demo_iterations=0,
+        mpc_demo_step_prob=1.0,
+        mpc_buffer_fraction=0.0,
+    )
+    assert same == paper.train
+    assert ext.pearl.replace(bc_weight=0.0, bc_q_filter=True, layer_norm=False) == paper.pearl
 
 
 def test_unsafe_recovery_uses_the_least_violating_move_instead_of_falling_back():
@@ -238,3 +255,55 @@ def test_unsafe_recovery_uses_the_least_violating_move_instead_of_falling_back()
     before = float(jnp.linalg.norm(params.start[0, :2] - jnp.array([3.0, 3.5])))
     after = float(jnp.linalg.norm(nstate.pose[:2] - jnp.array([3.0, 3.5])))
     assert after >= before - 1e-6
+
+
+def test_warm_start_rows_fill_the_mpc_buffer_with_exactly_the_mpc_transitions():
+    from mpcpearl_jax.trainer import Trainer
+    from tests.test_training import TINY
+
+    tc = dataclasses.replace(
+        TINY.train,
+        eps=0.2,
+        tasks_per_iteration=2,
+        initial_episodes=1,
+        posterior_episodes=0,
+        mpc_demo_share=1.0,
+        mpc_demo_iterations=2,
+        mpc_buffer_fraction=0.5,
+        mpc_buffer_capacity=200,
+        updates_per_iteration=200,  # meta-batches of 3 of 120 tasks: some hit tasks 0 and 1
+    )
+    pearl = TINY.pearl.replace(bc_weight=1.0, bc_q_filter=False)
+    cfg = TINY.replace(seeds=1, train=tc, pearl=pearl, mpc={"unsafe_recovery": True})
+    tr = Trainer(cfg)
+    state = tr.init_state()
+    ids = jnp.array([[0, 1]])
+    state, stats = tr.collect_phase(state, ids, 1, False, True, True, jnp.float32(1.0))
+    assert float(stats["demo_rows"][0]) == 1.0
+    assert float(stats["mpc_share"][0]) > 0.9  # the MPC drove (almost) every step
+    n_mpc = int(round(float(stats["mpc_share"][0]) * 2 * tr.horizon))
+    assert int(jnp.sum(state.mpc.size[0])) == n_mpc
+    assert int(jnp.sum(state.rl.size[0])) == 2 * tr.horizon  # the RL buffer keeps everything
+    # the stored MPC actions are what the episode applied: each is also in the RL buffer
+    rl_actions = np.asarray(state.rl.data.action[0, 0, : tr.horizon])
+    mpc_actions = np.asarray(state.mpc.data.action[0, 0, : int(state.mpc.size[0, 0])])
+    for a in mpc_actions:
+        assert np.min(np.abs(rl_actions - a).sum(-1)) < 1e-6
+    # share 0: the paper's event-triggered infusion only
+    state, stats = tr.collect_phase(state, ids, 1, False, True, True, jnp.float32(0.0))
+    assert float(stats["demo_rows"][0]) == 0.0
+    assert float(stats["mpc_share"][0]) <= float(stats["event_rate"][0]) + 1e-6
+    state, losses = tr.update_phase(state)
+    # only the MPC rows of tasks 0 and 1 are cloned: kept share > 0, finite error
+    assert 0 < float(losses["bc_kept"][0]) < 1 and np.isfinite(float(losses["bc_error"][0]))
+
+
+def test_pearl_baseline_never_builds_the_mpc_even_with_extensions_set():
+    from mpcpearl_jax.trainer import Trainer
+    from tests.test_training import TINY
+
+    tc = dataclasses.replace(
+        TINY.train, eps=0.0, mpc_demo_share=1.0, mpc_demo_iterations=5, mpc_buffer_fraction=0.5
+    )
+    tr = Trainer(TINY.replace(train=tc))
+    assert tr.bridge is None and not tr.use_mpc_buffer and tr.mpc_capacity == 1

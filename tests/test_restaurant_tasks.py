@@ -15,14 +15,14 @@ from mpcpearl_jax.envs.restaurant.generator import (
     TABLE_CONFIGS,
     TABLE_RADIUS,
     CrowdModel,
-    behaviours,
+    split_behaviours,
     table_layout,
     task_pairs,
     task_plans,
 )
 
 CFG = make_env("restaurant").config
-SPLITS = ("train", "test", "ood")
+SPLITS = ("train", "test", "ood", "val")
 INVARIANT_SPLITS = (*SPLITS, "train@3", "test@3", "ood@3")  # the crowd also on another seed
 
 
@@ -46,7 +46,7 @@ def _plans(split):
 
 
 def test_sizes_and_shapes(tasks):
-    sizes = {"train": 120, "test": 24, "ood": 24}
+    sizes = {"train": 120, "test": 24, "ood": 24, "val": 24}
     for split, p in tasks.items():
         n = sizes[split.partition("@")[0]]
         assert p.human_pos.shape == (n, CFG.horizon + 1, 6, 2)
@@ -81,6 +81,37 @@ def test_test_tasks_are_held_out_behaviours_on_the_same_tables(tasks):
         seen = {row.tobytes() for row in train.human_pos[15 * c : 15 * (c + 1)].reshape(15, -1)}
         for row in test.human_pos[3 * c : 3 * (c + 1)].reshape(3, -1):
             assert row.tobytes() not in seen
+
+
+def test_val_tasks_are_other_held_out_behaviours_on_the_same_tables(tasks):
+    train, test, val = tasks["train"], tasks["test"], tasks["val"]
+    for c in range(8):
+        np.testing.assert_allclose(
+            val.static_lo[3 * c : 3 * (c + 1)], np.broadcast_to(table_layout(c), (3, 5, 2))
+        )
+        seen = {row.tobytes() for row in train.human_pos[15 * c : 15 * (c + 1)].reshape(15, -1)}
+        seen |= {row.tobytes() for row in test.human_pos[3 * c : 3 * (c + 1)].reshape(3, -1)}
+        for row in val.human_pos[3 * c : 3 * (c + 1)].reshape(3, -1):
+            assert row.tobytes() not in seen
+
+
+def test_more_training_behaviours_keep_the_paper_tasks_and_the_held_out_ones(tasks):
+    more = jax.tree_util.tree_map(
+        np.asarray, make_tasks("restaurant", "train", seed=0, train_behaviours=20)
+    )
+    assert more.human_pos.shape[0] == 8 * 20
+    paths = more.human_pos.reshape(8, 20, -1)
+    np.testing.assert_array_equal(paths[:, :15], tasks["train"].human_pos.reshape(8, 15, -1))
+    held_out = {r.tobytes() for s in ("test", "val") for r in tasks[s].human_pos.reshape(24, -1)}
+    for c in range(8):
+        assert len({row.tobytes() for row in paths[c]}) == 20
+        assert not {row.tobytes() for row in paths[c, 15:]} & held_out
+    fewer = make_tasks("restaurant", "train", seed=0, train_behaviours=4)
+    assert fewer.human_pos.shape[0] == 32
+    with pytest.raises(ValueError, match="train_behaviours"):
+        make_tasks("restaurant", "train", seed=0, train_behaviours=0)
+    with pytest.raises(TypeError, match="nosuch"):
+        make_tasks("restaurant", "train", seed=0, nosuch=1)
 
 
 def test_ood_tables_shifted_left(tasks):
@@ -192,7 +223,7 @@ def test_people_end_at_their_goal_and_stay(tasks, split):
 
 @pytest.mark.parametrize("split", SPLITS)
 def test_endpoints_are_seats_and_landmarks(split):
-    behs = behaviours(0)
+    behs = split_behaviours(split, 0, 15)
     model = CrowdModel()
     seat = TABLE_RADIUS + CFG.human_radius + model.seat_gap
     for (c, b, shift), plan in zip(task_pairs(split, 0), _plans(split), strict=True):

@@ -204,7 +204,7 @@ def test_restaurant_cli_smoke(tmp_path):
 
 
 def test_presets_are_valid():
-    for name in ("smoke", "default", "cpu", "paper"):
+    for name in ("smoke", "default", "cpu", "cpu-paper", "paper"):
         cfg = preset(name)
         assert cfg.train.iterations > 0
     assert preset("paper").pearl == PearlConfig()
@@ -216,7 +216,7 @@ def test_short_run_improves_training_return(tmp_path):
     """A few minutes of PEARL training raise the return on the training tasks."""
     cfg = preset("default").replace(
         train=TrainConfig(
-            **{**preset("default").train.__dict__, "eps": 0.0, "iterations": 40, "eval_interval": 0}
+            **{**preset("default").train.__dict__, "eps": 0.0, "iterations": 16, "eval_interval": 0}
         )
     )
     train(cfg, tmp_path / "run", progress=False)

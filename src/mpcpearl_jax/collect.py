@@ -43,13 +43,15 @@ def make_collector(
     bridge: Callable | None = None,
     eps: float = 0.0,
     deterministic: bool = False,
+    demo_prob: float = 1.0,
 ) -> Callable:
     """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R], demo=None) -> Episodes`.
 
     With `bridge` (see `mpcpearl_jax.mpc.make_mpc_bridge`) and eps > 0, MPC acts on the rows where
     an event fires and a uniform draw is <= eps (paper Algorithm 1); its (normalized) actions go
     into the episodes unmarked, except for the `used_mpc` log. `demo` [S, R] bool (the MPC warm
-    start extension, `TrainConfig.mpc_demo_share`) makes the MPC act on every step of those rows.
+    start extension, `TrainConfig.mpc_demo_share`) makes the MPC act on those rows at every step
+    with probability `demo_prob` (1 = every step).
     """
     horizon = env.config.horizon
     use_mpc = bridge is not None
@@ -71,6 +73,7 @@ def make_collector(
         def body(carry, k):
             obs, state = carry
             k_pi, k_eps, k_mpc = jax.random.split(k, 3)
+            k_demo = jax.random.fold_in(k_eps, 1)
             a_pi = policy_actions(policy_params, obs.reshape(s, r, -1), z, k_pi).reshape(s * r, -1)
             fire = jax.vmap(env.event)(state, flat)
             if use_mpc:
@@ -78,7 +81,7 @@ def make_collector(
                     fire = fire & (jax.random.uniform(k_eps, (s * r,)) <= eps)
                 else:
                     fire = jnp.zeros_like(fire)
-                fire = fire | demo_flat
+                fire = fire | (demo_flat & (jax.random.uniform(k_demo, (s * r,)) < demo_prob))
                 action, used, _ = bridge(k_mpc, fire, state, flat, a_pi)
             else:
                 action, used = a_pi, jnp.zeros((s * r,), bool)

@@ -47,6 +47,10 @@ class TrainConfig:
     # event-triggered infusion with probability eps remains.
     mpc_demo_share: float = 0.0
     mpc_demo_iterations: int = 0
+    # in a warm-start row the MPC acts on each step with this probability and the stochastic
+    # policy on the others (DAgger-style mixing: the MPC also acts from states the policy leads
+    # to, so its transitions cover the policy's mistakes); 1 = the MPC drives the whole episode
+    mpc_demo_step_prob: float = 1.0
     # MPC transitions kept apart: every transition the MPC produced (solved, not a fallback) is
     # also stored in a per-task MPC buffer of mpc_buffer_capacity, and this fraction of every
     # RL batch is drawn from it (symmetric sampling as in RLPD when 0.5).
@@ -77,7 +81,7 @@ class TrainConfig:
             and 0.0 <= self.eps <= 1.0
         ):
             raise ConfigError(f"TrainConfig.eps: must lie in [0, 1], got {self.eps!r}")
-        for f in ("mpc_demo_share", "mpc_buffer_fraction"):
+        for f in ("mpc_demo_share", "mpc_buffer_fraction", "mpc_demo_step_prob"):
             v = getattr(self, f)
             ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
             if not (ok and 0.0 <= v <= 1.0):
@@ -88,12 +92,13 @@ class TrainConfig:
 
     @property
     def uses_mpc(self) -> bool:
-        """Whether collection ever calls the MPC (event infusion or the warm start)."""
-        return self.eps > 0 or (self.mpc_demo_share > 0 and self.mpc_demo_iterations > 0)
+        """Whether collection calls the MPC: eps = 0 is PEARL, and then no extension that
+        relies on MPC actions (warm start, MPC buffer, behaviour cloning) has anything to act on."""
+        return self.eps > 0
 
     def demo_share(self, iteration: int) -> float:
-        """Share of collection rows driven by the MPC on every step at `iteration`."""
-        if self.mpc_demo_iterations <= 0:
+        """Share of collection rows driven by the MPC (warm start) at `iteration`."""
+        if self.mpc_demo_iterations <= 0 or not self.uses_mpc:
             return 0.0
         return self.mpc_demo_share * max(0.0, 1.0 - iteration / self.mpc_demo_iterations)
 
@@ -111,6 +116,9 @@ class ExperimentConfig:
     mpc: dict = dataclasses.field(default_factory=dict)  # MPCConfig overrides
     env_overrides: dict = dataclasses.field(default_factory=dict)  # NavConfig overrides
     data: str | None = None  # data file for env families that read one (sidewalk)
+    # options of the family's task builder, e.g. {"train_behaviours": 60} for the restaurant
+    # (extension: more crowd behaviours per table layout in the training split; paper 15)
+    task_options: dict = dataclasses.field(default_factory=dict)
     online_eval: bool = False  # report online adaptation as the headline evaluation
 
     def __post_init__(self) -> None:
@@ -118,6 +126,8 @@ class ExperimentConfig:
         for f in ("seed", "task_seed"):
             if not isinstance(getattr(self, f), int):
                 raise ConfigError(f"ExperimentConfig.{f}: must be an int")
+        if not isinstance(self.task_options, dict):
+            raise ConfigError("ExperimentConfig.task_options: must be a dict of builder options")
         if not isinstance(self.pearl, PearlConfig):
             raise ConfigError("ExperimentConfig.pearl: must be a PearlConfig")
         if not isinstance(self.train, TrainConfig):
@@ -126,11 +136,6 @@ class ExperimentConfig:
             raise ConfigError(
                 "PearlConfig.bc_weight: behaviour cloning needs MPC samples in the batch "
                 "(set train.mpc_buffer_fraction > 0)"
-            )
-        if self.train.mpc_buffer_fraction > 0 and not self.train.uses_mpc:
-            raise ConfigError(
-                "TrainConfig.mpc_buffer_fraction: the MPC never acts "
-                "(set train.eps > 0 or train.mpc_demo_share and train.mpc_demo_iterations)"
             )
 
     def replace(self, **changes: Any) -> ExperimentConfig:
@@ -165,6 +170,37 @@ def _small_pearl() -> PearlConfig:
     )
 
 
+def _extended(cfg: ExperimentConfig, demo_iterations: int) -> ExperimentConfig:
+    """The extensions of docs/extensions.md switched on (MPC warm start with DAgger-style mixing,
+    MPC buffer at half of every batch, behaviour cloning, LayerNorm critics, unsafe-plan
+    recovery). With eps = 0 (PEARL) the MPC-based ones are inactive."""
+    train = dataclasses.replace(
+        cfg.train,
+        mpc_demo_share=1.0,
+        mpc_demo_iterations=demo_iterations,
+        mpc_demo_step_prob=0.5,
+        mpc_buffer_fraction=0.5,
+    )
+    pearl = cfg.pearl.replace(bc_weight=1.0, bc_q_filter=False, layer_norm=True)
+    return cfg.replace(
+        pearl=pearl, train=train, mpc={**cfg.mpc, "unsafe_recovery": True, "n_workers": 2}
+    )
+
+
+# the CPU schedule: 8 tasks x (1 prior + 1 posterior) episodes and 500 gradient steps per
+# iteration (about 12 s on a 2-core CPU with the MPC warm start on)
+_CPU_TRAIN = TrainConfig(
+    iterations=3000,
+    initial_episodes=1,
+    tasks_per_iteration=8,
+    prior_episodes=1,
+    posterior_episodes=1,
+    updates_per_iteration=500,
+    rl_capacity=20_000,
+    eval_interval=25,
+    checkpoint_interval=25,
+)
+
 PRESETS: dict[str, ExperimentConfig] = {
     # a couple of minutes on a laptop CPU: proves the whole pipeline end to end
     "smoke": ExperimentConfig(
@@ -183,36 +219,24 @@ PRESETS: dict[str, ExperimentConfig] = {
             checkpoint_interval=2,
         ),
     ),
-    # the README's main command: a few minutes on a laptop CPU
-    "default": ExperimentConfig(
-        pearl=_small_pearl(),
-        train=TrainConfig(
-            iterations=40,
-            initial_episodes=2,
-            tasks_per_iteration=16,
-            prior_episodes=2,
-            posterior_episodes=2,
-            updates_per_iteration=50,
-            rl_capacity=6_000,
-            eval_interval=10,
-            checkpoint_interval=10,
+    # the README's main command: a few minutes on a laptop CPU, extensions on
+    "default": _extended(
+        ExperimentConfig(
+            pearl=_small_pearl(),
+            train=dataclasses.replace(
+                _CPU_TRAIN,
+                iterations=16,
+                rl_capacity=6_000,
+                eval_interval=8,
+                checkpoint_interval=8,
+            ),
         ),
+        demo_iterations=400,
     ),
-    # a CPU schedule that learns in hours: many tasks per iteration (cheap here), smaller nets
-    "cpu": ExperimentConfig(
-        pearl=_small_pearl(),
-        train=TrainConfig(
-            iterations=1500,
-            initial_episodes=3,
-            tasks_per_iteration=16,
-            prior_episodes=2,
-            posterior_episodes=2,
-            updates_per_iteration=100,
-            rl_capacity=20_000,
-            eval_interval=25,
-            checkpoint_interval=25,
-        ),
-    ),
+    # the CPU schedule with the extensions (docs/extensions.md); stop it any time (--iterations)
+    "cpu": _extended(ExperimentConfig(pearl=_small_pearl(), train=_CPU_TRAIN), 400),
+    # the same CPU schedule and networks with the paper's algorithm (no extension)
+    "cpu-paper": ExperimentConfig(pearl=_small_pearl(), train=_CPU_TRAIN),
     # SPEC 7 exactly
     "paper": ExperimentConfig(pearl=PearlConfig(), train=TrainConfig()),
 }

@@ -24,7 +24,7 @@ from mpcpearl_jax import collect as collect_lib
 from mpcpearl_jax import evaluate as eval_lib
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.envs import make_env, make_tasks
-from mpcpearl_jax.envs.types import TaskParams
+from mpcpearl_jax.envs.types import ConfigError, TaskParams
 from mpcpearl_jax.pearl import buffers
 from mpcpearl_jax.pearl.learner import LearnerState, context_from, init_learner, make_update_body
 from mpcpearl_jax.pearl.networks import Networks
@@ -58,8 +58,18 @@ class Trainer:
         self.cfg = cfg
         self.env = make_env(cfg.env, **cfg.env_overrides)
         kw: dict[str, Any] = {"data": cfg.data} if cfg.data else {}
-        self.train_tasks = make_tasks(cfg.env, "train", cfg.task_seed, config=self.env.config, **kw)
-        self.test_tasks = make_tasks(cfg.env, "test", cfg.task_seed, config=self.env.config, **kw)
+        kw.update(cfg.task_options)
+        try:
+            self.train_tasks = make_tasks(
+                cfg.env, "train", cfg.task_seed, config=self.env.config, **kw
+            )
+            self.test_tasks = make_tasks(
+                cfg.env, "test", cfg.task_seed, config=self.env.config, **kw
+            )
+        except (TypeError, ValueError) as e:
+            if not cfg.task_options:
+                raise
+            raise ConfigError(f"ExperimentConfig.task_options: {e}") from e
         self.num_train = int(self.train_tasks.start.shape[0])
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         self.action_dim = self.env.action_dim
@@ -72,12 +82,15 @@ class Trainer:
             from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
 
             self.bridge = make_mpc_bridge(self.env, MPCConfig(**cfg.mpc))
-        self._collector = collect_lib.make_collector(self.env, self.nets, self.bridge, tc.eps)
+        self._collector = collect_lib.make_collector(
+            self.env, self.nets, self.bridge, tc.eps, demo_prob=tc.mpc_demo_step_prob
+        )
         self._update_body = make_update_body(cfg.pearl, self.obs_dim, self.action_dim)
         self.collect_phase = jax.jit(
             self._collect_phase, static_argnums=(2, 3, 4, 5), donate_argnums=0
         )
-        self.mpc_capacity = tc.mpc_buffer_capacity if tc.mpc_buffer_fraction > 0 else 1
+        self.use_mpc_buffer = tc.mpc_buffer_fraction > 0 and tc.uses_mpc
+        self.mpc_capacity = tc.mpc_buffer_capacity if self.use_mpc_buffer else 1
         self.update_phase = jax.jit(self._update_phase, donate_argnums=0)
         self.evaluate_adapt = eval_lib.make_evaluator(
             self.env, self.nets, tc.eval_adapt_episodes, online=False
@@ -157,7 +170,7 @@ class Trainer:
         if to_encoder:
             enc = jax.vmap(buffers.insert)(enc, task_ids, per_task)
         mpc = state.mpc
-        if self.cfg.train.mpc_buffer_fraction > 0:
+        if self.use_mpc_buffer:
             mpc = jax.vmap(buffers.insert_masked)(mpc, task_ids, per_task, to_task(ep.used_mpc))
         stats = {
             "return": jnp.mean(jnp.sum(ep.transitions.reward, axis=-1), axis=-1),  # [S]
@@ -182,7 +195,7 @@ class Trainer:
         steps = self.cfg.train.updates_per_iteration
 
         frac = self.cfg.train.mpc_buffer_fraction
-        n_mpc = int(round(cfg.batch_size * frac)) if frac > 0 else 0
+        n_mpc = int(round(cfg.batch_size * frac)) if self.use_mpc_buffer else 0
 
         def per_seed(learner, rl, enc, mpc, key):
             def body(learner, k):

@@ -12,7 +12,7 @@ from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.numpy_ref import NumpyNavEnv, task_to_numpy
 from mpcpearl_jax.envs.types import ConfigError, EnvState, NavConfig, StepInfo, TaskParams
 
-SPLITS = ("train", "test", "ood")
+SPLITS = ("train", "test", "ood", "val")
 
 # name -> (default config, task builder(split, seed, config, **kwargs) -> stacked TaskParams)
 _REGISTRY: dict[str, tuple[NavConfig, Callable[..., TaskParams]]] = {}
@@ -55,9 +55,10 @@ def make_tasks(
 def _restaurant_builder(split: str, seed: int, config: NavConfig, **kwargs: Any) -> TaskParams:
     from mpcpearl_jax.envs.restaurant import make_restaurant_tasks
 
-    if kwargs:
-        raise TypeError(f"make_tasks('restaurant') got unexpected arguments {sorted(kwargs)}")
-    return make_restaurant_tasks(split, seed, config)
+    unknown = set(kwargs) - {"train_behaviours"}
+    if unknown:
+        raise TypeError(f"make_tasks('restaurant') got unexpected arguments {sorted(unknown)}")
+    return make_restaurant_tasks(split, seed, config, **kwargs)
 
 
 def _register_builtin() -> None:

@@ -38,6 +38,7 @@ class PearlConfig:
     # Q-filtered behaviour cloning on MPC transitions (Nair et al. 2018): the policy loss adds
     # bc_weight * mean over MPC samples of 1[Q(s, a_mpc) > Q(s, pi(s))] |tanh(mu(s)) - a_mpc|^2.
     bc_weight: float = 0.0
+    bc_q_filter: bool = True  # False: clone every MPC sample (no Q filter)
     layer_norm: bool = False  # LayerNorm after every hidden layer of the Q and V networks
 
     def __post_init__(self) -> None:
@@ -63,7 +64,7 @@ class PearlConfig:
             v = getattr(self, f)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{n}.{f}: must be a non-negative number, got {v!r}")
-        for f in ("use_context", "layer_norm"):
+        for f in ("use_context", "layer_norm", "bc_q_filter"):
             if not isinstance(getattr(self, f), bool):
                 raise ConfigError(f"{n}.{f}: must be true or false, got {getattr(self, f)!r}")
         if not self.log_std_min < self.log_std_max:

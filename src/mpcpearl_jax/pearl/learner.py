@@ -102,6 +102,7 @@ def _update(
         batch.action,
         demo_mask,
         cfg.bc_weight,
+        cfg.bc_q_filter,
     )
     upd, os_pi = opt.update(g_pi, state.opt_state["policy"], p["policy"])
     policy = optax.apply_updates(p["policy"], upd)
@@ -126,8 +127,9 @@ def _update(
         "q_mean": aux["q1_mean"],
         "loss_total": qe_loss,
     }
-    if "bc_kept" in pi_aux:
-        metrics["bc_kept"] = pi_aux["bc_kept"]
+    for k in ("bc_kept", "bc_error"):
+        if k in pi_aux:
+            metrics[k] = pi_aux[k]
     return new_state, metrics
 
 

@@ -75,6 +75,7 @@ def policy_loss(
     demo_action=None,
     demo_mask=None,
     bc_weight: float = 0.0,
+    bc_q_filter: bool = True,
 ):
     """Paper's actor loss L_theta = KL(pi || exp(Q)/Z) = E[log pi - min_i Q_i] + regularisers.
 
@@ -94,12 +95,16 @@ def policy_loss(
     aux = {"log_pi": jnp.mean(log_pi), "v_target": min_q - log_pi}
     if bc_weight > 0 and demo_action is not None and demo_mask is not None:
         det = jnp.tanh(mean)
-        q_det = jnp.minimum(*nets.q_values(q_params, obs, jax.lax.stop_gradient(det), z))
-        q_demo = jnp.minimum(*nets.q_values(q_params, obs, demo_action, z))
-        keep = jax.lax.stop_gradient(demo_mask * (q_demo > q_det))
+        if bc_q_filter:
+            q_det = jnp.minimum(*nets.q_values(q_params, obs, jax.lax.stop_gradient(det), z))
+            q_demo = jnp.minimum(*nets.q_values(q_params, obs, demo_action, z))
+            keep = jax.lax.stop_gradient(demo_mask * (q_demo > q_det))
+        else:
+            keep = demo_mask
         err = jnp.sum((det - demo_action) ** 2, axis=-1)
         n = jnp.maximum(jnp.sum(demo_mask), 1.0)
         q_scale = jax.lax.stop_gradient(jnp.mean(jnp.abs(min_q)))
         loss += bc_weight * q_scale * jnp.sum(keep * err) / n
         aux["bc_kept"] = jnp.sum(keep) / n
+        aux["bc_error"] = jnp.sum(demo_mask * err) / n
     return loss, aux

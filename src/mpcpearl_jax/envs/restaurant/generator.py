@@ -447,10 +447,52 @@ def behaviours(seed: int, model: CrowdModel = CrowdModel()) -> list[Behaviour]:
     return [sample_behaviour(rng, model) for _ in range(NUM_TRAIN_BEHAVIOURS + NUM_TEST_BEHAVIOURS)]
 
 
-def task_pairs(split: str, seed: int) -> list[tuple[int, int, float]]:
-    """(configuration, behaviour index, left shift) of each task of a split, in order."""
+def extra_behaviours(seed: int, n: int, model: CrowdModel = CrowdModel()) -> list[Behaviour]:
+    """n further training behaviours, from their own random stream: the paper's 15 training and
+    the 3 held-out behaviours of the seed stay the same whatever n is."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 20231, 1]))
+    return [sample_behaviour(rng, model) for _ in range(n)]
+
+
+def val_behaviours(seed: int, model: CrowdModel = CrowdModel()) -> list[Behaviour]:
+    """The validation behaviours: held out from training like the test ones, but from their own
+    stream, so settings can be chosen without looking at the test tasks."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 20231, 2]))
+    return [sample_behaviour(rng, model) for _ in range(NUM_TEST_BEHAVIOURS)]
+
+
+def split_behaviours(split: str, seed: int, train_behaviours: int) -> list[Behaviour]:
+    """Behaviours indexed as in `task_pairs`: 0..14 the paper's training set, 15..17 held out
+    (test and OOD), 18.. the extra training behaviours; the val split uses its own three."""
+    if split == "val":
+        return val_behaviours(seed)
+    behs = behaviours(seed)
+    if split == "train" and train_behaviours > NUM_TRAIN_BEHAVIOURS:
+        behs += extra_behaviours(seed, train_behaviours - NUM_TRAIN_BEHAVIOURS)
+    return behs
+
+
+def _train_indices(train_behaviours: int) -> list[int]:
+    if not (isinstance(train_behaviours, int) and train_behaviours >= 1):
+        raise ValueError(f"train_behaviours: must be a positive int, got {train_behaviours!r}")
+    held_out = NUM_TRAIN_BEHAVIOURS + NUM_TEST_BEHAVIOURS
+    first = list(range(min(train_behaviours, NUM_TRAIN_BEHAVIOURS)))
+    return first + list(range(held_out, held_out + train_behaviours - len(first)))
+
+
+def task_pairs(
+    split: str, seed: int, train_behaviours: int = NUM_TRAIN_BEHAVIOURS
+) -> list[tuple[int, int, float]]:
+    """(configuration, behaviour index, left shift) of each task of a split, in order.
+
+    `train_behaviours` (training split only; the paper: 15) > 15 adds behaviours drawn from a
+    separate stream (an extension against the train/test gap); the test and OOD tasks do not
+    change."""
     if split == "train":
-        return [(c, b, 0.0) for c in range(len(TABLE_CONFIGS)) for b in range(NUM_TRAIN_BEHAVIOURS)]
+        idx = _train_indices(train_behaviours)
+        return [(c, b, 0.0) for c in range(len(TABLE_CONFIGS)) for b in idx]
+    if split == "val":
+        return [(c, b, 0.0) for c in range(len(TABLE_CONFIGS)) for b in range(NUM_TEST_BEHAVIOURS)]
     held_out = range(NUM_TRAIN_BEHAVIOURS, NUM_TRAIN_BEHAVIOURS + NUM_TEST_BEHAVIOURS)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 777]))
     pairs = []
@@ -460,14 +502,21 @@ def task_pairs(split: str, seed: int) -> list[tuple[int, int, float]]:
     return pairs
 
 
-def task_plans(split: str, seed: int, cfg: NavConfig) -> list[Plan]:
+def task_plans(
+    split: str, seed: int, cfg: NavConfig, train_behaviours: int = NUM_TRAIN_BEHAVIOURS
+) -> list[Plan]:
     """The plans (endpoints, delays, speeds) behind `make_restaurant_tasks(split, seed, cfg)`."""
-    behs = behaviours(seed)
-    return [plan_task(behs[b], table_layout(c, s), cfg) for c, b, s in task_pairs(split, seed)]
+    behs = split_behaviours(split, seed, train_behaviours)
+    pairs = task_pairs(split, seed, train_behaviours)
+    return [plan_task(behs[b], table_layout(c, s), cfg) for c, b, s in pairs]
 
 
-def make_restaurant_tasks(split: str, seed: int, cfg: NavConfig) -> TaskParams:
-    """Stacked tasks of a split: train 8x15 = 120, test 8x3 = 24, ood 8x3 = 24 (shifted tables)."""
-    behs = behaviours(seed)
-    tasks = [build_task(table_layout(c, s), behs[b], cfg) for c, b, s in task_pairs(split, seed)]
+def make_restaurant_tasks(
+    split: str, seed: int, cfg: NavConfig, train_behaviours: int = NUM_TRAIN_BEHAVIOURS
+) -> TaskParams:
+    """Stacked tasks of a split: train 8x15 = 120 (8 x train_behaviours), test 8x3 = 24,
+    ood 8x3 = 24 (shifted tables), val 8x3 = 24 (three further held-out behaviours)."""
+    behs = split_behaviours(split, seed, train_behaviours)
+    pairs = task_pairs(split, seed, train_behaviours)
+    tasks = [build_task(table_layout(c, s), behs[b], cfg) for c, b, s in pairs]
     return stack_params(tasks)

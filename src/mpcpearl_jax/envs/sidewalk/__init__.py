@@ -42,6 +42,8 @@ SIDEWALK_CONFIG = NavConfig(
 
 
 def _builder(split: str, seed: int, config: NavConfig, **kwargs: Any) -> TaskParams:
+    if split == "val":  # 25 train / 6 test windows leave none to hold out
+        raise ValueError("the sidewalk family has no 'val' split (its windows are train or test)")
     return make_sidewalk_tasks(split, seed, config, **kwargs)
 
 
