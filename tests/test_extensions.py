@@ -307,3 +307,38 @@ def test_pearl_baseline_never_builds_the_mpc_even_with_extensions_set():
     )
     tr = Trainer(TINY.replace(train=tc))
     assert tr.bridge is None and not tr.use_mpc_buffer and tr.mpc_capacity == 1
+
+
+def test_task_options_reach_the_builder_and_bad_ones_name_the_field():
+    from mpcpearl_jax.trainer import Trainer
+    from tests.test_training import TINY
+
+    tr = Trainer(TINY.replace(task_options={"train_behaviours": 2}))
+    assert tr.num_train == 16 and int(tr.test_tasks.start.shape[0]) == 24
+    with pytest.raises(ConfigError, match="task_options"):
+        Trainer(TINY.replace(task_options={"nosuch": 1}))
+    with pytest.raises(ConfigError, match="task_options"):
+        ExperimentConfig(task_options=[1])
+
+
+def test_velocity_observation_matches_numpy():
+    from mpcpearl_jax.envs import make_env, make_tasks
+
+    base = make_env("restaurant")
+    env = make_env("restaurant", observe_velocity=True)
+    tasks = make_tasks("restaurant", "test", 0, config=env.config)
+    task = jax.tree_util.tree_map(lambda x: x[5], tasks)
+    h = np.asarray(task.human_pos)  # [T + 1, H, 2]
+    nh = h.shape[1]
+    assert env.obs_dim(tasks) == base.obs_dim(tasks) + 2 * nh
+    obs, state = env.reset(jax.random.PRNGKey(0), task)
+    obs0, _ = base.reset(jax.random.PRNGKey(0), task)
+    np.testing.assert_array_equal(obs[3 + 2 * nh : 3 + 4 * nh], 0.0)  # no motion before t = 0
+    np.testing.assert_allclose(obs[: 3 + 2 * nh], obs0[: 3 + 2 * nh])
+    np.testing.assert_allclose(obs[3 + 4 * nh :], obs0[3 + 2 * nh :])  # tables unchanged
+    for t in range(1, 12):
+        state = state.replace(t=jnp.asarray(t, jnp.int32))
+        got = np.asarray(env.observe(state, task))[3 + 2 * nh : 3 + 4 * nh]
+        want = np.clip((h[t] - h[t - 1]) / (4.0 * 0.05), -1, 1).reshape(-1)
+        np.testing.assert_allclose(got, want, atol=1e-5)
+    assert np.abs(got).max() > 0.5  # people walk at ~3.2 m/s early on

@@ -36,7 +36,8 @@ class NavEnv:
     def obs_dim(self, params: TaskParams) -> int:
         num_h = params.human_pos.shape[-2]
         num_s = params.static_lo.shape[-2] if self.config.observe_static else 0
-        return 3 + 2 * num_h + 2 * num_s
+        num_v = num_h if self.config.observe_velocity else 0
+        return 3 + 2 * num_h + 2 * num_v + 2 * num_s
 
     # ------------------------------------------------------------------ API
     def reset(self, key: Array, params: TaskParams) -> tuple[Array, EnvState]:
@@ -103,10 +104,16 @@ class NavEnv:
         return jnp.clip(2.0 * (p - lo) / (hi - lo) - 1.0, -1.0, 1.0)
 
     def observe(self, state: EnvState, params: TaskParams) -> Array:
-        """Observation in [-1, 1]: pose, people (absent ones at (-1, -1)), [static centres]."""
+        """Observation in [-1, 1]: pose, people (absent ones at (-1, -1)), [people's last-step
+        displacement (extension `observe_velocity`)], [static centres]."""
         humans, mask = self.humans_at(params, state.t)
         h = jnp.where(mask[:, None], self.normalize_xy(humans), -1.0)
         parts = [self.normalize_xy(state.pose[:2]), state.pose[2:3] / jnp.pi, h.reshape(-1)]
+        if self.config.observe_velocity:  # extension: people's last-step displacement
+            prev, prev_mask = self.humans_at(params, jnp.maximum(state.t - 1, 0))
+            scale = self.config.velocity_scale * self.config.dt
+            vel = jnp.clip((humans - prev) / scale, -1.0, 1.0)
+            parts.append(jnp.where((mask & prev_mask)[:, None], vel, 0.0).reshape(-1))
         if self.config.observe_static:
             parts.append(self.normalize_xy(params.static_center).reshape(-1))
         return jnp.concatenate(parts).astype(jnp.float32)

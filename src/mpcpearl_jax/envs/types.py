@@ -58,6 +58,11 @@ class NavConfig:
     goal_event_radius: float = 2.0
     collision_event_factor: float = 2.0  # event when a human is within factor * eps_d
     observe_static: bool = True  # restaurant: table centres are part of the observation
+    # extension (off in the paper): each person's last-step displacement, divided by
+    # velocity_scale * dt and clipped to [-1, 1], follows the people's positions in the
+    # observation (0 for a person absent at t or t - 1, and at t = 0)
+    observe_velocity: bool = False
+    velocity_scale: float = 4.0  # m/s mapped to 1
 
     def __post_init__(self) -> None:
         n = type(self).__name__
@@ -71,6 +76,7 @@ class NavConfig:
             "cost_scale",
             "goal_event_radius",
             "collision_event_factor",
+            "velocity_scale",
         ):
             v = getattr(self, f)
             _check(
