@@ -133,25 +133,9 @@ def _update(
     return new_state, metrics
 
 
-def make_update_fn(cfg: PearlConfig, obs_dim: int, action_dim: int):
-    """Jitted `update(state, batch [MB, B], context [MB, C, D], key) -> (state, metrics)`."""
-    nets = Networks(cfg, obs_dim, action_dim)
-    opt = _optimizer(cfg)
-
-    def update(
-        state: LearnerState,
-        batch: Transitions,
-        context: Array,
-        key: Array,
-        demo_mask: Array | None = None,
-    ):
-        return _update(nets, cfg, opt, state, batch, context, key, demo_mask)
-
-    return jax.jit(update)
-
-
 def make_update_body(cfg: PearlConfig, obs_dim: int, action_dim: int):
-    """Un-jitted single update, for composing into scans (see `trainer`)."""
+    """Un-jitted `update(state, batch [MB, B], context [MB, C, D], key, demo_mask=None) ->
+    (state, metrics)`, for composing into scans (see `trainer`)."""
     nets = Networks(cfg, obs_dim, action_dim)
     opt = _optimizer(cfg)
 
@@ -165,3 +149,8 @@ def make_update_body(cfg: PearlConfig, obs_dim: int, action_dim: int):
         return _update(nets, cfg, opt, state, batch, context, key, demo_mask)
 
     return update
+
+
+def make_update_fn(cfg: PearlConfig, obs_dim: int, action_dim: int):
+    """The jitted `make_update_body`: one gradient step."""
+    return jax.jit(make_update_body(cfg, obs_dim, action_dim))
