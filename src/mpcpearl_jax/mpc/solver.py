@@ -462,6 +462,7 @@ class SQPSolver:
         return u, xs, cur, iters, n_qp, reason
 
     def _first_violation(self, prob: RowProblem, xs: np.ndarray) -> float:
+        """The larger first-stage violation of eq. const_x1 and eq. const_xd1 (>= 0)."""
         static, cvar = violations(self.p, prob, xs)
         return float(max(static[0].max(initial=0.0), cvar[0]))
 
@@ -494,10 +495,7 @@ class SQPSolver:
 
     def first_stage_safe(self, prob: RowProblem, xs: np.ndarray) -> bool:
         """The executed stage x_{t+1|t} meets eq. const_x1 and eq. const_xd1 up to unsafe_tol."""
-        static, cvar = violations(self.p, prob, xs)
-        return bool(
-            static[0].max(initial=0.0) <= self.p.unsafe_tol and cvar[0] <= self.p.unsafe_tol
-        )
+        return self._first_violation(prob, xs) <= self.p.unsafe_tol
 
 
 _WORKER_SOLVERS: dict[SolverParams, SQPSolver] = {}
