@@ -342,3 +342,54 @@ def test_velocity_observation_matches_numpy():
         want = np.clip((h[t] - h[t - 1]) / (4.0 * 0.05), -1, 1).reshape(-1)
         np.testing.assert_allclose(got, want, atol=1e-5)
     assert np.abs(got).max() > 0.5  # people walk at ~3.2 m/s early on
+
+
+def test_redrawn_tasks_keep_the_layout_and_change_the_crowd_deterministically():
+    from mpcpearl_jax.envs import make_env, make_tasks, redraw_tasks
+
+    cfg = make_env("restaurant").config
+    train = make_tasks("restaurant", "train", 0, config=cfg)
+    ids = np.array([0, 17, 119])
+    a = redraw_tasks("restaurant", 0, ids, (0, 5), config=cfg)
+    b = redraw_tasks("restaurant", 0, ids, (0, 5), config=cfg)
+    c = redraw_tasks("restaurant", 0, ids, (0, 6), config=cfg)
+    orig = jax.tree_util.tree_map(lambda x: np.asarray(x)[ids], train)
+    np.testing.assert_array_equal(np.asarray(a.static_lo), orig.static_lo)  # same tables
+    np.testing.assert_array_equal(np.asarray(a.start), orig.start)
+    np.testing.assert_array_equal(np.asarray(a.goal), orig.goal)
+    np.testing.assert_array_equal(np.asarray(a.human_pos), np.asarray(b.human_pos))
+    assert not np.allclose(np.asarray(a.human_pos), np.asarray(c.human_pos))
+    assert not np.allclose(np.asarray(a.human_pos), orig.human_pos)
+    # the redrawn crowd obeys the crowd model: nobody inside a table, people stand at the end
+    pos, tables = np.asarray(a.human_pos), np.asarray(a.static_lo)
+    d = np.linalg.norm(pos[:, :, :, None, :] - tables[:, None, None, :, :], axis=-1)
+    assert d.min() > 0.5
+    np.testing.assert_allclose(pos[:, -1], pos[:, -5], atol=1e-5)
+
+
+def test_redraw_behaviours_changes_only_the_visited_tasks_and_needs_a_family_that_can():
+    from mpcpearl_jax.trainer import Trainer
+    from tests.test_training import TINY
+
+    tc = dataclasses.replace(TINY.train, redraw_behaviours=True)
+    tr = Trainer(TINY.replace(train=tc))
+    state = tr.init_state()
+    before = np.asarray(state.tasks.human_pos)
+    state, ids = tr._choose_tasks(state, 2)
+    state = tr._redraw(state, ids, 1)
+    after = np.asarray(state.tasks.human_pos)
+    ids = np.asarray(ids)
+    for s in range(2):
+        changed = np.flatnonzero(np.any(after[s] != before[s], axis=(1, 2, 3)))
+        assert sorted(changed) == sorted(ids[s])
+    again = tr._redraw(tr.init_state(), jnp.asarray(ids), 1)  # resume: same draw
+    np.testing.assert_array_equal(np.asarray(again.tasks.human_pos), after)
+    state, log = tr.iteration(tr.init_state())
+    assert np.isfinite(log["train_return"])
+    with pytest.raises(ConfigError, match="redraw_behaviours"):
+        TrainConfig(redraw_behaviours="yes")
+    sidewalk = pytest.importorskip("mpcpearl_jax.envs.sidewalk")
+    del sidewalk
+    from mpcpearl_jax.envs import can_redraw
+
+    assert can_redraw("restaurant") and not can_redraw("sidewalk")

@@ -56,6 +56,11 @@ class TrainConfig:
     # RL batch is drawn from it (symmetric sampling as in RLPD when 0.5).
     mpc_buffer_fraction: float = 0.0
     mpc_buffer_capacity: int = 4000
+    # behaviours re-drawn: each time a training task is visited (after the initial collection),
+    # its people get a fresh behaviour on the same table layout, so no crowd motion can be
+    # learned by heart (domain randomization against the train/test gap); the task's buffers
+    # keep their older transitions, its encoder buffer is refilled with the new behaviour
+    redraw_behaviours: bool = False
 
     def __post_init__(self) -> None:
         _pos_int(
@@ -87,6 +92,11 @@ class TrainConfig:
             if not (ok and 0.0 <= v <= 1.0):
                 raise ConfigError(f"TrainConfig.{f}: must lie in [0, 1], got {v!r}")
         _pos_int(self, "mpc_buffer_capacity")
+        if not isinstance(self.redraw_behaviours, bool):
+            raise ConfigError(
+                f"TrainConfig.redraw_behaviours: must be true or false, got "
+                f"{self.redraw_behaviours!r}"
+            )
         if self.mpc_buffer_fraction >= 1.0:
             raise ConfigError("TrainConfig.mpc_buffer_fraction: must be below 1")
 

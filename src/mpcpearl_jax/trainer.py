@@ -23,7 +23,7 @@ from jax import Array
 from mpcpearl_jax import collect as collect_lib
 from mpcpearl_jax import evaluate as eval_lib
 from mpcpearl_jax.config import ExperimentConfig
-from mpcpearl_jax.envs import make_env, make_tasks
+from mpcpearl_jax.envs import can_redraw, make_env, make_tasks, redraw_tasks
 from mpcpearl_jax.envs.types import ConfigError, TaskParams
 from mpcpearl_jax.pearl import buffers
 from mpcpearl_jax.pearl.learner import LearnerState, context_from, init_learner, make_update_body
@@ -41,6 +41,7 @@ class TrainState(struct.PyTreeNode):
     rl: buffers.TaskBuffer
     enc: buffers.TaskBuffer
     mpc: buffers.TaskBuffer  # MPC transitions kept apart (extension; capacity 1 when unused)
+    tasks: TaskParams  # [S, N, ...] the training tasks as collected (redraw_behaviours changes them)
     key: Array  # [S, 2] PRNG keys
     iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
 
@@ -71,6 +72,12 @@ class Trainer:
                 raise
             raise ConfigError(f"ExperimentConfig.task_options: {e}") from e
         self.num_train = int(self.train_tasks.start.shape[0])
+        self._task_kw = dict(cfg.task_options)
+        if cfg.train.redraw_behaviours and not can_redraw(cfg.env):
+            raise ConfigError(
+                f"TrainConfig.redraw_behaviours: env {cfg.env!r} cannot redraw its training "
+                "behaviours"
+            )
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         self.action_dim = self.env.action_dim
         self.nets = Networks(cfg.pearl, self.obs_dim, self.action_dim)
@@ -114,7 +121,11 @@ class Trainer:
         rl = buffers.init_buffer(n, cfg.train.rl_capacity, od, ad, lead)
         enc = buffers.init_buffer(n, self.enc_capacity, od, ad, lead)
         mpc = buffers.init_buffer(n, self.mpc_capacity, od, ad, lead)
-        return TrainState(learner, rl, enc, mpc, keys, jnp.zeros((cfg.seeds,), jnp.int32))
+        tasks = jax.tree_util.tree_map(
+            lambda x: jnp.array(jnp.broadcast_to(x, (cfg.seeds, *x.shape))), self.train_tasks
+        )
+        iteration = jnp.zeros((cfg.seeds,), jnp.int32)
+        return TrainState(learner, rl, enc, mpc, tasks, keys, iteration)
 
     # ------------------------------------------------------------- collection
     def _row_z(self, state: TrainState, keys: Array, rows: Array, posterior: bool) -> Array:
@@ -157,7 +168,7 @@ class Trainer:
             enc = jax.vmap(buffers.clear)(enc, task_ids)
         state = state.replace(enc=enc)
         z = self._row_z(state, sub[:, 0], rows, posterior)
-        tasks = collect_lib.rows_of(self.train_tasks, rows)
+        tasks = jax.vmap(collect_lib.rows_of)(state.tasks, rows)
         demo = None
         if self.bridge is not None:
             k_demo = jax.random.fold_in(sub[0, 1], 7)
@@ -188,6 +199,29 @@ class Trainer:
         n = self.num_train
         pick = lambda key: jax.random.choice(key, n, (min(k, n),), replace=False)
         return state.replace(key=keys), jax.vmap(pick)(sub[:, 0])
+
+    def _redraw(self, state: TrainState, ids: Array, iteration: int) -> TrainState:
+        """Extension `redraw_behaviours`: fresh behaviours for the tasks ids [S, k] about to be
+        collected, drawn on the host from a stream fixed by (run seed, seed index, iteration), so
+        a resumed run draws the same ones."""
+        ids_np = np.asarray(jax.device_get(ids))
+        fresh = [
+            redraw_tasks(
+                self.cfg.env,
+                self.cfg.task_seed,
+                ids_np[s],
+                (self.cfg.seed + s, iteration),
+                config=self.env.config,
+                **self._task_kw,
+            )
+            for s in range(ids_np.shape[0])
+        ]
+        new = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *fresh)  # [S, k, ...]
+        seed_ix = jnp.arange(ids_np.shape[0])[:, None]
+        tasks = jax.tree_util.tree_map(
+            lambda x, y: x.at[seed_ix, ids].set(y.astype(x.dtype)), state.tasks, new
+        )
+        return state.replace(tasks=tasks)
 
     # ---------------------------------------------------------------- updates
     def _update_phase(self, state: TrainState) -> tuple[TrainState, dict]:
@@ -247,6 +281,8 @@ class Trainer:
             state, _ = self.initial_collection(state)
         share = jnp.float32(tc.demo_share(it + 1))
         state, ids = self._choose_tasks(state, tc.tasks_per_iteration)
+        if tc.redraw_behaviours:
+            state = self._redraw(state, ids, it + 1)
         state, prior = self.collect_phase(state, ids, tc.prior_episodes, False, True, True, share)
         post = None
         if tc.posterior_episodes > 0:

@@ -16,11 +16,46 @@ SPLITS = ("train", "test", "ood", "val")
 
 # name -> (default config, task builder(split, seed, config, **kwargs) -> stacked TaskParams)
 _REGISTRY: dict[str, tuple[NavConfig, Callable[..., TaskParams]]] = {}
+# name -> redraw(seed, config, task_ids, stream, **kwargs) -> stacked TaskParams (optional)
+_REDRAW: dict[str, Callable[..., TaskParams]] = {}
 
 
-def register(name: str, config: NavConfig, builder: Callable[..., TaskParams]) -> None:
-    """Register a task family so that `make_env(name)` and `make_tasks(name, ...)` know it."""
+def register(
+    name: str,
+    config: NavConfig,
+    builder: Callable[..., TaskParams],
+    redraw: Callable[..., TaskParams] | None = None,
+) -> None:
+    """Register a task family so that `make_env(name)` and `make_tasks(name, ...)` know it.
+
+    `redraw(seed, config, task_ids, stream, **kwargs)`, optional, returns the training tasks
+    `task_ids` with their people's behaviour drawn anew from the random stream `stream` (a tuple
+    of ints); it backs the `TrainConfig.redraw_behaviours` extension."""
     _REGISTRY[name] = (config, builder)
+    if redraw is not None:
+        _REDRAW[name] = redraw
+    else:
+        _REDRAW.pop(name, None)
+
+
+def can_redraw(name: str) -> bool:
+    """Whether the task family can redraw its training behaviours."""
+    return name in _REDRAW
+
+
+def redraw_tasks(
+    name: str,
+    seed: int,
+    task_ids: Any,
+    stream: tuple[int, ...],
+    config: NavConfig | None = None,
+    **kwargs: Any,
+) -> TaskParams:
+    """Training tasks `task_ids` of family `name` with fresh behaviours (see `register`)."""
+    default, _ = _lookup(name)
+    if name not in _REDRAW:
+        raise ConfigError(f"env {name!r} cannot redraw its training behaviours")
+    return _REDRAW[name](seed, config or default, task_ids, stream, **kwargs)
 
 
 def _lookup(name: str) -> tuple[NavConfig, Callable[..., TaskParams]]:
@@ -61,10 +96,18 @@ def _restaurant_builder(split: str, seed: int, config: NavConfig, **kwargs: Any)
     return make_restaurant_tasks(split, seed, config, **kwargs)
 
 
+def _restaurant_redraw(
+    seed: int, config: NavConfig, task_ids: Any, stream: tuple[int, ...], **kwargs: Any
+) -> TaskParams:
+    from mpcpearl_jax.envs.restaurant import redraw_train_tasks
+
+    return redraw_train_tasks(seed, config, task_ids, stream, **kwargs)
+
+
 def _register_builtin() -> None:
     from mpcpearl_jax.envs.restaurant import RESTAURANT_CONFIG
 
-    register("restaurant", RESTAURANT_CONFIG, _restaurant_builder)
+    register("restaurant", RESTAURANT_CONFIG, _restaurant_builder, _restaurant_redraw)
     try:  # the sidewalk family registers itself when present
         from mpcpearl_jax.envs import sidewalk  # noqa: F401
     except ImportError:
@@ -94,9 +137,11 @@ __all__ = [
     "NumpyNavEnv",
     "StepInfo",
     "TaskParams",
+    "can_redraw",
     "env_names",
     "make_env",
     "make_tasks",
+    "redraw_tasks",
     "register",
     "task_to_numpy",
 ]

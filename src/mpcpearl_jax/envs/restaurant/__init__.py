@@ -4,6 +4,7 @@ from mpcpearl_jax.envs.restaurant.generator import (
     TABLE_CONFIGS,
     CrowdModel,
     make_restaurant_tasks,
+    redraw_train_tasks,
     simulate_crowd,
     table_layout,
 )
@@ -24,6 +25,7 @@ __all__ = [
     "TABLE_CONFIGS",
     "CrowdModel",
     "make_restaurant_tasks",
+    "redraw_train_tasks",
     "simulate_crowd",
     "table_layout",
 ]

@@ -511,6 +511,29 @@ def task_plans(
     return [plan_task(behs[b], table_layout(c, s), cfg) for c, b, s in pairs]
 
 
+def redraw_train_tasks(
+    seed: int,
+    cfg: NavConfig,
+    task_ids: np.ndarray,
+    stream: tuple[int, ...],
+    train_behaviours: int = NUM_TRAIN_BEHAVIOURS,
+) -> TaskParams:
+    """Training tasks `task_ids` (indices into the training split) with fresh crowd behaviours.
+
+    Extension `TrainConfig.redraw_behaviours`: each task keeps its table layout, and its six
+    people get a behaviour drawn anew from the random stream `(seed, stream...)`, which is
+    disjoint from the streams of the training, test and validation behaviours.
+    """
+    pairs = task_pairs("train", seed, train_behaviours)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 20231, 3, *stream]))
+    tasks = []
+    for i in np.asarray(task_ids).reshape(-1):
+        config_index = pairs[int(i)][0]
+        beh = sample_behaviour(rng, CrowdModel())
+        tasks.append(build_task(table_layout(config_index), beh, cfg))
+    return stack_params(tasks)
+
+
 def make_restaurant_tasks(
     split: str, seed: int, cfg: NavConfig, train_behaviours: int = NUM_TRAIN_BEHAVIOURS
 ) -> TaskParams:
