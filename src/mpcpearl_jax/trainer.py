@@ -41,7 +41,7 @@ class TrainState(struct.PyTreeNode):
     rl: buffers.TaskBuffer
     enc: buffers.TaskBuffer
     mpc: buffers.TaskBuffer  # MPC transitions kept apart (extension; capacity 1 when unused)
-    tasks: TaskParams  # [S, N, ...] the training tasks as collected (redraw_behaviours changes them)
+    tasks: TaskParams  # [S, N, ...] training tasks as collected (redraw_behaviours changes them)
     key: Array  # [S, 2] PRNG keys
     iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
 
