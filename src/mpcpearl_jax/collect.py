@@ -69,6 +69,8 @@ def make_collector(
         flat = jax.tree_util.tree_map(lambda x: x.reshape((s * r, *x.shape[2:])), tasks)
         demo_flat = jnp.zeros((s * r,), bool) if demo is None else demo.reshape(s * r)
         obs0, state0 = jax.vmap(env.reset)(jax.random.split(key, s * r), flat)
+        # stamp of this batch of episodes: the bridge forgets plans of earlier batches
+        stamp = jax.random.bits(jax.random.fold_in(key, 0x5EED), (2,), jnp.uint32)
 
         def body(carry, k):
             obs, state = carry
@@ -82,7 +84,7 @@ def make_collector(
                 else:
                     fire = jnp.zeros_like(fire)
                 fire = fire | (demo_flat & (jax.random.uniform(k_demo, (s * r,)) < demo_prob))
-                action, used, _ = bridge(k_mpc, fire, state, flat, a_pi)
+                action, used, _ = bridge(k_mpc, fire, state, flat, a_pi, stamp)
             else:
                 action, used = a_pi, jnp.zeros((s * r,), bool)
             nobs, nstate, rew, _, info = jax.vmap(env.step)(

@@ -6,7 +6,10 @@ fired rows. Usable inside `jit` and a `lax.scan` over time with a flat batch B (
 envs folded into one axis; an outer vmap would batch the predicate and is refused).
 
 Per-row memory on the host (previous plan and the step it was made at) gives warm starts: a row
-whose t is the previous t + 1 starts from the shifted plan, otherwise from a cold start.
+whose t is the previous t + 1 starts from the shifted plan, otherwise from a cold start. Callers
+that run the bridge over several batches of episodes pass an `episode` stamp (the collector does):
+a call with a new stamp forgets every plan first, so no plan outlives its episodes and a row's
+actions depend only on its own episode (exact resume of training).
 """
 
 from __future__ import annotations
@@ -48,12 +51,15 @@ STATUS_NAMES = {
 
 
 class MPCBridge:
-    """`bridge(key, fire, states, params, policy_actions) -> (actions, used_mpc, status)`.
+    """`bridge(key, fire, states, params, policy_actions, episode=None) -> (actions, used_mpc,
+    status)`.
 
     fire [B] bool; states EnvState with pose [B, 3], t [B]; params TaskParams batched [B];
-    policy_actions [B, 2] normalized. Returns actions [B, 2] normalized (the MPC action on fired
-    rows with a safe solve, else the fallback), used_mpc [B] bool (fired and solved), status [B]
-    int32 (codes above). `stats()` / `reset_stats()` expose host-side counters.
+    policy_actions [B, 2] normalized; episode: optional uint32 [2] stamp of the batch of episodes
+    (a new stamp resets the per-row plan memory, see module doc). Returns actions [B, 2]
+    normalized (the MPC action on fired rows with a safe solve, else the fallback), used_mpc [B]
+    bool (fired and solved), status [B] int32 (codes above). `stats()` / `reset_stats()` expose
+    host-side counters.
     """
 
     def __init__(self, env: NavEnv, cfg: MPCConfig):
@@ -65,13 +71,26 @@ class MPCBridge:
         self._pool: ProcessPoolExecutor | None = None
         self._plans = np.zeros((0, cfg.horizon, 2))
         self._plan_t = np.zeros(0, np.int64)
+        self._episode: tuple[int, ...] | None = None
         self.reset_stats()
 
     # ---------------------------------------------------------------- JAX side
     def __call__(
-        self, key: Array, fire: Array, states: EnvState, params: TaskParams, policy_actions: Array
+        self,
+        key: Array,
+        fire: Array,
+        states: EnvState,
+        params: TaskParams,
+        policy_actions: Array,
+        episode: Array | None = None,
     ) -> tuple[Array, Array, Array]:
         batch = fire.shape[0]
+        # [given, stamp...]: 0 = no stamp (the memory is never reset by a call)
+        if episode is None:
+            stamp = jnp.zeros((3,), jnp.uint32)
+        else:
+            stamp = jnp.concatenate([jnp.ones((1,), jnp.uint32), jnp.ravel(episode)[:2]])
+            stamp = stamp.astype(jnp.uint32)
         out_shapes = (
             jax.ShapeDtypeStruct((batch, 2), jnp.float32),
             jax.ShapeDtypeStruct((batch,), jnp.bool_),
@@ -93,6 +112,7 @@ class MPCBridge:
                 samples,
                 valid,
                 policy_actions.astype(jnp.float32),
+                stamp,
             )
 
         def skip(_):
@@ -148,10 +168,14 @@ class MPCBridge:
         return jax.vmap(row)(keys, states.pose, states.t, params.human_pos, params.human_mask)
 
     # ---------------------------------------------------------------- host side
-    def _host(self, fire, pose, t, goal, lo, hi, rad, samples, valid, policy):
+    def _host(self, fire, pose, t, goal, lo, hi, rad, samples, valid, policy, stamp):
         t_start = time.perf_counter()
         fire, t = np.asarray(fire, bool), np.asarray(t, np.int64)
         self._resize(fire.shape[0])
+        stamp = tuple(int(x) for x in np.asarray(stamp).ravel())
+        if stamp[0] and stamp != self._episode:  # a new batch of episodes: forget old plans
+            self.reset_memory()
+            self._episode = stamp
         actions = np.array(policy, np.float32)
         status = np.zeros(fire.shape[0], np.int32)
         rows = np.flatnonzero(fire)

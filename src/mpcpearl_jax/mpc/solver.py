@@ -12,8 +12,9 @@ with the largest loss at the current plan per stage enter the QP (`qp_tail_sampl
 alpha = 0.95 only sees the top M (1 - alpha) = 5 of them); samples below the VaR contribute zero
 to the CVaR sum, and the line search and the safety check use the exact SAA-CVaR over all M.
 
-The sparsity pattern is built once per problem size; each solve only updates values in place,
-warm-starts from the shifted previous plan, bounds the inputs by a trust region and accepts steps
+The sparsity pattern is built once per problem size; each solve only updates values in place
+(and restarts OSQP's rho, so that no solver state carries from one QP to the next), warm-starts
+from the shifted previous plan, bounds the inputs by a trust region and accepts steps
 by a line search on the exact SAA merit (cost + slack_penalty * violations).
 """
 
@@ -347,6 +348,7 @@ class SQPSolver:
         self._indices, self._indptr = order.indices.copy(), order.indptr.copy()
         self._P = self._cost_matrix()
         self._osqp: osqp.OSQP | None = None
+        self._rho = float(dict(params.osqp_settings)["rho"])
 
     def _cost_matrix(self) -> sp.csc_matrix:
         p, lay = self.p, self.lay
@@ -397,6 +399,10 @@ class SQPSolver:
             self._osqp = osqp.OSQP()
             self._osqp.setup(self._P, q, self._matrix(values), lo, hi, **dict(self.p.osqp_settings))
         else:
+            # OSQP keeps the step size rho its adaptive scheme reached in the previous solve:
+            # restart every QP from the configured rho, so that a solve depends on its own
+            # inputs only (not on which rows this solver met before; exact resume, workers)
+            self._osqp.update_settings(rho=self._rho)
             self._osqp.update(q=q, l=lo, u=hi, Ax=values[self._perm])
         self._osqp.warm_start(x=self._primal_guess(lin, u, xs), y=np.zeros(self.lay.m))
         res = self._osqp.solve(raise_error=False)
