@@ -8,7 +8,7 @@ Measured two ways, each in a fresh child process (peak RSS only grows within a p
     iteration, which includes XLA's compilation and temporaries. tracemalloc is not used: JAX
     allocates its buffers outside Python's allocator.
 
-Runs: the `paper` preset (SPEC 7 networks, per-task RL capacity and encoder capacity of the
+Runs: the `paper` preset (method §7 networks, per-task RL capacity and encoder capacity of the
 trainer) with MPC off (eps = 0: MPC adds no buffers) and a shortened update phase (buffer sizes
 unchanged), for several seeds in one program; then the buffer bytes for other task counts.
 

@@ -1,4 +1,4 @@
-"""MPC latency per call in a closed loop on restaurant test tasks (SPEC 6 target on a 2-core CPU:
+"""MPC latency per call in a closed loop on restaurant test tasks (method §6 target on a 2-core CPU:
 median <= 10 ms and p95 <= 40 ms per MPC call at K = 10, M = 100, 2 people, 5 tables).
 
 Each task runs one GP-MPC episode (MPC at every step) as a jitted `lax.scan` with batch 1, so

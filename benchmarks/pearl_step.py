@@ -1,6 +1,6 @@
 """Seconds per PEARL gradient step: this project (JAX) vs. a straightforward PyTorch baseline.
 
-Both sides run the same update (SPEC 7: V + target V, twin Q, tanh-Gaussian policy, context
+Both sides run the same update (method §7: V + target V, twin Q, tanh-Gaussian policy, context
 encoder with KL, Adam) on the same random batches of the same shapes, on the same CPU cores: the
 process is pinned to `--threads` cores, PyTorch gets `set_num_threads(threads)` and XLA sizes its
 pool from the pinned cores (both recorded). JAX and PyTorch samples are interleaved (round r
@@ -22,7 +22,7 @@ from typing import Any
 
 from benchmarks import harness
 
-# The authors' PyTorch code on a 2-core CPU like this one (SPEC 9), for context only.
+# The authors' PyTorch code on a 2-core CPU like this one (method §9), for context only.
 AUTHORS_CPU_ANCHOR_S = {"threads_2": 0.259, "threads_1": 0.459}
 SIZES: dict[str, dict[str, Any]] = {
     "tiny": dict(paper=False, steps_per_sample=2, rounds=2, seeds=(2,)),
@@ -36,7 +36,7 @@ def pearl_config(paper: bool):
     from mpcpearl_jax.pearl import PearlConfig
 
     if paper:
-        return PearlConfig()  # SPEC 7 sizes
+        return PearlConfig()  # method §7 sizes
     return PearlConfig(
         hidden=(32, 32), encoder_hidden=(32, 32), meta_batch=2, batch_size=16, context_size=8
     )
@@ -209,7 +209,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "compile_s": compile_s,
         "ratio": ratio,
         "seeds": seed_rows,
-        "authors_cpu_anchor_s_per_step (SPEC 9, not measured here)": AUTHORS_CPU_ANCHOR_S,
+        "authors_cpu_anchor_s_per_step (method §9, not measured here)": AUTHORS_CPU_ANCHOR_S,
     }
     config = {
         "size": size,

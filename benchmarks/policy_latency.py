@@ -1,7 +1,7 @@
 """Policy inference latency through `load_policy` (batch 1 and 1024) vs. one MPC call.
 
 The policy comes from a run directory (`--run DIR`); without one, an untrained agent of the
-`paper` preset (SPEC 7 sizes) is saved to a temporary run directory first: latency does not
+`paper` preset (method §7 sizes) is saved to a temporary run directory first: latency does not
 depend on the weights. Timed: the jitted deterministic `act(obs, z)` at batch 1 and 1024, the
 jitted `infer_z` on a 64-row context, and one MPC call: the jitted bridge (GP prediction in JAX +
 the host SQP through the callback) for one fired env, stepped in a closed loop over restaurant

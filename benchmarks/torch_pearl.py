@@ -1,6 +1,6 @@
 """A straightforward PyTorch PEARL gradient step: the comparison baseline of `pearl_step.py`.
 
-It follows the authors' PyTorch PEARL (`PEARLSoftActorCritic._take_step`, SPEC 7): a context
+It follows the authors' PyTorch PEARL (`PEARLSoftActorCritic._take_step`, method §7): a context
 encoder (3 x 200) giving a mean and a softplus variance per transition, the product-of-Gaussians
 posterior (variance clamped >= 1e-7), a reparameterised z, and SAC with a value net V and its
 soft-updated target (tau 0.005), twin Q, and a tanh-Gaussian policy (log-std clamped to [-20, 2],

@@ -30,7 +30,7 @@ def add_config_options(
         default=default_preset,
         choices=sorted(PRESETS),
         help="smoke: ~2 min pipeline check; default: a few minutes on a laptop CPU; "
-        "cpu: an hours-long CPU schedule; paper: SPEC 7 exactly",
+        "cpu: an hours-long CPU schedule; paper: method §7 exactly",
     )
     p.add_argument("--eps", type=float, help="MPC probability on an event (0 = PEARL)")
     p.add_argument("--seeds", type=int, help="independent seeds trained in one program")

@@ -2,7 +2,7 @@
 
     python -m experiments.gp_mpc --env restaurant --split test [--set v_max=5.0 --set alpha=0.95]
 
-Prints the SPEC 8 metrics next to the paper's numbers, the MPC status counts and solve times, and
+Prints the method §8 metrics next to the paper's numbers, the MPC status counts and solve times, and
 writes a JSON record and a trajectory figure (one task) under --out.
 """
 

@@ -1,4 +1,4 @@
-"""MPC-PEARL on the sidewalk tasks (SPEC 4): `python -m experiments.sidewalk [--data FILE]`.
+"""MPC-PEARL on the sidewalk tasks (method §4): `python -m experiments.sidewalk [--data FILE]`.
 
 Without --data the built-in synthetic crowd is used (runs on a fresh machine); with an ETH/UCY
 file (e.g. UCY Zara 01) the 31 ten-second windows of the scene become 25 training and 6 test

@@ -1,4 +1,4 @@
-"""The JAX navigation step against the independent NumPy twin (SPEC 1-2), within 1e-5."""
+"""The JAX navigation step against the independent NumPy twin (method §1-2), within 1e-5."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""SPEC 8 metrics (SR, TT, CFR, SPL, MGD) against small hand-computed episodes."""
+"""method §8 metrics (SR, TT, CFR, SPL, MGD) against small hand-computed episodes."""
 
 from __future__ import annotations
 

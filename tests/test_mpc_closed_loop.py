@@ -59,7 +59,7 @@ def test_config_validation_names_the_field():
 
 
 def test_plan_meets_cvar_with_fresh_samples():
-    """eq. const_xd1: empirical CVaR of the plan's safety loss on 1e4 fresh GP samples."""
+    """eq. (4b): empirical CVaR of the plan's safety loss on 1e4 fresh GP samples."""
     # SQP run to convergence (closed loop: 1-2 QPs per step). With M = 100 the SAA optimum slips
     # between samples (out-of-sample CVaR up to ~0.15 m over delta here); M = 1000 samples shrink
     # that gap, which is what the SAA guarantee promises.

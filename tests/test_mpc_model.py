@@ -84,7 +84,7 @@ def test_qp_linearization_is_a_first_order_model_of_the_nonlinear_problem():
     u = np.column_stack([np.full(10, 3.0), np.linspace(-0.3, 0.3, 10)])
     xs = model.rollout(prob.x0, u, p.dt)
     lin = linearize_problem(p, prob, u, xs)
-    # dynamics rows (eq. mpc_dyn) hold exactly at the linearization point ...
+    # dynamics rows (eq. (3b)) hold exactly at the linearization point ...
     resid = xs[1:] - np.einsum("kij,kj->ki", lin.b, u)
     resid[1:] -= np.einsum("kij,kj->ki", lin.a[1:], xs[1:-1])
     np.testing.assert_allclose(resid, lin.dyn_rhs, atol=1e-12)
@@ -98,7 +98,7 @@ def test_qp_linearization_is_a_first_order_model_of_the_nonlinear_problem():
             dx = x_lin[k] - xs[k]
             x_lin[k + 1] = xs[k + 1] + lin.a[k] @ dx + lin.b[k] @ (eps * du[k])
         assert np.max(np.abs(x_nl - x_lin)) < tol
-    # static half-planes (eq. const_x1): bd(p) ~ bd(pbar) + g.(p - pbar), conservative (convex bd)
+    # static half-planes (eq. (4c)): bd(p) ~ bd(pbar) + g.(p - pbar), conservative (convex bd)
     pos = xs[1:, :2]
     shift = 0.05 * RNG.standard_normal(pos.shape)
     bd_new, _ = model.box_distance((pos + shift)[:, None, :], prob.static_lo, prob.static_hi)
@@ -106,7 +106,7 @@ def test_qp_linearization_is_a_first_order_model_of_the_nonlinear_problem():
     lin_bd = need - lin.stat_lo + np.einsum("ksj,kj->ks", lin.stat_grad, pos + shift)
     assert np.all(bd_new >= lin_bd - 1e-9)
     assert np.max(np.abs(bd_new - lin_bd)) < 0.01
-    # sample rows (eq. const_xd1): linearized loss upper-bounds the exact loss of each kept sample
+    # sample rows (eq. (4b)): linearized loss upper-bounds the exact loss of each kept sample
     lin_loss = lin.samp_lo - np.einsum("ktj,kj->kt", lin.samp_grad, pos + shift)
     d_all = np.linalg.norm((pos + shift)[:, None, None, :] - prob.samples, axis=-1)
     exact_max = (p.eps_dynamic - d_all).max(axis=(1, 2))

@@ -1,4 +1,4 @@
-"""PEARL networks and losses: posterior, KL, log-probs, gradient routing (SPEC 7)."""
+"""PEARL networks and losses: posterior, KL, log-probs, gradient routing (method §7)."""
 
 import chex
 import jax

@@ -1,4 +1,4 @@
-"""Restaurant task sets (paper Sec. V-A): sizes, structure, determinism and the crowd's motion."""
+"""Restaurant task sets (paper Sec. IV-A): sizes, structure, determinism and the crowd's motion."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The sidewalk environment (SPEC 4): boxes, observation, masked people, step vs NumPy twin."""
+"""The sidewalk environment (method §4): boxes, observation, masked people, step vs NumPy twin."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""ETH/UCY loading, windowing, interpolation and the sidewalk task splits (SPEC 4)."""
+"""ETH/UCY loading, windowing, interpolation and the sidewalk task splits (method §4)."""
 
 from __future__ import annotations
 

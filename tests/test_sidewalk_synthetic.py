@@ -1,4 +1,4 @@
-"""The synthetic sidewalk crowd: the default tasks when no data file is given (SPEC 4)."""
+"""The synthetic sidewalk crowd: the default tasks when no data file is given (method §4)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """Data collection: whole episodes for many (seed, task, episode) rows at once, with
-event-triggered MPC infusion (Algorithm 1, lines 4-17; SPEC 5).
+event-triggered MPC infusion (Algorithm 1, lines 4-17; method §5).
 
 The env batch is one explicit flat axis R_all = seeds x rows so that the MPC bridge sees the whole
-batch in one `pure_callback` (SPEC 6); the policy is evaluated per seed with `vmap` over the
+batch in one `pure_callback` (method §6); the policy is evaluated per seed with `vmap` over the
 seed axis of the parameters.
 """
 

@@ -1,6 +1,6 @@
 """Experiment configuration: frozen dataclasses with defaults in code, validated at construction.
 
-`TrainConfig` is the meta-training schedule (SPEC 7); `ExperimentConfig` ties env, PEARL, MPC and
+`TrainConfig` is the meta-training schedule (method §7); `ExperimentConfig` ties env, PEARL, MPC and
 schedule together. Presets live in `PRESETS`; a wrong value raises `ConfigError` naming the field.
 """
 
@@ -24,7 +24,7 @@ def _pos_int(obj: Any, *fields: str) -> None:
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """Meta-training schedule (Algorithm 1; SPEC 7 defaults)."""
+    """Meta-training schedule (Algorithm 1; method §7 defaults)."""
 
     iterations: int = 3000
     initial_episodes: int = 3  # per training task at iteration 0, prior z (200 steps -> 3 x 80)
@@ -247,7 +247,7 @@ PRESETS: dict[str, ExperimentConfig] = {
     "cpu": _extended(ExperimentConfig(pearl=_small_pearl(), train=_CPU_TRAIN), 400),
     # the same CPU schedule and networks with the paper's algorithm (no extension)
     "cpu-paper": ExperimentConfig(pearl=_small_pearl(), train=_CPU_TRAIN),
-    # SPEC 7 exactly
+    # method §7 exactly
     "paper": ExperimentConfig(pearl=PearlConfig(), train=TrainConfig()),
 }
 

@@ -1,4 +1,4 @@
-"""Kinematic bicycle model of the car-like robot (SPEC 1, paper Sec. V).
+"""Kinematic bicycle model of the car-like robot (method §1, paper Sec. IV).
 
 This module is the single source of truth for the robot motion. Everything here is pure JAX,
 jittable and vmappable; the host-side MPC keeps a NumPy twin that is tested equal.
@@ -28,7 +28,7 @@ def slip_angle(delta: Array, wheelbase: float = 0.5) -> Array:
 
 
 def bicycle_step(pose: Array, action: Array, dt: float, wheelbase: float = 0.5) -> Array:
-    """One Euler step of the kinematic bicycle (paper Sec. V equations of motion).
+    """One Euler step of the kinematic bicycle (paper Sec. IV, equations of motion).
 
     Args:
       pose: [..., 3] (x, y, theta).

@@ -117,7 +117,7 @@ def make_evaluator(
 
 
 def summarize(result: dict, tasks: TaskParams, robot_radius: float) -> dict:
-    """SPEC 8 metrics per seed [S] plus the mean return, as lists/floats."""
+    """method §8 metrics per seed [S] plus the mean return, as lists/floats."""
     goal = jnp.broadcast_to(tasks.goal, result["position"].shape[:2] + (2,))
     m = metrics.episode_metrics(
         result["position"], result["collision"], result["in_goal"], goal, robot_radius

@@ -1,4 +1,4 @@
-"""Navigation metrics of the paper (SPEC 8, authors' definitions), defined once.
+"""Navigation metrics of the paper (method §8, authors' definitions), defined once.
 
 Inputs are batches of evaluated episodes (any leading batch shape ``...``):
   position:  [..., T + 1, 2] robot positions including the start.
@@ -59,5 +59,5 @@ def summarize(m: EpisodeMetrics) -> dict[str, float]:
 def compute(
     position: Array, collision: Array, in_goal: Array, goal: Array, robot_radius: float = 0.25
 ) -> dict[str, float]:
-    """SPEC 8 metrics averaged over a batch of episodes (one per test task)."""
+    """method §8 metrics averaged over a batch of episodes (one per test task)."""
     return summarize(episode_metrics(position, collision, in_goal, goal, robot_radius))

@@ -1,4 +1,4 @@
-"""Safety thresholds, the reward (paper eq. 2) and the MPC events (SPEC 2, 5), defined once.
+"""Safety thresholds, the reward (paper eq. 2) and the MPC events (method §2, 5), defined once.
 
 All functions act on a single environment (vmap for batches) and are pure JAX.
 """
@@ -61,7 +61,7 @@ def reward(
 
 
 def events(p: Array, humans: Array, mask: Array, goal: Array, cfg: NavConfig) -> Array:
-    """MPC trigger (SPEC 5): goal event |p - g| <= 2 or a present human within 2 eps_d."""
+    """MPC trigger (method §5): goal event |p - g| <= 2 or a present human within 2 eps_d."""
     near_goal = jnp.linalg.norm(p - goal) <= cfg.goal_event_radius
     near_human = jnp.any(
         mask & (human_distance(p, humans) <= cfg.collision_event_factor * cfg.eps_dynamic)

@@ -25,7 +25,7 @@ from mpcpearl_jax.trainer import Trainer, TrainState
 
 LOG_FILE = "metrics.jsonl"
 
-# SPEC 8: the paper's numbers (restaurant: 24 unseen tasks after two adaptation episodes).
+# method §8: the paper's numbers (restaurant: 24 unseen tasks after two adaptation episodes).
 PAPER = {
     "restaurant": {
         "PEARL": {"SR": 0.36, "TT": 64.32, "CFR": 0.99, "SPL": 0.31, "MGD": 33.59},

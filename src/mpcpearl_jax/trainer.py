@@ -328,7 +328,7 @@ class Trainer:
         online: bool = False,
         key: Array | None = None,
     ) -> dict:
-        """SPEC 8 metrics on `tasks` (default: test tasks), mean and per seed."""
+        """method §8 metrics on `tasks` (default: test tasks), mean and per seed."""
         tasks = self.test_tasks if tasks is None else tasks
         key = jax.random.PRNGKey(12345) if key is None else key
         fn = self.evaluate_online if online else self.evaluate_adapt

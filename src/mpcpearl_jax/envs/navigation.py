@@ -42,7 +42,7 @@ class NavEnv:
     # ------------------------------------------------------------------ API
     def reset(self, key: Array, params: TaskParams) -> tuple[Array, EnvState]:
         """Start an episode at the task's start pose. Returns (obs, state)."""
-        del key  # deterministic start (SPEC 3, 4)
+        del key  # deterministic start (method §3, 4)
         state = EnvState(pose=params.start.astype(jnp.float32), t=jnp.zeros((), jnp.int32))
         return self.observe(state, params), state
 
@@ -52,7 +52,7 @@ class NavEnv:
         """Apply a normalized action [2] in [-1, 1]^2 (clipped).
 
         Returns (obs, next_state, reward, done, info); done is True after `horizon` steps.
-        There is no early termination (SPEC 2).
+        There is no early termination (method §2).
         """
         del key
         self._check_action(action)
@@ -94,7 +94,7 @@ class NavEnv:
         return params.human_pos[idx], params.human_mask[idx]
 
     def event(self, state: EnvState, params: TaskParams) -> Array:
-        """The MPC trigger at the current state (SPEC 5)."""
+        """The MPC trigger at the current state (method §5)."""
         humans, mask = self.humans_at(params, state.t)
         return physics.events(state.pose[:2], humans, mask, params.goal, self.config)
 

@@ -1,11 +1,11 @@
-"""A plain NumPy twin of the navigation environment (SPEC 1-2), one environment at a time.
+"""A plain NumPy twin of the navigation environment (method §1-2), one environment at a time.
 
 This is an independent re-derivation of the robot model, reward and events written straight from
 the specification, in the style of the authors' code: Python scalars and small NumPy arrays,
 stepped in a Python loop. It exists to check the JAX environment (tests compare the two step by
 step) and as the baseline of the throughput benchmark. It never calls the JAX implementation.
 
-Conventions shared with the JAX environment (both follow the SPEC):
+Conventions shared with the JAX environment (both follow docs/method.md):
   * the normalized action in [-1, 1]^2 is clipped, then mapped affinely onto
     v in [0, v_max], delta in [-pi/2, pi/2];
   * once |p - g| <= r_r the robot is parked: zero speed is applied (steering unchanged);
@@ -73,7 +73,7 @@ def normalized_to_physical(action: np.ndarray, v_max: float) -> tuple[float, flo
 def bicycle(
     x: float, y: float, theta: float, v: float, delta: float, dt: float, wheelbase: float
 ) -> tuple[float, float, float]:
-    """Kinematic bicycle with l_r = L / 2 (SPEC 1); theta wrapped to [-pi, pi).
+    """Kinematic bicycle with l_r = L / 2 (method §1); theta wrapped to [-pi, pi).
 
     beta = atan(tan(delta) / 2) and the yaw rate v cos(beta) tan(delta) / L are evaluated in their
     equivalent forms atan2(sin(delta), 2 cos(delta)) and v sin(beta) / l_r, which stay exact at
@@ -188,7 +188,7 @@ class NumpyNavEnv:
         return n_d, n_s, bool(collision)
 
     def event(self) -> bool:
-        """MPC trigger (SPEC 5) at the current state: near the goal or near a present person."""
+        """MPC trigger (method §5) at the current state: near the goal or near a present person."""
         cfg = self.cfg
         p = self.pose[:2]
         if math.hypot(p[0] - self.task["goal"][0], p[1] - self.task["goal"][1]) <= (

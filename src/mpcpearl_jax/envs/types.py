@@ -32,7 +32,7 @@ def _check(cond: bool, cls_name: str, field: str, msg: str) -> None:
 
 @dataclasses.dataclass(frozen=True)
 class NavConfig:
-    """Constants of a navigation task family (SPEC 1, 2, 5).
+    """Constants of a navigation task family (method §1, 2, 5).
 
     Attributes are in metres, seconds and radians. `arena_lo`/`arena_hi` bound the robot centre
     before shrinking by `robot_radius`.

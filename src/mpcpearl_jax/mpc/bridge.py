@@ -1,4 +1,4 @@
-"""The bridge from jitted rollouts to the host MPC (SPEC 6).
+"""The bridge from jitted rollouts to the host MPC (method §6).
 
 One batch-level `lax.cond(jnp.any(fire))` guards the GP prediction (JAX) and a single
 `jax.pure_callback` that receives the whole env batch plus the fire mask; the host solves only the
@@ -218,7 +218,7 @@ class MPCBridge:
             self._plans[b], self._plan_t[b] = res.u, t
             return SOLVED, self._normalize(res.u[0])
         shifted = self._warm_plan(b, t)
-        if shifted is not None:  # SPEC 6 fallback: the previous plan shifted by one step
+        if shifted is not None:  # method §6 fallback: the previous plan shifted by one step
             self._plans[b], self._plan_t[b] = shifted, t
             return FALLBACK_PLAN, self._normalize(shifted[0])
         self._plan_t[b] = -10
@@ -291,5 +291,5 @@ class MPCBridge:
 
 
 def make_mpc_bridge(env: NavEnv, cfg: MPCConfig | None = None) -> MPCBridge:
-    """The MPC bridge of SPEC 6 for an env (see `MPCBridge`)."""
+    """The MPC bridge of method §6 for an env (see `MPCBridge`)."""
     return MPCBridge(env, cfg or MPCConfig())

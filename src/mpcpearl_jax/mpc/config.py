@@ -1,4 +1,4 @@
-"""Configuration of the risk-aware GP-MPC (SPEC 6, paper eq. LBMPC), validated at construction."""
+"""Configuration of the risk-aware GP-MPC (method §6, paper eq. (4)), validated at construction."""
 
 from __future__ import annotations
 
@@ -17,18 +17,18 @@ def _fail(field: str, msg: str) -> None:
 
 @dataclasses.dataclass(frozen=True)
 class MPCConfig:
-    """Every parameter of the MPC and of the GP prediction (SPEC 6).
+    """Every parameter of the MPC and of the GP prediction (method §6).
 
-    Problem (paper eq. LBMPC): horizon K, stage cost |p - g|^2_Q + u'Ru with Q, R from the env
+    Problem (paper eq. (4)): horizon K, stage cost |p - g|^2_Q + u'Ru with Q, R from the env
     config, terminal |p_K - g|^2 weighted by `terminal_weight` * Q, one SAA-CVaR constraint per
-    stage (eq. const_xd1) over `num_samples` GP samples of the `n_adapt` nearest people, static
-    obstacles as hard constraints (eq. const_x1, L1-penalised slacks keep every QP feasible).
+    stage (eq. (4b)) over `num_samples` GP samples of the `n_adapt` nearest people, static
+    obstacles as hard constraints (eq. (4c), L1-penalised slacks keep every QP feasible).
 
     `r_safe = None` takes the env's r_safe; `v_max = None` takes the env's v_max (the authors' code
     caps the MPC speed at 5).
     """
 
-    # problem (paper eq. LBMPC)
+    # problem (paper eq. (4))
     horizon: int = 10  # K
     num_samples: int = 100  # M_SAA
     alpha: float = 0.95  # CVaR level (paper; authors' code 0.99)
@@ -41,14 +41,14 @@ class MPCConfig:
     # SQP (host side, OSQP)
     sqp_iters: int = 2  # at most this many QPs per call
     sqp_step_tol: float = 0.05  # stop early when the accepted input step is below this (inf-norm)
-    trust_v: float = 2.0  # trust region on the speed, m/s (SPEC 6 suggests ~1; 2 did better)
+    trust_v: float = 2.0  # trust region on the speed, m/s (method §6 suggests ~1; 2 did better)
     trust_steer: float = 0.35  # trust region on the steering angle, rad
     slack_penalty: float = 2000.0  # L1 weight of the static and CVaR slacks (exact penalty)
     qp_tail_samples: int = 20  # T: samples per stage with the largest loss that enter each QP
     line_search_steps: int = 3  # step sizes 1, 1/2, 1/4, ... on the exact SAA merit
     cold_speed: float = 2.5  # speed of the cold-start plan, m/s
     unsafe_tol: float = 0.02  # first-stage violation (m) above which a plan counts as unsafe
-    # extension (off = SPEC 6): an unsafe plan is re-solved once from the least-violating first
+    # extension (off = method §6): an unsafe plan is re-solved once from the least-violating first
     # move of a 3 x 3 input grid; a plan whose first move is as safe as the best of that grid is
     # used (reason "least_violation") instead of falling back
     unsafe_recovery: bool = False

@@ -1,4 +1,4 @@
-"""GP prediction of people (paper Sec. IV-B and appendix "Details of GPR"), pure JAX.
+"""GP prediction of people (paper Sec. III-B and appendix "Details of GPR"), pure JAX.
 
 Per person and axis an RBF-kernel GP maps the 2-D position to the per-step displacement, trained
 on the last N_GP transitions. The K-step prediction propagates the mean through the GP mean and
@@ -109,7 +109,7 @@ def predict(hist: Array, horizon: int, hyper: GPHyper, static_tol: float) -> tup
     """K-step prediction of one person from its history [N_GP + 1, 2].
 
     Returns mean and variance per axis at stages 1..K: ([K, 2], [K, 2]). A person who moved less
-    than `static_tol` in the last step is static with zero variance (SPEC 6).
+    than `static_tol` in the last step is static with zero variance (method §6).
     """
     x, y = hist[:-1], hist[1:] - hist[:-1]
     moving = jnp.linalg.norm(y[-1]) > static_tol

@@ -1,8 +1,8 @@
-"""Host-side SQP for the risk-aware MPC (paper eq. LBMPC, SPEC 6) on OSQP.
+"""Host-side SQP for the risk-aware MPC (paper eq. (4), method §6) on OSQP.
 
-Each QP linearizes, around the current plan, the bicycle dynamics (eq. mpc_dyn), the static
-obstacles as tangent half-planes of the rounded-box distance (eq. const_x1) and the safety loss of
-every GP sample (eq. const_xd1, SAA-CVaR in epigraph form). Variables, in this order:
+Each QP linearizes, around the current plan, the bicycle dynamics (eq. (3b)), the static
+obstacles as tangent half-planes of the rounded-box distance (eq. (4c)) and the safety loss of
+every GP sample (eq. (4b), SAA-CVaR in epigraph form). Variables, in this order:
 
   u_k [K, 2] (physical v, delta), X_k = x_{t+k+1|t} [K, 3], xi_k [K], s_kj [K, T],
   static slacks e_kj [K, S], CVaR slacks c_k [K]
@@ -296,8 +296,8 @@ def safety_losses(p: SolverParams, prob: RowProblem, pos: np.ndarray) -> np.ndar
 
 
 def violations(p: SolverParams, prob: RowProblem, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exact violations of the plan at stages 1..K: static [K, S] (eq. const_x1) and CVaR
-    excess [K] (eq. const_xd1 with the exact SAA-CVaR), both >= 0."""
+    """Exact violations of the plan at stages 1..K: static [K, S] (eq. (4c)) and CVaR
+    excess [K] (eq. (4b) with the exact SAA-CVaR), both >= 0."""
     pos = xs[1:, :2]
     bd, _ = model.box_distance(pos[:, None, :], prob.static_lo, prob.static_hi)
     static = np.maximum(p.static_margin + prob.static_radius[None, :] - bd, 0.0)
@@ -316,7 +316,7 @@ def merit(p: SolverParams, prob: RowProblem, u: np.ndarray, xs: np.ndarray) -> f
 
 
 def clip_inputs(p: SolverParams, u: np.ndarray) -> np.ndarray:
-    """Project inputs [K, 2] onto the MPC input box (eq. const_u)."""
+    """Project inputs [K, 2] onto the MPC input box (eq. (3e))."""
     return np.clip(u, [0.0, -p.steer_max], [p.v_max, p.steer_max])
 
 
@@ -468,7 +468,7 @@ class SQPSolver:
         return u, xs, cur, iters, n_qp, reason
 
     def _first_violation(self, prob: RowProblem, xs: np.ndarray) -> float:
-        """The larger first-stage violation of eq. const_x1 and eq. const_xd1 (>= 0)."""
+        """The larger first-stage violation of eq. (4c) and eq. (4b) (>= 0)."""
         static, cvar = violations(self.p, prob, xs)
         return float(max(static[0].max(initial=0.0), cvar[0]))
 
@@ -500,7 +500,7 @@ class SQPSolver:
         return None
 
     def first_stage_safe(self, prob: RowProblem, xs: np.ndarray) -> bool:
-        """The executed stage x_{t+1|t} meets eq. const_x1 and eq. const_xd1 up to unsafe_tol."""
+        """The executed stage x_{t+1|t} meets eq. (4c) and eq. (4b) up to unsafe_tol."""
         return self._first_violation(prob, xs) <= self.p.unsafe_tol
 
 

@@ -2,7 +2,7 @@
 
 Each task owns a ring buffer of `capacity` transitions. The RL buffer keeps everything; the
 encoder buffer is reset on every visit of a task so that it holds only the most recent prior-z
-collection (SPEC 7; the sampler S_c of the paper).
+collection (method §7; the sampler S_c of the paper).
 """
 
 from __future__ import annotations

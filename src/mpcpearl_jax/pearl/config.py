@@ -1,4 +1,4 @@
-"""PEARL hyperparameters (SPEC 7) as a frozen, validated dataclass."""
+"""PEARL hyperparameters (method §7) as a frozen, validated dataclass."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from mpcpearl_jax.envs.types import ConfigError
 class PearlConfig:
     """Networks, losses and update schedule of PEARL's SAC variant.
 
-    Defaults are the authors' settings (SPEC 7 / paper Table I).
+    Defaults are the authors' settings (method §7 / paper Table I).
     """
 
     latent_dim: int = 10

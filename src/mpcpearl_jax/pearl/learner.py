@@ -30,7 +30,7 @@ class Transitions(NamedTuple):
 
 
 def context_from(t: Transitions) -> Array:
-    """Context rows (s, a, r, s') [..., 2 O + A + 1] with the unscaled reward (SPEC 7)."""
+    """Context rows (s, a, r, s') [..., 2 O + A + 1] with the unscaled reward (method §7)."""
     return jnp.concatenate([t.obs, t.action, t.reward[..., None], t.next_obs], axis=-1)
 
 

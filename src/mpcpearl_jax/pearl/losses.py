@@ -1,4 +1,4 @@
-"""PEARL's SAC losses (SPEC 7; paper Sec. IV-A, Algorithm 1 lines 18-23).
+"""PEARL's SAC losses (method §7; paper Sec. III-A, Algorithm 1 lines 18-23).
 
 Shapes: MB tasks in the meta-batch, B RL transitions per task, C context transitions per task,
 O obs dim, A action dim, L latent dim. z is one posterior sample per task, broadcast over B.
@@ -48,7 +48,7 @@ def critic_encoder_loss(
     q_target = reward_scale * batch.reward + (1.0 - batch.done) * gamma * target_v
     q_target = jax.lax.stop_gradient(q_target)
     q_loss = jnp.mean((q1 - q_target) ** 2) + jnp.mean((q2 - q_target) ** 2)
-    kl = jnp.sum(kl_to_standard_normal(mean, var))  # summed over tasks (SPEC 7)
+    kl = jnp.sum(kl_to_standard_normal(mean, var))  # summed over tasks (method §7)
     loss = q_loss + kl_weight * kl
     return loss, {"q_loss": q_loss, "kl": kl, "z": z, "q1_mean": jnp.mean(q1)}
 

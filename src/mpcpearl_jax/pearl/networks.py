@@ -1,4 +1,4 @@
-"""PEARL networks in flax (SPEC 7): tanh-Gaussian policy, twin Q, V, context encoder.
+"""PEARL networks in flax (method §7): tanh-Gaussian policy, twin Q, V, context encoder.
 
 Initialisation follows the authors' rlkit/PEARL code: hidden weights uniform in +-1/sqrt(fan_in),
 hidden biases 0.1, last layer weights and biases uniform in +-3e-3.
@@ -75,7 +75,7 @@ class ValueNet(nn.Module):
 
 
 class PolicyNet(nn.Module):
-    """Outputs (mean, log_std) [..., A] of the pre-tanh Gaussian, log_std clamped (SPEC 7)."""
+    """Outputs (mean, log_std) [..., A] of the pre-tanh Gaussian, log_std clamped (method §7)."""
 
     hidden: Sequence[int]
     action_dim: int

@@ -1,4 +1,4 @@
-"""The restaurant task family (SPEC 3)."""
+"""The restaurant task family (method §3)."""
 
 from mpcpearl_jax.envs.restaurant.generator import (
     TABLE_CONFIGS,

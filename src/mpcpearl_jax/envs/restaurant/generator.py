@@ -1,4 +1,4 @@
-"""Restaurant task family (paper Sec. V-A): table layouts, human behaviours and their motion.
+"""Restaurant task family (paper Sec. IV-A): table layouts, human behaviours and their motion.
 
 A task = (table configuration, behaviour). As in the authors' scenarios, each of the 6 people walks
 one route (landmark -> seat at a table, seat -> landmark, or landmark -> landmark) at a steady

@@ -1,4 +1,4 @@
-"""The sidewalk task family (SPEC 4): a robot crossing a sidewalk among pedestrians.
+"""The sidewalk task family (method §4): a robot crossing a sidewalk among pedestrians.
 
 People come from an ETH/UCY trajectory file (`make_tasks("sidewalk", split, data=PATH)`, e.g. UCY
 Zara 01) or, by default, from a synthetic crowd with the same geometry.

@@ -1,4 +1,4 @@
-"""ETH/UCY pedestrian trajectory files and their 10-second windows (SPEC 4).
+"""ETH/UCY pedestrian trajectory files and their 10-second windows (method §4).
 
 The common text format has one row per annotated position, with no header::
 

@@ -1,4 +1,4 @@
-"""A synthetic crowd on the sidewalk, the default when no trajectory file is given (SPEC 4).
+"""A synthetic crowd on the sidewalk, the default when no trajectory file is given (method §4).
 
 People walk along the sidewalk (the band between the road, y <= 1.9, and the parked car,
 y >= 5.5) in both directions at about 1.15 m/s (the Zara 01 median), each with its own speed, lane

@@ -1,4 +1,4 @@
-"""Sidewalk tasks (SPEC 4): static boxes, and people from a trajectory file or a synthetic crowd.
+"""Sidewalk tasks (method §4): static boxes, and people from a trajectory file or a synthetic crowd.
 
 `make_sidewalk_tasks(split, seed, config, data=PATH)` builds stacked `TaskParams`:
 
@@ -38,7 +38,7 @@ FAR = 1.0e3
 
 
 def sidewalk_boxes(cfg: NavConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Static obstacles as plain boxes (radius 0): building, car 1, car 2, road (SPEC 4).
+    """Static obstacles as plain boxes (radius 0): building, car 1, car 2, road (method §4).
 
     Returns lo [4, 2], hi [4, 2], radius [4] (float32). Half-infinite sides end FAR metres
     beyond the arena.
