@@ -7,7 +7,8 @@ stacked on a leading axis). `reset(rng)` samples a task index uniformly, keeps i
 `NavEnv`.
 
 Termination: the method has no early termination (method §2), so `done` is always 0 here and an
-episode is cut by brax's `EpisodeWrapper` (use `episode_length=env.horizon`, as `wrap_for_training` does).
+episode is cut by brax's `EpisodeWrapper` (use `episode_length=env.horizon`, as
+`wrap_for_training` does).
 brax's `AutoResetWrapper` restores the *first* state of each batch slot, so every slot keeps the
 task it drew at reset; a batch of slots covers the task distribution.
 """

@@ -1,4 +1,4 @@
-"""Risk-aware MPC (paper Sec. III-B, method §6): GP prediction in JAX, SQP on OSQP, callback bridge."""
+"""Risk-aware MPC (paper Sec. III-B, method §6): GP prediction in JAX, SQP on OSQP, host bridge."""
 
 from mpcpearl_jax.mpc.bridge import (
     FALLBACK_PLAN,
