@@ -151,10 +151,16 @@ class LoadedPolicy:
         return jax.jit(self.act), jax.jit(self.infer_z)
 
 
-def load_policy(path: str | Path, seed_index: int = 0) -> LoadedPolicy:
-    """Rebuild the trained policy of seed `seed_index` from a run directory (see module doc)."""
+def load_policy(
+    path: str | Path, seed_index: int = 0, data: str | Path | None = None
+) -> LoadedPolicy:
+    """Rebuild the trained policy of seed `seed_index` from a run directory (see module doc).
+
+    data: the run's trajectory file (sidewalk) where the path in config.json is not valid here."""
     run_dir = Path(path)
     cfg = load_config(run_dir)
+    if data is not None:
+        cfg = cfg.replace(data=str(data))
     if not 0 <= seed_index < cfg.seeds:
         raise ValueError(f"seed_index {seed_index} out of range: the run has {cfg.seeds} seed(s)")
     env = make_env(cfg.env, **cfg.env_overrides)

@@ -61,13 +61,15 @@ def _episode(
         row = context_from(Transitions(obs, a, r, nobs, jnp.zeros(())))
         ctx = ctx.at[offset + t].set(row)
         mask = mask.at[offset + t].set(1.0)
-        return (nobs, nstate, z, ctx, mask), (info.position, info.collision, info.in_goal, r)
+        out = (info.position, nstate.pose[2], info.collision, info.in_goal, r)
+        return (nobs, nstate, z, ctx, mask), out
 
-    (_, _, _, ctx, mask), (pos, col, goal, rew) = jax.lax.scan(
+    (_, _, _, ctx, mask), (pos, head, col, goal, rew) = jax.lax.scan(
         body, (obs0, state0, z0, ctx, mask), (jnp.arange(horizon), jax.random.split(k_run, horizon))
     )
     pos = jnp.concatenate([state0.pose[None, :2], pos], axis=0)
-    return (pos, col, goal, rew), ctx, mask
+    head = jnp.concatenate([state0.pose[None, 2], head], axis=0)
+    return (pos, head, col, goal, rew), ctx, mask
 
 
 def make_evaluator(
@@ -77,7 +79,8 @@ def make_evaluator(
     online: bool = False,
     t_update: int = 5,
 ):
-    """`evaluate(key, params [S], tasks [N]) -> dict` of arrays [S, N, ...].
+    """`evaluate(key, params [S], tasks [N]) -> dict` of arrays [S, N, ...]: position [T + 1, 2],
+    heading [T + 1], collision [T], in_goal [T] and return of the evaluated episode.
 
     Adaptation mode (paper Table II "X"): z from the prior for episode 1, then from the posterior
     of all transitions so far; the returned episode is number num_adapt_episodes + 1.
@@ -104,8 +107,14 @@ def make_evaluator(
                 jnp.asarray(e * horizon),
                 t_update if online else None,
             )
-        pos, col, goal, rew = out
-        return {"position": pos, "collision": col, "in_goal": goal, "return": jnp.sum(rew)}
+        pos, head, col, goal, rew = out
+        return {
+            "position": pos,
+            "heading": head,
+            "collision": col,
+            "in_goal": goal,
+            "return": jnp.sum(rew),
+        }
 
     def evaluate(key: Array, params, tasks: TaskParams) -> dict:
         n = tasks.start.shape[0]
@@ -116,12 +125,17 @@ def make_evaluator(
     return jax.jit(evaluate)
 
 
-def summarize(result: dict, tasks: TaskParams, robot_radius: float) -> dict:
-    """method §8 metrics per seed [S] plus the mean return, as lists/floats."""
+def episode_metrics(result: dict, tasks: TaskParams, robot_radius: float) -> metrics.EpisodeMetrics:
+    """method §8 ingredients of every evaluated episode, each [S, N] (seeds x tasks)."""
     goal = jnp.broadcast_to(tasks.goal, result["position"].shape[:2] + (2,))
-    m = metrics.episode_metrics(
+    return metrics.episode_metrics(
         result["position"], result["collision"], result["in_goal"], goal, robot_radius
     )
+
+
+def summarize(result: dict, tasks: TaskParams, robot_radius: float) -> dict:
+    """method §8 metrics per seed [S] plus the mean return, as lists/floats."""
+    m = episode_metrics(result, tasks, robot_radius)
     per_seed = {
         "SR": jnp.mean(m.success, axis=-1),
         "TT": jnp.mean(m.travel_time, axis=-1),

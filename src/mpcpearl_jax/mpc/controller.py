@@ -21,8 +21,8 @@ def make_gp_mpc_rollout(
     """`rollout(key, params) -> traj` for a flat batch of tasks params [B] (jittable).
 
     MPC fires on every row at every step; where a solve is unsafe and no previous plan exists the
-    fallback is braking. traj has a leading batch axis: position [B, T + 1, 2], action [B, T, 2],
-    collision / in_goal / used_mpc [B, T], status [B, T] int32, reward [B, T].
+    fallback is braking. traj has a leading batch axis: position [B, T + 1, 2], heading [B, T + 1],
+    action [B, T, 2], collision / in_goal / used_mpc [B, T], status [B, T] int32, reward [B, T].
     """
     steps = num_steps or env.config.horizon
 
@@ -41,6 +41,7 @@ def make_gp_mpc_rollout(
                 action=action,
                 reward=r,
                 position=info.position,
+                heading=nstate.pose[:, 2],
                 collision=info.collision,
                 in_goal=info.in_goal,
                 used_mpc=used,
@@ -51,6 +52,7 @@ def make_gp_mpc_rollout(
         _, traj = jax.lax.scan(body, state0, jax.random.split(key, steps))
         traj = jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), traj)
         traj["position"] = jnp.concatenate([state0.pose[:, None, :2], traj["position"]], axis=1)
+        traj["heading"] = jnp.concatenate([state0.pose[:, None, 2], traj["heading"]], axis=1)
         return traj
 
     return rollout
