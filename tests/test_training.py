@@ -105,21 +105,23 @@ def test_resume_with_other_config_is_a_clear_error(tmp_path):
         train(TINY, tmp_path / "run", progress=False)
 
 
-def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+def _garble(ckpt_dir):
+    for p in ckpt_dir.rglob("*"):
+        if p.is_file() and p.stat().st_size > 0 and "metadata" not in p.name:
+            p.write_bytes(b"garbage")
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path, capsys):
     run = tmp_path / "run"
     train(TINY, run, progress=False)
     ckpts = sorted((run / "checkpoints").iterdir(), key=lambda p: int(p.name))
     assert len(ckpts) == TINY.train.keep_checkpoints  # keeps only the last few
-    for p in ckpts[-1].rglob("*"):
-        if p.is_file() and p.stat().st_size > 0 and "metadata" not in p.name:
-            p.write_bytes(b"garbage")
-    with pytest.raises(CheckpointError, match="cannot restore"):
-        train(
-            TINY.replace(train=TrainConfig(**{**TINY.train.__dict__, "iterations": 5})),
-            run,
-            resume=True,
-            progress=False,
-        )
+    longer = TINY.replace(train=TrainConfig(**{**TINY.train.__dict__, "iterations": 5}))
+    for c in ckpts:
+        _garble(c)
+    with pytest.raises(CheckpointError, match="no intact checkpoint"):
+        train(longer, run, resume=True, progress=False)
+    assert "cannot restore" in capsys.readouterr().err  # each one reported
     (run / "policy.msgpack").write_bytes(b"junk")
     with pytest.raises(CheckpointError, match="policy.msgpack"):
         load_policy(run)

@@ -4,11 +4,19 @@ A run directory holds:
   config.json         the ExperimentConfig (what `load_policy` and `--resume` rebuild from)
   checkpoints/<it>/   orbax checkpoints of the whole TrainState (last few kept)
   policy.msgpack      policy + encoder parameters of every seed (flax serialization)
+
+Every file is written atomically (a temporary file renamed over the old one; orbax commits a
+checkpoint the same way), so a process killed at any moment leaves the previous version intact.
+A checkpoint that cannot be restored is reported and set aside under corrupt_checkpoints/, and the
+newest intact one is used instead.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,9 +41,27 @@ CONFIG_FILE = "config.json"
 POLICY_FILE = "policy.msgpack"
 
 
+def atomic_write(path: Path, data: bytes | str) -> None:
+    """Write `data` to `path` through a temporary file in the same folder and a rename: readers
+    (and a later resume) see the old or the new content, never a torn file."""
+    path = Path(path)
+    raw = data.encode() if isinstance(data, str) else data
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(raw)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
 def save_config(run_dir: Path, cfg: ExperimentConfig) -> None:
+    run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / CONFIG_FILE).write_text(cfg.to_json())
+    atomic_write(run_dir / CONFIG_FILE, cfg.to_json())
 
 
 def load_config(run_dir: str | Path) -> ExperimentConfig:
@@ -75,32 +101,107 @@ class Checkpointer:
 
     def __init__(self, run_dir: str | Path, keep: int = 3):
         self.run_dir = Path(run_dir).absolute()
-        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True)
+        # an interrupted save leaves only a temporary folder, removed here (orbax commits a
+        # checkpoint by renaming it into place once complete)
+        options = ocp.CheckpointManagerOptions(
+            max_to_keep=keep, create=True, cleanup_tmp_directories=True
+        )
         self.manager = ocp.CheckpointManager(self.run_dir / "checkpoints", options=options)
 
     def latest(self) -> int | None:
         return self.manager.latest_step()
 
+    def steps(self) -> list[int]:
+        """Committed checkpoint steps, oldest first."""
+        return sorted(self.manager.all_steps())
+
     def save(self, step: int, state, policy_params: dict) -> None:
         self.manager.save(step, args=ocp.args.StandardSave(state))
         self.manager.wait_until_finished()
-        (self.run_dir / POLICY_FILE).write_bytes(serialization.to_bytes(policy_params))
+        atomic_write(self.run_dir / POLICY_FILE, serialization.to_bytes(policy_params))
 
-    def restore(self, template, step: int | None = None):
-        step = self.latest() if step is None else step
-        if step is None:
+    def restore(
+        self, template, step: int | None = None, report: Callable[[str], None] | None = None
+    ):
+        """The state saved at `step`; by default the newest checkpoint that restores. A newer one
+        that does not is reported (`report`, default: a line on stderr) and moved to
+        corrupt_checkpoints/. Returns the state; the step restored is `self.restored_step`."""
+        if step is not None:
+            state = self._restore_step(template, step)
+            self.restored_step = step
+            return state
+        steps = self.steps()
+        if not steps:
             raise CheckpointError(f"{self.run_dir}: no checkpoint to resume from")
+        report = report or (lambda msg: print(msg, file=sys.stderr, flush=True))
+        errors = []
+        for i, s in enumerate(reversed(steps)):
+            try:
+                state = self._restore_step(template, s)
+            except CheckpointError as e:
+                errors.append(str(e))
+                moved = self._set_aside(s)
+                older = steps[-i - 2] if i + 1 < len(steps) else None
+                then = f"falling back to iteration {older}" if older is not None else "none left"
+                report(f"warning: {e}; moved to {moved}; {then}")
+                continue
+            self.restored_step = s
+            return state
+        raise CheckpointError(
+            f"{self.run_dir}/checkpoints: no intact checkpoint (tried {steps[::-1]}); "
+            "start again with a new --out"
+        )
+
+    def _restore_step(self, template, step: int):
         abstract = jax.tree_util.tree_map(ocp.utils.to_shape_dtype_struct, template)
+        where = f"{self.run_dir}/checkpoints/{step}"
         try:
-            return self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
+            state = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
         except Exception as e:  # orbax raises many types for corrupt or mismatched trees
             raise CheckpointError(
-                f"{self.run_dir}/checkpoints/{step}: cannot restore the training state "
+                f"{where}: cannot restore the training state "
                 f"(corrupt, or saved with a different configuration): {type(e).__name__}: {e}"
             ) from e
+        it = getattr(state, "iteration", None)
+        if it is not None and not bool(jnp.all(jnp.asarray(it) == step)):
+            raise CheckpointError(f"{where}: cannot restore: it holds iteration {it}, not {step}")
+        for leaf in jax.tree_util.tree_leaves(getattr(state, "learner", None)):
+            if jnp.issubdtype(leaf.dtype, jnp.floating) and not bool(jnp.all(jnp.isfinite(leaf))):
+                raise CheckpointError(f"{where}: cannot restore: non-finite network parameters")
+        return state
+
+    def _set_aside(self, step: int) -> Path:
+        """Move a checkpoint that does not restore out of the manager's folder."""
+        src = self.run_dir / "checkpoints" / str(step)
+        dst_dir = self.run_dir / "corrupt_checkpoints"
+        dst_dir.mkdir(exist_ok=True)
+        dst, n = dst_dir / str(step), 1
+        while dst.exists():
+            dst, n = dst_dir / f"{step}.{n}", n + 1
+        shutil.move(str(src), str(dst))
+        self.manager.reload()
+        return dst
 
     def close(self) -> None:
         self.manager.close()
+
+
+def _is_traced(x: Any) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def _check_input(name: str, x: Any, expected: str, ok: Callable[[tuple], bool]) -> Array:
+    """x as an array; ValueError naming the expected shape if `ok(shape)` fails, or if a concrete
+    x holds NaN or inf (traced values, under `jit`, are only shape-checked)."""
+    if not _is_traced(x):
+        x = jnp.asarray(x)
+    if not (jnp.issubdtype(x.dtype, jnp.floating) or jnp.issubdtype(x.dtype, jnp.integer)):
+        raise ValueError(f"{name}: expected a numeric array of shape {expected}, got {x.dtype}")
+    if not ok(tuple(x.shape)):
+        raise ValueError(f"{name}: expected shape {expected}, got {tuple(x.shape)}")
+    if not _is_traced(x) and not bool(jnp.all(jnp.isfinite(x))):
+        raise ValueError(f"{name}: contains NaN or inf (expected finite values, shape {expected})")
+    return x
 
 
 @dataclass(frozen=True)
@@ -110,7 +211,10 @@ class LoadedPolicy:
     act(obs [..., O], z [..., L], key=None) -> action [..., 2] in [-1, 1] (deterministic if no key)
     infer_z(context [C, D], mask [C] | None, key=None) -> z [L] (posterior mean if no key)
     __call__(obs, context, key=None, mask=None) -> action: infer z from the context, then act.
-    Context rows are (s, a, r, s') with the unscaled reward: see `pearl.context_from`.
+    Context rows are (s, a, r, s') with the unscaled reward (D = 2 O + 3): see
+    `pearl.context_from`. Inputs are checked: a wrong shape, or NaN / inf in a concrete (not
+    traced) input, raises ValueError naming the expected shape. Under `jit` (and in `jit()`) only
+    the shapes are checked, at trace time; values are not.
     """
 
     config: ExperimentConfig
@@ -130,24 +234,55 @@ class LoadedPolicy:
         shape = (self.latent_dim,)
         return jnp.zeros(shape) if key is None else jax.random.normal(key, shape)
 
+    @property
+    def context_dim(self) -> int:
+        return self.nets.context_dim
+
+    def _obs(self, obs: Any) -> Array:
+        o = self.obs_dim
+        return _check_input("obs", obs, f"[..., {o}]", lambda s: len(s) >= 1 and s[-1] == o)
+
+    def _context(self, context: Any, mask: Any) -> tuple[Array, Array | None]:
+        d = self.context_dim
+        expected = f"[C, {d}] (C >= 1 rows of (s, a, r, s'), 2 * {self.obs_dim} + 3 columns)"
+        context = _check_input(
+            "context", context, expected, lambda s: len(s) == 2 and s[0] >= 1 and s[1] == d
+        )
+        if mask is not None:
+            c = context.shape[0]
+            mask = jnp.asarray(mask) if not _is_traced(mask) else mask
+            if tuple(mask.shape) != (c,):
+                raise ValueError(
+                    f"mask: expected shape [{c}] (one per context row), got {tuple(mask.shape)}"
+                )
+        return context, mask
+
     def infer_z(self, context: Array, mask: Array | None = None, key: Array | None = None):
+        context, mask = self._context(context, mask)
         if not self.nets.cfg.use_context:
             return jnp.zeros((self.latent_dim,))
         mean, var = self.nets.posterior(self.params["encoder"], context, mask)
         return mean if key is None else mean + jnp.sqrt(var) * jax.random.normal(key, mean.shape)
 
     def act(self, obs: Array, z: Array, key: Array | None = None) -> Array:
+        obs = self._obs(obs)
+        lat = self.latent_dim
+        z = _check_input(
+            "z", z, f"[..., {lat}] (batch shape of obs)", lambda s: s == obs.shape[:-1] + (lat,)
+        )
         return self.nets.act(self.params["policy"], obs, z, key)
 
     def __call__(
         self, obs: Array, context: Array, key: Array | None = None, mask: Array | None = None
     ) -> Array:
+        obs = self._obs(obs)
         z = self.infer_z(context, mask)
         z = jnp.broadcast_to(z, obs.shape[:-1] + z.shape[-1:])
         return self.act(obs, z, key)
 
     def jit(self) -> tuple[Callable, Callable]:
-        """(jitted act, jitted infer_z)."""
+        """(jitted act, jitted infer_z): fast paths that check shapes (once, when traced) but
+        not values: NaN or inf inputs give NaN actions silently."""
         return jax.jit(self.act), jax.jit(self.infer_z)
 
 
