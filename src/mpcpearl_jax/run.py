@@ -1,11 +1,23 @@
 """Run an experiment: train with checkpoints and a metrics log, evaluate, write figures and the
 results table. Used by `python -m experiments.restaurant` and `python -m experiments.sidewalk`.
+
+Resume is exact: everything that shapes the rest of a run is in the checkpointed TrainState or
+rebuilt deterministically from the config, so a run stopped at any moment (kill -9, Ctrl-C, power
+loss) and resumed ends bit-identical to one never stopped. metrics.jsonl is appended one whole line
+at a time; rows beyond the restored checkpoint are recomputed.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import json
+import os
+import signal
+import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -15,13 +27,15 @@ import numpy as np
 from mpcpearl_jax.checkpoint import (
     Checkpointer,
     CheckpointError,
+    atomic_write,
     check_resumable,
     load_config,
     save_config,
 )
 from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.envs.types import ConfigError
 from mpcpearl_jax.metrics import METRIC_NAMES
-from mpcpearl_jax.trainer import Trainer, TrainState
+from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState
 
 LOG_FILE = "metrics.jsonl"
 
@@ -42,15 +56,92 @@ PAPER = {
 }
 
 
-def _read_log(path: Path, upto: int) -> list[dict]:
+class RunDirError(RuntimeError):
+    """The run directory (or its checkpoints/ folder) cannot be created or written."""
+
+
+class RunInterrupted(Exception):
+    """Training stopped on Ctrl-C (SIGINT); `iteration` iterations are saved and resumable."""
+
+    def __init__(self, iteration: int, lost: int = 0):
+        self.iteration, self.lost = iteration, lost
+        extra = f" ({lost} later iteration(s) not saved)" if lost else ""
+        super().__init__(f"interrupted at iteration {iteration}; continue with --resume{extra}")
+
+
+def _warn(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def read_log(path: Path, upto: int = 10**9, report: Callable[[str], None] = _warn) -> list[dict]:
+    """Rows of metrics.jsonl with iteration <= upto. A torn last line (a process killed while
+    appending it) is dropped with a warning naming the file; a bad line elsewhere is an error."""
     if not path.is_file():
         return []
-    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    lines = path.read_bytes().split(b"\n")
+    rows = []
+    for i, raw in enumerate(lines):
+        if not raw.strip():
+            continue
+        try:
+            rows.append(json.loads(raw))
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            if any(x.strip() for x in lines[i + 1 :]):
+                raise CheckpointError(f"{path}: line {i + 1} is not JSON ({e})") from e
+            report(f"warning: {path}: dropped a torn last line (line {i + 1}, {len(raw)} bytes)")
     return [r for r in rows if r.get("iteration", 0) <= upto]
 
 
 def _write_log(path: Path, rows: list[dict]) -> None:
-    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    atomic_write(path, "".join(json.dumps(r) + "\n" for r in rows))
+
+
+def append_log(path: Path, row: dict) -> None:
+    """Append one line with a single write on an O_APPEND descriptor: a crash leaves at most a
+    torn last line (dropped on resume), never a mixed one."""
+    data = (json.dumps(row) + "\n").encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view) :]
+    finally:
+        os.close(fd)
+
+
+def check_writable(run_dir: Path) -> None:
+    """Create run_dir and run_dir/checkpoints if needed and prove both writable (a probe file is
+    written and removed); RunDirError naming the folder otherwise."""
+    for d in (run_dir, run_dir / "checkpoints"):
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+            probe = d / f".write-probe-{os.getpid()}"
+            with open(probe, "wb") as f:
+                f.write(b"probe")
+            probe.unlink()
+        except OSError as e:
+            raise RunDirError(
+                f"{d}: not writable ({e.strerror or type(e).__name__}); fix its permissions "
+                "or choose another --out"
+            ) from e
+
+
+def check_config(cfg: ExperimentConfig) -> None:
+    """Validate what the config only holds as dicts: the MPC overrides (checked even when eps is 0,
+    where the MPC is unused) and the env overrides. ConfigError naming the field."""
+    from mpcpearl_jax.envs import make_env
+    from mpcpearl_jax.mpc import MPCConfig
+
+    try:
+        MPCConfig(**cfg.mpc)
+    except TypeError as e:
+        known = {f.name for f in dataclasses.fields(MPCConfig)}
+        raise ConfigError(f"MPCConfig has no field(s) {sorted(set(cfg.mpc) - known)}") from e
+    try:
+        make_env(cfg.env, **cfg.env_overrides)
+    except ValueError as e:
+        msg = str(e) if isinstance(e, ConfigError) else f"ExperimentConfig.env: {e}"
+        raise ConfigError(msg) from e
 
 
 def _eval_row(trainer: Trainer, state: TrainState) -> dict[str, Any]:
@@ -60,30 +151,107 @@ def _eval_row(trainer: Trainer, state: TrainState) -> dict[str, Any]:
     return {f"test_{k}": v for k, v in ev.items() if not k.endswith("_per_seed")}
 
 
-def train(
-    cfg: ExperimentConfig, out: str | Path, resume: bool = False, progress: bool = True
-) -> tuple[Trainer, TrainState]:
-    """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl); -> (trainer, state)."""
+@dataclasses.dataclass
+class Session:
+    """A run ready to train: every check passed, state restored, config.json and the log written."""
+
+    cfg: ExperimentConfig
+    run_dir: Path
+    trainer: Trainer
+    ckpt: Checkpointer
+    state: TrainState
+    rows: list[dict]
+    done: int
+    saved: int  # the iteration of the newest checkpoint (-1: none)
+
+
+def prepare(cfg: ExperimentConfig, out: str | Path, resume: bool = False) -> Session:
+    """Every check before training, in this order: config (MPC and env overrides), run directory
+    (resume compatibility, writable folders), data and tasks (building the Trainer), checkpoint
+    restore (falling back past corrupt ones), --iterations against the finished count. Only then
+    is config.json written and metrics.jsonl cut back to the restored iteration."""
     run_dir = Path(out)
+    check_config(cfg)
     if resume:
-        saved = load_config(run_dir)
-        check_resumable(saved, cfg, run_dir)
-    elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
+        check_resumable(load_config(run_dir), cfg, run_dir)
+    elif (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").iterdir()):
         raise CheckpointError(
             f"{run_dir} already holds checkpoints: pass --resume to continue "
             "or choose another --out"
         )
-    save_config(run_dir, cfg)
+    check_writable(run_dir)
     trainer = Trainer(cfg)
     ckpt = Checkpointer(run_dir, keep=cfg.train.keep_checkpoints)
     state = trainer.init_state()
-    log_path = run_dir / LOG_FILE
-    if resume and ckpt.latest() is not None:
+    saved = -1
+    if resume and ckpt.steps():
         state = ckpt.restore(state)
+        saved = ckpt.restored_step
     done = int(np.asarray(state.iteration)[0])
-    rows = _read_log(log_path, done)
+    if cfg.train.iterations < done:
+        raise CheckpointError(
+            f"{run_dir} has finished {done} iterations; --iterations {cfg.train.iterations} is "
+            f"below that (give --iterations {done} or more, or another --out)"
+        )
+    log_path = run_dir / LOG_FILE
+    rows = read_log(log_path, done)
+    save_config(run_dir, cfg)
     _write_log(log_path, rows)
-    total = cfg.train.iterations
+    return Session(cfg, run_dir, trainer, ckpt, state, rows, done, saved)
+
+
+@contextlib.contextmanager
+def _sigint_flag(enabled: bool):
+    """A stop flag set by the first Ctrl-C (SIGINT); a second one stops at once."""
+    flag = {"stop": False}
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield None
+        return
+
+    def handler(signum, frame):
+        if flag["stop"]:
+            raise KeyboardInterrupt
+        flag["stop"] = True
+        _warn("\nCtrl-C: stopping at the next phase boundary (Ctrl-C again: stop at once)")
+
+    old = signal.signal(signal.SIGINT, handler)
+    try:
+        yield lambda: flag["stop"]
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def train(
+    cfg: ExperimentConfig,
+    out: str | Path,
+    resume: bool = False,
+    progress: bool = True,
+    handle_sigint: bool = False,
+) -> tuple[Trainer, TrainState]:
+    """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl); -> (trainer, state).
+
+    With handle_sigint, Ctrl-C abandons the current phase at its next boundary (at most one update
+    chunk, ~10 s), saves a checkpoint of the last finished iteration if it is still in memory,
+    and raises RunInterrupted."""
+    return train_session(prepare(cfg, out, resume), progress, handle_sigint)
+
+
+def train_session(
+    sess: Session, progress: bool = True, handle_sigint: bool = False
+) -> tuple[Trainer, TrainState]:
+    """Train a prepared session (see `train`)."""
+    with _sigint_flag(handle_sigint) as stop:
+        try:
+            return sess.trainer, _loop(sess, progress, stop)
+        finally:
+            sess.ckpt.close()
+
+
+def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None) -> TrainState:
+    cfg, trainer, ckpt, state = sess.cfg, sess.trainer, sess.ckpt, sess.state
+    log_path = sess.run_dir / LOG_FILE
+    done, saved, total = sess.done, sess.saved, cfg.train.iterations
+    stopping = stop or (lambda: False)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -92,30 +260,40 @@ def train(
             total=total, initial=done, desc=f"{cfg.env} eps={cfg.train.eps}", dynamic_ncols=True
         )
     t_start = time.perf_counter()
-    while done < total:
-        state, log = trainer.iteration(state)
-        done = log["iteration"]
-        tc = cfg.train
-        if (tc.eval_interval and done % tc.eval_interval == 0) or done == total:
-            t0 = time.perf_counter()
-            log.update(_eval_row(trainer, state))
-            log["eval_s"] = time.perf_counter() - t0
-        log["wall_s"] = time.perf_counter() - t_start
-        rows.append(log)
-        with log_path.open("a") as f:
-            f.write(json.dumps(log) + "\n")
-        if done % tc.checkpoint_interval == 0 or done == total:
-            ckpt.save(done, state, _policy_params(state))
+    try:
+        while done < total:
+            if stopping():  # Ctrl-C between iterations: the state is whole, keep it
+                if saved != done:
+                    ckpt.save(done, state, _policy_params(state))
+                raise RunInterrupted(done)
+            try:
+                state, log = trainer.iteration(state, stop=stop)
+            except IterationAbandoned:
+                raise RunInterrupted(saved, done - saved) from None
+            done = log["iteration"]
+            tc = cfg.train
+            if (tc.eval_interval and done % tc.eval_interval == 0) or done == total:
+                t0 = time.perf_counter()
+                log.update(_eval_row(trainer, state))
+                log["eval_s"] = time.perf_counter() - t0
+            log["wall_s"] = time.perf_counter() - t_start
+            sess.rows.append(log)
+            append_log(log_path, log)
+            if done % tc.checkpoint_interval == 0 or done == total or stopping():
+                ckpt.save(done, state, _policy_params(state))
+                saved = done
+            if bar is not None:
+                post = {"ret": f"{log['train_return']:.0f}", "mpc": f"{log['train_mpc_share']:.2f}"}
+                if "test_SR" in log:
+                    post.update(SR=f"{log['test_SR']:.2f}", CFR=f"{log['test_CFR']:.2f}")
+                bar.set_postfix(post)
+                bar.update(1)
+            if stopping() and done < total:
+                raise RunInterrupted(done)
+    finally:
         if bar is not None:
-            post = {"ret": f"{log['train_return']:.0f}", "mpc": f"{log['train_mpc_share']:.2f}"}
-            if "test_SR" in log:
-                post.update(SR=f"{log['test_SR']:.2f}", CFR=f"{log['test_CFR']:.2f}")
-            bar.set_postfix(post)
-            bar.update(1)
-    if bar is not None:
-        bar.close()
-    ckpt.close()
-    return trainer, state
+            bar.close()
+    return state
 
 
 def _policy_params(state: TrainState) -> dict:
@@ -180,7 +358,7 @@ def results_table(results: dict[str, Any]) -> str:
 
 def plot_learning_curves(run_dir: Path) -> Path | None:
     """learning_curves.png: train return, test return, SR, CFR against iteration."""
-    rows = _read_log(run_dir / LOG_FILE, 10**9)
+    rows = read_log(run_dir / LOG_FILE)
     if not rows:
         return None
     import matplotlib

@@ -12,6 +12,7 @@ pytree, checkpointed by `mpcpearl_jax.checkpoint`.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -32,6 +33,17 @@ from mpcpearl_jax.pearl.networks import Networks
 
 class TrainingDiverged(RuntimeError):
     """A loss became NaN/inf; the last good checkpoint is kept."""
+
+
+class IterationAbandoned(Exception):
+    """`iteration(state, stop)` stopped early because stop() became true; the state passed in
+    was consumed (its buffers donated) and must not be used: restore a checkpoint."""
+
+
+# gradient steps per jitted update call: the update phase runs in chunks of this many steps (the
+# same keys and results as one scan), so a stop request is answered between chunks (~7 s at the
+# paper's sizes on a 2-core CPU)
+UPDATE_CHUNK = 25
 
 
 class TrainState(struct.PyTreeNode):
@@ -99,6 +111,8 @@ class Trainer:
         self.use_mpc_buffer = tc.mpc_buffer_fraction > 0 and tc.uses_mpc
         self.mpc_capacity = tc.mpc_buffer_capacity if self.use_mpc_buffer else 1
         self.update_phase = jax.jit(self._update_phase, donate_argnums=0)
+        self.update_chunk = UPDATE_CHUNK
+        self._update_steps_jit = jax.jit(self._update_steps, donate_argnums=0)
         self.evaluate_adapt = eval_lib.make_evaluator(
             self.env, self.nets, tc.eval_adapt_episodes, online=False
         )
@@ -225,13 +239,45 @@ class Trainer:
 
     # ---------------------------------------------------------------- updates
     def _update_phase(self, state: TrainState) -> tuple[TrainState, dict]:
-        cfg, n = self.cfg.pearl, self.num_train
+        """All N_train gradient steps in one scan; -> (state, mean losses [S])."""
+        keys, step_keys = self._update_keys(state)
+        learner, ms = self._update_steps(state.learner, state.rl, state.enc, state.mpc, step_keys)
+        return state.replace(learner=learner, key=keys), jax.tree_util.tree_map(
+            lambda x: jnp.mean(x, axis=1), ms
+        )
+
+    def _update_keys(self, state: TrainState) -> tuple[Array, Array]:
+        """(new carry keys [S, 2], one key per gradient step [S, N_train, 2])."""
+        keys, sub = _split_keys(state.key, 1)
         steps = self.cfg.train.updates_per_iteration
+        return keys, jax.vmap(lambda k: jax.random.split(k, steps))(sub[:, 0])
+
+    def _chunked_update_phase(
+        self, state: TrainState, stop: Callable[[], bool] | None
+    ) -> tuple[TrainState, dict]:
+        """As `update_phase`, in jitted chunks of `update_chunk` steps over the same keys;
+        raises IterationAbandoned between chunks once stop() is true."""
+        keys, step_keys = self._update_keys(state)
+        steps = int(step_keys.shape[1])
+        learner, parts = state.learner, []
+        for lo in range(0, steps, self.update_chunk):
+            if stop is not None and stop():
+                raise IterationAbandoned
+            chunk = step_keys[:, lo : lo + self.update_chunk]
+            learner, ms = self._update_steps_jit(learner, state.rl, state.enc, state.mpc, chunk)
+            parts.append(jax.block_until_ready(ms))  # a stop request waits one chunk at most
+        ms = jax.tree_util.tree_map(lambda *x: jnp.mean(jnp.concatenate(x, axis=1), axis=1), *parts)
+        return state.replace(learner=learner, key=keys), ms
+
+    def _update_steps(self, learner, rl, enc, mpc, step_keys: Array) -> tuple[Any, dict]:
+        """Gradient steps with keys [S, n, 2] (one scan, vmapped over seeds); -> (learner,
+        per-step losses [S, n])."""
+        cfg, n = self.cfg.pearl, self.num_train
 
         frac = self.cfg.train.mpc_buffer_fraction
         n_mpc = int(round(cfg.batch_size * frac)) if self.use_mpc_buffer else 0
 
-        def per_seed(learner, rl, enc, mpc, key):
+        def per_seed(learner, rl, enc, mpc, keys):
             def body(learner, k):
                 k_t, k_b, k_c, k_u = jax.random.split(k, 4)
                 tids = jax.random.choice(k_t, n, (cfg.meta_batch,), replace=cfg.meta_batch > n)
@@ -253,12 +299,9 @@ class Trainer:
                 demo_mask = (col & has).astype(jnp.float32)
                 return self._update_body(learner, batch, ctx, k_u, demo_mask)
 
-            learner, ms = jax.lax.scan(body, learner, jax.random.split(key, steps))
-            return learner, jax.tree_util.tree_map(jnp.mean, ms)
+            return jax.lax.scan(body, learner, keys)
 
-        keys, sub = _split_keys(state.key, 1)
-        learner, ms = jax.vmap(per_seed)(state.learner, state.rl, state.enc, state.mpc, sub[:, 0])
-        return state.replace(learner=learner, key=keys), ms
+        return jax.vmap(per_seed)(learner, rl, enc, mpc, step_keys)
 
     # -------------------------------------------------------------- iteration
     def initial_collection(self, state: TrainState) -> tuple[TrainState, dict]:
@@ -269,8 +312,14 @@ class Trainer:
             state, ids, self.cfg.train.initial_episodes, False, True, True, share
         )
 
-    def iteration(self, state: TrainState) -> tuple[TrainState, dict]:
-        """One meta-training iteration: collect (prior, posterior), then N_train updates."""
+    def iteration(
+        self, state: TrainState, stop: Callable[[], bool] | None = None
+    ) -> tuple[TrainState, dict]:
+        """One meta-training iteration: collect (prior, posterior), then N_train updates.
+
+        stop (e.g. set by Ctrl-C) is polled before the updates and between update chunks; once
+        true the iteration is abandoned with IterationAbandoned (the state passed in is consumed).
+        """
         tc = self.cfg.train
         log: dict[str, Any] = {}
         t0 = time.perf_counter()
@@ -291,7 +340,7 @@ class Trainer:
             )
         jax.block_until_ready(state.rl.size)
         t1 = time.perf_counter()
-        state, losses = self.update_phase(state)
+        state, losses = self._chunked_update_phase(state, stop)
         losses = jax.device_get(losses)
         t2 = time.perf_counter()
         bad = [k for k, v in losses.items() if not np.all(np.isfinite(v))]
