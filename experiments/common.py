@@ -7,10 +7,13 @@ import dataclasses
 import json
 import sys
 import time
+import typing
 from pathlib import Path
 
-from mpcpearl_jax.config import PRESETS, ExperimentConfig, preset
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.config import PRESETS, ExperimentConfig, TrainConfig, preset
+from mpcpearl_jax.envs.types import ConfigError, NavConfig
+from mpcpearl_jax.mpc.config import MPCConfig
+from mpcpearl_jax.pearl.config import PearlConfig
 
 # Config extras each environment's entry point passes to `build_config` (and `main`).
 ENV_EXTRAS: dict[str, dict] = {
@@ -47,7 +50,11 @@ def add_config_options(
         default=[],
         metavar="SECTION.FIELD=VALUE",
         help="override any config field, e.g. --set train.updates_per_iteration=200 "
-        "--set pearl.hidden=[256,256] --set mpc.v_max=4 (JSON values)",
+        "--set pearl.hidden=[256,256] --set mpc.v_max=4 (JSON values; booleans true/false, "
+        "True/False or 1/0)",
+    )
+    p.add_argument(
+        "--debug", action="store_true", help="show the traceback of an error, not one line"
     )
     if env == "sidewalk":
         p.add_argument(
@@ -76,6 +83,42 @@ def _parse_value(text: str):
         return json.loads(text)
     except json.JSONDecodeError:
         return text
+
+
+_SECTION_CLASSES = {
+    "pearl": PearlConfig,
+    "train": TrainConfig,
+    "mpc": MPCConfig,
+    "env_overrides": NavConfig,
+    "": ExperimentConfig,
+}
+_TRUE, _FALSE = ("true", "True", "1"), ("false", "False", "0")
+
+
+def _field_value(item: str, section: str, field: str, text: str):
+    """The value of `--set item` for a field, read by the field's type: booleans (true/false,
+    True/False, 1/0) only for bool fields, never for numbers; None/null for optional fields."""
+    cls = _SECTION_CLASSES[section]
+    hints = typing.get_type_hints(cls)
+    if field not in hints or field not in {f.name for f in dataclasses.fields(cls)}:
+        raise ConfigError(f"--set {item}: {cls.__name__} has no field(s) {[field]}")
+    hint = hints[field]
+    name = f"{cls.__name__}.{field}"
+    args = typing.get_args(hint)
+    if hint is bool:
+        if text in _TRUE:
+            return True
+        if text in _FALSE:
+            return False
+        raise ConfigError(f"--set {item}: {name} must be true or false, got {text!r}")
+    if type(None) in args and text in ("None", "null"):
+        return None
+    v = _parse_value(text)
+    numeric = {int, float} & ({hint} | set(args))
+    if numeric and (isinstance(v, bool) or text in ("True", "False")):
+        kind = "an int" if numeric == {int} else "a number"
+        raise ConfigError(f"--set {item}: {name} must be {kind}, not a boolean")
+    return tuple(v) if isinstance(v, list) else v
 
 
 def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfig:
@@ -116,8 +159,7 @@ def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfi
                 f"--set {item!r}: unknown section {section!r}; use pearl, train, "
                 "mpc, env or a top-level field"
             )
-        v = _parse_value(value)
-        sections[section][field] = tuple(v) if isinstance(v, list) else v
+        sections[section][field] = _field_value(item, section, field, value)
     for name, cls in (("pearl", type(cfg.pearl)), ("train", type(cfg.train))):
         unknown = set(sections[name]) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
@@ -141,24 +183,63 @@ def label_of(cfg: ExperimentConfig) -> str:
     return f"MPC-PEARL {eps:g}" if eps > 0 else "PEARL"
 
 
-def main(env: str, argv: list[str] | None = None, **extra) -> int:
-    args = parser(env).parse_args(argv)
-    try:
-        cfg = build_config(args, env, **extra)
-    except (ConfigError, TypeError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    from mpcpearl_jax.run import final_evaluation, train
+def error_line(e: BaseException) -> str:
+    """One line for a command-line error: OSErrors name their file, others carry their own."""
+    if isinstance(e, OSError) and e.filename is not None:
+        return f"{e.filename}: {e.strerror or type(e).__name__}"
+    if isinstance(e, UnicodeDecodeError):
+        return f"not a text file ({e.reason} at byte {e.start})"
+    text = str(e).strip().splitlines()
+    return text[0] if text else type(e).__name__
 
-    out = args.out or Path("runs") / f"{env}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"
-    print(
-        f"[{env}] {label_of(cfg)} preset={args.preset} seeds={cfg.seeds} "
-        f"iterations={cfg.train.iterations} out={out}",
-        flush=True,
+
+def main(env: str, argv: list[str] | None = None, **extra) -> int:
+    """Exit codes: 0 done, 2 a command-line error (config, data, checkpoint, permissions: one
+    line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (resumable)."""
+    args = parser(env).parse_args(argv)
+    from mpcpearl_jax.checkpoint import CheckpointError
+    from mpcpearl_jax.run import (
+        RunDirError,
+        RunInterrupted,
+        check_config,
+        final_evaluation,
+        prepare,
+        train_session,
     )
+    from mpcpearl_jax.trainer import TrainingDiverged
+
+    def fail(e: BaseException, code: int = 2) -> int:
+        if args.debug:
+            raise e
+        print(f"error: {error_line(e)}", file=sys.stderr, flush=True)
+        return code
+
+    try:  # everything up to training: each check names the field, file or folder
+        cfg = build_config(args, env, **extra)
+        check_config(cfg)
+        out = args.out or Path("runs") / f"{env}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"
+        print(
+            f"[{env}] {label_of(cfg)} preset={args.preset} seeds={cfg.seeds} "
+            f"iterations={cfg.train.iterations} out={out}",
+            flush=True,
+        )
+        sess = prepare(cfg, out, resume=args.resume)
+    except (ValueError, TypeError, OSError, CheckpointError, RunDirError) as e:
+        return fail(e)
     t0 = time.perf_counter()
-    trainer, state = train(cfg, out, resume=args.resume, progress=not args.no_progress)
+    try:
+        trainer, state = train_session(sess, progress=not args.no_progress, handle_sigint=True)
+    except RunInterrupted as e:
+        print(str(e), file=sys.stderr, flush=True)
+        return 130
+    except (OSError, CheckpointError) as e:
+        return fail(e)
+    except TrainingDiverged as e:
+        return fail(e, 1)
     print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
-    final_evaluation(trainer, state, out, label_of(cfg))
+    try:
+        final_evaluation(trainer, state, out, label_of(cfg))
+    except OSError as e:
+        return fail(e)
     print(f"results, curves and figures in {out}", flush=True)
     return 0

@@ -12,16 +12,41 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from mpcpearl_jax.metrics import METRIC_NAMES
 
 
+class NotARun(ValueError):
+    """A folder that is not a run directory, or one with an unreadable file."""
+
+
+def _json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise NotARun(f"{path}: not valid JSON ({e})") from e
+
+
 def _load(run: Path) -> tuple[dict, list[dict], dict | None]:
-    cfg = json.loads((run / "config.json").read_text())
-    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines() if x.strip()]
+    from mpcpearl_jax.checkpoint import CheckpointError
+    from mpcpearl_jax.run import LOG_FILE, read_log
+
+    if not run.is_dir():
+        raise NotARun(f"{run}: no such run directory")
+    for name in ("config.json", LOG_FILE):
+        if not (run / name).is_file():
+            raise NotARun(f"{run}: not a run directory (no {name})")
+    cfg = _json(run / "config.json")
+    if not isinstance(cfg.get("train"), dict) or not isinstance(cfg.get("pearl"), dict):
+        raise NotARun(f"{run / 'config.json'}: not a run configuration")
+    try:
+        rows = read_log(run / LOG_FILE)
+    except CheckpointError as e:
+        raise NotARun(str(e)) from e
     res_path = run / "results.json"
-    res = json.loads(res_path.read_text()) if res_path.is_file() else None
+    res = _json(res_path) if res_path.is_file() else None
     return cfg, rows, res
 
 
@@ -76,9 +101,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--gp-mpc", type=Path, help="JSON written by experiments.gp_mpc")
+    ap.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = ap.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    loaded = [(r, *_load(r)) for r in args.runs]
+    try:
+        loaded = [(r, *_load(r)) for r in args.runs]
+        args.out.mkdir(parents=True, exist_ok=True)
+    except (NotARun, OSError) as e:
+        if args.debug:
+            raise
+        from experiments.common import error_line
+
+        print(f"error: {error_line(e)}", file=sys.stderr)
+        return 2
     plot([(_label(c), c, rows) for _, c, rows, _ in loaded], args.out)
     finished = [(_label(c), res) for _, c, _, res in loaded if res is not None]
     paper = finished[0][1].get("paper", {}) if finished else {}

@@ -82,6 +82,7 @@ class TrainConfig:
                 raise ConfigError(f"TrainConfig.{f}: must be a non-negative int, got {v!r}")
         if not (
             isinstance(self.eps, (int, float))
+            and not isinstance(self.eps, bool)
             and math.isfinite(self.eps)
             and 0.0 <= self.eps <= 1.0
         ):

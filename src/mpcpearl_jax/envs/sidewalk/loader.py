@@ -118,17 +118,25 @@ def load_eth_ucy(path: str | Path, fps: float = VIDEO_FPS) -> Scene:
 
     Raises:
       FileNotFoundError: the file does not exist.
-      DataFormatError: wrong column count or non-numeric value (with the line number), duplicate
-        (frame, pedestrian) rows, or no rows at all.
+      DataFormatError: wrong column count, non-numeric or non-finite value (with the line
+        number), duplicate (frame, pedestrian) rows, no rows at all, or not a text file.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"trajectory file not found: {path}")
     rows = []
-    with path.open() as fh:
-        for lineno, line in enumerate(fh, start=1):
-            if line.strip() and not line.lstrip().startswith("#"):
-                rows.append(_parse_line(path, lineno, line))
+    lineno = 0
+    try:
+        with path.open(encoding="utf-8") as fh:
+            for lineno, line in enumerate(fh, start=1):
+                if "\x00" in line:
+                    raise DataFormatError(f"{path}: line {lineno}: NUL byte (not a text file)")
+                if line.strip() and not line.lstrip().startswith("#"):
+                    rows.append(_parse_line(path, lineno, line))
+    except UnicodeDecodeError as e:
+        raise DataFormatError(
+            f"{path}: not a text trajectory file (undecodable byte after line {lineno})"
+        ) from e
     if not rows:
         raise DataFormatError(f"{path}: empty scene (no trajectory rows)")
     data = np.asarray(rows, dtype=np.float64)
