@@ -1,0 +1,495 @@
+"""Evaluate a trained run (or the GP-MPC baseline) on any task set: metrics, figures, GIFs.
+
+    python -m experiments.evaluate runs/<run> --split ood --animate
+    python -m experiments.evaluate runs/<run> --split test --online --seed-index 0
+    python -m experiments.evaluate --controller gp-mpc --env restaurant --split val --tasks 0-3
+    python -m experiments.evaluate runs/<run> --controller gp-mpc      # the baseline, same tasks
+    python -m experiments.evaluate runs/<run> --controller policy+mpc --animate   # as in training
+
+Controllers:
+  policy      the run's policy with the meta-test protocol (MPC off): --episodes adaptation
+              episodes, then the evaluated one; or --online (one episode, z re-inferred every
+              t_update steps). Needs RUN_DIR (only policy.msgpack and config.json are read).
+  gp-mpc      the risk-aware MPC at every step (the paper's GP-MPC column). With RUN_DIR it runs
+              on that run's tasks with its MPC settings; without, on --env with the defaults.
+  policy+mpc  one training-style episode per task: z from the prior, stochastic policy, the MPC
+              acting on an event with probability --eps (default: the run's eps).
+
+Prints SR / TT / CFR / SPL / MGD (mean and per seed, then per task) and writes results.json,
+trajectory figures and, with --animate, one GIF per figure task into --out (default
+RUN_DIR/eval/<controller>-<split>[-online], or runs/eval/gp-mpc-<env>-<split>). With every task of
+the split and the default --eval-seed, the policy numbers are those of the run's results.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mpcpearl_jax.envs import SPLITS, make_env, make_tasks
+from mpcpearl_jax.envs.types import ConfigError, NavConfig, TaskParams
+from mpcpearl_jax.metrics import METRIC_NAMES
+
+CONTROLLERS = ("policy", "gp-mpc", "policy+mpc")
+EVAL_SEED = 12345  # the trainer's evaluation key: same numbers as the run's results.json
+FIGURES = 4  # default number of tasks with a figure (and a GIF with --animate)
+
+
+class UsageError(ValueError):
+    """A bad command line or input file; reported as one line, exit status 2."""
+
+
+def make_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m experiments.evaluate",
+        description="Evaluate a trained run, or the GP-MPC baseline, on any task set.",
+        epilog="Examples: python -m experiments.evaluate runs/<run> --split ood --animate; "
+        "python -m experiments.evaluate --controller gp-mpc --env restaurant --split val",
+    )
+    p.add_argument("run", nargs="?", type=Path, help="run directory (config.json + policy.msgpack)")
+    p.add_argument(
+        "--controller",
+        choices=CONTROLLERS,
+        default="policy",
+        help="policy: meta-test protocol (default); gp-mpc: the MPC alone; policy+mpc: "
+        "training-style episodes with MPC infusion",
+    )
+    p.add_argument("--env", help="task family when there is no RUN_DIR (default restaurant)")
+    p.add_argument("--split", choices=SPLITS, default="test", help="task set (default test)")
+    p.add_argument("--task-seed", type=int, help="task-set seed (default: the run's, or 0)")
+    p.add_argument("--data", type=Path, help="ETH/UCY file for the sidewalk (default: the run's)")
+    p.add_argument("--online", action="store_true", help="online adaptation (one episode)")
+    p.add_argument(
+        "--episodes", type=int, help="adaptation episodes before the evaluated one (default: run's)"
+    )
+    p.add_argument("--seed-index", type=int, help="evaluate this seed only (default: all seeds)")
+    p.add_argument(
+        "--tasks", default="all", help="task indices of the split, e.g. 0,3,5 or 0-3 (default all)"
+    )
+    p.add_argument(
+        "--figures",
+        help=f"tasks with a trajectory figure and GIF (default: the first {FIGURES} evaluated; "
+        "'none' for none)",
+    )
+    p.add_argument("--animate", action="store_true", help="also a GIF of each figure task")
+    p.add_argument(
+        "--eps", type=float, help="policy+mpc: MPC probability on an event (default: run's)"
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="MPC controllers: override an MPCConfig field (repeatable)",
+    )
+    p.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="PRNG seed of the evaluation")
+    p.add_argument("--out", type=Path, help="output folder")
+    return p
+
+
+def parse_indices(text: str, n: int, what: str) -> list[int]:
+    """'all' | 'none' | '0,3,5' | '0-3' (inclusive) | a mix -> sorted unique indices < n."""
+    text = text.strip().lower()
+    if text == "all":
+        return list(range(n))
+    if text in ("none", ""):
+        return []
+    out: set[int] = set()
+    try:
+        for part in text.split(","):
+            a, dash, b = part.partition("-")
+            lo, hi = int(a), int(b) if dash else int(a)
+            out.update(range(lo, hi + 1))
+    except ValueError:
+        raise UsageError(f"{what} {text!r}: expected indices like 0,3,5 or 0-3") from None
+    bad = sorted(i for i in out if not 0 <= i < n)
+    if bad:
+        raise UsageError(f"{what}: task(s) {bad} out of range; the split has {n} tasks (0-{n - 1})")
+    return sorted(out)
+
+
+@dataclass
+class Setup:
+    """Everything resolved from the command line and the run directory."""
+
+    controller: str
+    env_name: str
+    env_config: NavConfig
+    split: str
+    task_seed: int
+    data: str | None
+    tasks: TaskParams  # the evaluated tasks [N]
+    task_ids: list[int]  # their indices in the split
+    figure_ids: list[int]
+    out: Path
+    label: str
+    run: Path | None = None
+    run_config: Any = None
+    policies: list = field(default_factory=list)  # LoadedPolicy per evaluated seed
+    seed_ids: list[int] = field(default_factory=list)
+    mpc: dict = field(default_factory=dict)  # MPCConfig overrides
+
+
+def _mpc_overrides(items: list[str], base: dict) -> dict:
+    from mpcpearl_jax.mpc import MPCConfig
+
+    out = dict(base)
+    for item in items:
+        key, eq, raw = item.partition("=")
+        if not eq or key not in MPCConfig.__dataclass_fields__:
+            raise UsageError(f"--set {item!r}: expected FIELD=VALUE with an MPCConfig field")
+        try:
+            out[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[key] = raw
+    try:
+        MPCConfig(**out)
+    except (TypeError, ValueError) as e:
+        raise UsageError(f"--set: {e}") from e
+    return out
+
+
+def setup(args: argparse.Namespace) -> Setup:
+    """Resolve the command line; raises UsageError (and CheckpointError) with a one-line reason."""
+    from experiments.common import ENV_EXTRAS, label_of
+    from mpcpearl_jax.checkpoint import load_config, load_policy
+
+    ctrl = args.controller
+    cfg = None
+    if args.run is not None:
+        if not args.run.is_dir():
+            raise UsageError(f"{args.run}: no such directory")
+        cfg = load_config(args.run)  # CheckpointError: not a run directory
+    elif ctrl != "gp-mpc":
+        raise UsageError(f"--controller {ctrl} needs a run directory (RUN_DIR)")
+    if ctrl == "gp-mpc" and (args.online or args.episodes is not None):
+        raise UsageError("--online and --episodes apply to the policy (GP-MPC does not adapt)")
+    if ctrl != "policy" and args.online:
+        raise UsageError(f"--online applies to --controller policy, not {ctrl}")
+    if ctrl == "policy" and (args.set or args.eps is not None):
+        raise UsageError("--set and --eps apply to the MPC controllers (gp-mpc, policy+mpc)")
+    if args.episodes is not None and args.episodes < 0:
+        raise UsageError(f"--episodes {args.episodes}: must be >= 0")
+    env_name = cfg.env if cfg else (args.env or "restaurant")
+    if cfg and args.env and args.env != cfg.env:
+        raise UsageError(f"--env {args.env}: the run {args.run} was trained on {cfg.env}")
+    data = str(args.data) if args.data else (cfg.data if cfg else None)
+    if data is not None and not Path(data).is_file():
+        hint = "" if args.data else " (the run's data file; pass --data PATH)"
+        raise UsageError(f"data file {data} does not exist{hint}")
+    overrides = dict(cfg.env_overrides) if cfg else {}
+    try:
+        env = make_env(env_name, **overrides)
+    except ValueError as e:
+        raise UsageError(str(e)) from e
+    task_seed = args.task_seed if args.task_seed is not None else (cfg.task_seed if cfg else 0)
+    kw: dict[str, Any] = {"data": data} if data else {}
+    kw.update(cfg.task_options if cfg else {})
+    try:
+        all_tasks = make_tasks(env_name, args.split, task_seed, config=env.config, **kw)
+    except (ValueError, TypeError) as e:
+        raise UsageError(f"{env_name} --split {args.split}: {e}") from e
+    n = all_tasks.num_tasks
+    task_ids = parse_indices(args.tasks, n, "--tasks")
+    if not task_ids:
+        raise UsageError("--tasks: no task selected")
+    if args.figures is None:
+        figure_ids = task_ids[:FIGURES]
+    else:
+        figure_ids = parse_indices(args.figures, n, "--figures")
+        missing = sorted(set(figure_ids) - set(task_ids))
+        if missing:
+            raise UsageError(f"--figures: task(s) {missing} are not evaluated (see --tasks)")
+    tasks = jax.tree_util.tree_map(lambda x: x[np.asarray(task_ids)], all_tasks)
+
+    base_mpc = dict(cfg.mpc) if cfg else dict(ENV_EXTRAS.get(env_name, {}).get("mpc", {}))
+    mpc = _mpc_overrides(args.set, base_mpc) if ctrl != "policy" else {}
+    policies, seed_ids, label = [], [], "GP-MPC"
+    if ctrl != "gp-mpc":
+        seeds = cfg.seeds
+        if args.seed_index is not None and not 0 <= args.seed_index < seeds:
+            raise UsageError(f"--seed-index {args.seed_index}: the run has {seeds} seed(s)")
+        seed_ids = list(range(seeds)) if args.seed_index is None else [args.seed_index]
+        try:  # CheckpointError (no or corrupt policy.msgpack) goes to the caller as it is
+            policies = [load_policy(args.run, s, data=data) for s in seed_ids]
+        except (ValueError, TypeError, OSError) as e:
+            raise UsageError(f"{args.run}: cannot load the policy: {e}") from e
+        label = label_of(cfg)
+        if ctrl == "policy+mpc":
+            eps = cfg.train.eps if args.eps is None else args.eps
+            if not 0.0 <= eps <= 1.0:
+                raise UsageError(f"--eps {eps}: must be in [0, 1]")
+            args.eps = eps
+            label = f"{label} + MPC (eps {eps:g})"
+    elif args.seed_index is not None:
+        raise UsageError("--seed-index applies to a run's policy, not to gp-mpc")
+    out = args.out
+    if out is None and args.run is not None:
+        out = args.run / "eval" / (f"{ctrl}-{args.split}" + ("-online" if args.online else ""))
+    elif out is None:
+        out = Path("runs") / "eval" / f"gp-mpc-{env_name}-{args.split}"
+    return Setup(
+        controller=ctrl,
+        env_name=env_name,
+        env_config=env.config,
+        split=args.split,
+        task_seed=task_seed,
+        data=data,
+        tasks=tasks,
+        task_ids=task_ids,
+        figure_ids=figure_ids,
+        out=out,
+        label=label,
+        run=args.run,
+        run_config=cfg,
+        policies=policies,
+        seed_ids=seed_ids,
+        mpc=mpc,
+    )
+
+
+# ------------------------------------------------------------------------------ controllers
+def _stacked_params(policies: list) -> dict:
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[p.params for p in policies])
+
+
+def run_policy(s: Setup, key: jax.Array, episodes: int, online: bool) -> dict:
+    """The meta-test protocol through `mpcpearl_jax.evaluate.make_evaluator`; arrays [S, N, ...]."""
+    from mpcpearl_jax import evaluate as eval_lib
+    from mpcpearl_jax.envs.navigation import NavEnv
+
+    nets = s.policies[0].nets
+    env = NavEnv(s.env_config)
+    fn = eval_lib.make_evaluator(
+        env, nets, episodes, online=online, t_update=s.run_config.train.t_update
+    )
+    return jax.device_get(fn(key, _stacked_params(s.policies), s.tasks))
+
+
+def _status_labels(status: np.ndarray, brake: bool) -> np.ndarray:
+    from mpcpearl_jax.mpc import FALLBACK_PLAN, FALLBACK_POLICY, NOT_FIRED, SOLVED
+
+    other = "brake (no safe plan)" if brake else "policy (no safe plan)"
+    names = {
+        NOT_FIRED: "policy",
+        SOLVED: "MPC",
+        FALLBACK_PLAN: "MPC (previous plan)",
+        FALLBACK_POLICY: other,
+    }
+    return np.vectorize(names.get, otypes=[object])(status)
+
+
+def run_gp_mpc(s: Setup, key: jax.Array) -> tuple[dict, dict]:
+    """GP-MPC at every step (mpcpearl_jax.mpc.make_gp_mpc_rollout); arrays [1, N, ...]."""
+    from mpcpearl_jax.envs.navigation import NavEnv
+    from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
+
+    env = NavEnv(s.env_config)
+    bridge = make_mpc_bridge(env, MPCConfig(**s.mpc))
+    try:
+        traj = jax.jit(make_gp_mpc_rollout(env, bridge))(key, s.tasks)
+        traj = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(traj))
+        stats = bridge.stats()
+    finally:
+        bridge.close()
+    result = {k: traj[k][None] for k in ("position", "heading", "collision", "in_goal")}
+    result["return"] = traj["reward"].sum(axis=-1)[None]
+    result["used_mpc"] = traj["used_mpc"][None]
+    result["acted_by"] = _status_labels(traj["status"][None], brake=True)
+    return result, stats
+
+
+def run_policy_mpc(s: Setup, key: jax.Array, eps: float) -> tuple[dict, dict]:
+    """Training-style episodes (`mpcpearl_jax.collect.make_collector`): prior z, stochastic
+    policy, the MPC on an event with probability eps; arrays [S, N, ...]."""
+    from mpcpearl_jax import collect as collect_lib
+    from mpcpearl_jax.envs.navigation import NavEnv
+    from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
+
+    env = NavEnv(s.env_config)
+    nets = s.policies[0].nets
+    n_seeds, n = len(s.policies), s.tasks.num_tasks
+    bridge = make_mpc_bridge(env, MPCConfig(**s.mpc))
+    try:
+        collector = collect_lib.make_collector(env, nets, bridge, eps)
+        k_z, k_run = jax.random.split(key)
+        z = jax.random.normal(k_z, (n_seeds, n, nets.cfg.latent_dim))
+        z = z if nets.cfg.use_context else jnp.zeros_like(z)
+        tasks = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n_seeds, *x.shape)), s.tasks)
+        params = _stacked_params(s.policies)["policy"]
+        ep = jax.jit(collector)(k_run, params, z, tasks)
+        ep = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(ep))
+        stats = bridge.stats()
+    finally:
+        bridge.close()
+    tr = ep.transitions
+    # the observation starts with (x, y, heading / pi): see NavEnv.observe
+    heading = np.concatenate([tr.obs[..., 2], tr.next_obs[..., -1:, 2]], axis=-1) * np.pi
+    result = {
+        "position": ep.position,
+        "heading": heading,
+        "collision": ep.collision,
+        "in_goal": ep.in_goal,
+        "return": tr.reward.sum(axis=-1),
+        "used_mpc": ep.used_mpc,
+        "acted_by": np.where(ep.used_mpc, "MPC", "policy").astype(object),
+    }
+    return result, stats
+
+
+# ---------------------------------------------------------------------------------- output
+def per_task_metrics(result: dict, tasks: TaskParams, robot_radius: float) -> dict[str, list]:
+    """Per seed and task [S][N]: success, collision_free, TT, SPL, MGD, return."""
+    from mpcpearl_jax import evaluate as eval_lib
+
+    m = eval_lib.episode_metrics(result, tasks, robot_radius)
+    out = {
+        "SR": np.asarray(m.success, float),
+        "TT": np.asarray(m.travel_time, float),
+        "CFR": np.asarray(m.collision_free, float),
+        "SPL": np.asarray(m.spl, float),
+        "MGD": np.asarray(m.mgd, float),
+        "return": np.asarray(result["return"], float),
+    }
+    return {k: v.tolist() for k, v in out.items()}
+
+
+def tables(record: dict) -> str:
+    """Markdown: metrics (mean, per seed), then per task (mean over the evaluated seeds)."""
+    seeds = record["seeds"]
+    per_seed = record["per_seed"]
+    head = ["metric", "mean"] + ([f"seed {s}" for s in seeds] if len(seeds) > 1 else [])
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for k in (*METRIC_NAMES, "return"):
+        cells = [f"{record['metrics'][k]:.2f}"]
+        if len(seeds) > 1:
+            cells += [f"{v:.2f}" for v in per_seed[k]]
+        lines.append(f"| {k} | " + " | ".join(cells) + " |")
+    pt = {k: np.asarray(v) for k, v in record["per_task"].items()}
+    note = f" (mean over {len(seeds)} seeds)" if len(seeds) > 1 else ""
+    lines += ["", f"Per task{note}:", ""]
+    cols = ("SR", "CFR", "TT", "SPL", "MGD", "return")
+    lines += ["| task | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
+    for j, t in enumerate(record["tasks"]):
+        vals = " | ".join(f"{pt[c][:, j].mean():.2f}" for c in cols)
+        lines.append(f"| {t} | {vals} |")
+    return "\n".join(lines)
+
+
+def write_figures(s: Setup, result: dict, animate: bool) -> list[Path]:
+    """A trajectory PNG (and a GIF with animate) of the first evaluated seed on each figure
+    task; the sidewalk in the paper's sidewalk style."""
+    from mpcpearl_jax import animate as anim_lib
+    from mpcpearl_jax import viz
+
+    written = []
+    who = f"seed {s.seed_ids[0]}" if s.seed_ids else s.label
+    for t in s.figure_ids:
+        j = s.task_ids.index(t)
+        task = jax.tree_util.tree_map(lambda x, j=j: np.asarray(x)[j], s.tasks)
+        pos, col = np.asarray(result["position"][0, j]), np.asarray(result["collision"][0, j])
+        title = f"{s.label}{f' ({who})' if s.seed_ids else ''}, {s.env_name} {s.split} task {t}"
+        png = s.out / f"trajectory_{s.split}{t}.png"
+        if s.env_name == "sidewalk":
+            from mpcpearl_jax.envs.sidewalk import plot_sidewalk
+
+            plot_sidewalk(task, s.env_config, {who: (pos, col)}, png, title=title)
+        else:
+            viz.save_trajectory_figure(png, task, {who: pos}, {who: col}, s.env_config, title)
+        written.append(png)
+        if animate:
+            gif = anim_lib.animate_result(
+                s.out / f"episode_{s.split}{t}.gif", result, s.tasks, s.env_config, j, 0, title
+            )
+            written.append(gif)
+    return written
+
+
+def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
+    """Run the controller on the tasks; -> (record for results.json, raw arrays [S, N, ...])."""
+    from mpcpearl_jax import evaluate as eval_lib
+
+    key = jax.random.PRNGKey(args.eval_seed)
+    stats = None
+    t0 = time.perf_counter()
+    if s.controller == "policy":
+        episodes = (
+            s.run_config.train.eval_adapt_episodes if args.episodes is None else args.episodes
+        )
+        protocol = "online" if args.online else f"after {episodes} adaptation episode(s)"
+        result = run_policy(s, key, episodes, args.online)
+    elif s.controller == "gp-mpc":
+        protocol = "MPC at every step"
+        result, stats = run_gp_mpc(s, key)
+    else:
+        protocol = f"training-style episode: prior z, MPC on an event with probability {args.eps:g}"
+        result, stats = run_policy_mpc(s, key, args.eps)
+    wall = time.perf_counter() - t0
+    summary = eval_lib.summarize(result, s.tasks, s.env_config.robot_radius)
+    record: dict[str, Any] = {
+        "label": s.label,
+        "controller": s.controller,
+        "run": str(s.run) if s.run else None,
+        "env": s.env_name,
+        "split": s.split,
+        "task_seed": s.task_seed,
+        "data": s.data,
+        "protocol": protocol,
+        "eval_seed": args.eval_seed,
+        "seeds": s.seed_ids or [0],
+        "tasks": s.task_ids,
+        "metrics": {k: v for k, v in summary.items() if not k.endswith("_per_seed")},
+        "per_seed": {
+            k[: -len("_per_seed")]: v for k, v in summary.items() if k.endswith("_per_seed")
+        },
+        "per_task": per_task_metrics(result, s.tasks, s.env_config.robot_radius),
+        "wall_s": wall,
+    }
+    if s.controller != "policy":
+        record["mpc"] = s.mpc
+        if s.controller == "policy+mpc":
+            record["eps"] = args.eps
+        record["mpc_share"] = float(np.mean(result["used_mpc"]))
+        record["mpc_status"] = dict(stats["status"])
+        record["mpc_reasons"] = dict(stats["reasons"])
+    if s.controller == "policy":
+        record["episodes"] = 1 if args.online else episodes + 1
+    return record, result
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    from mpcpearl_jax.checkpoint import CheckpointError
+
+    try:
+        s = setup(args)
+    except (UsageError, CheckpointError, ConfigError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    n_seeds = len(s.seed_ids) or 1
+    print(
+        f"[evaluate] {s.label}: {s.env_name}/{s.split} (task seed {s.task_seed}), "
+        f"{len(s.task_ids)} task(s), {n_seeds} seed(s), controller {s.controller}",
+        flush=True,
+    )
+    record, result = evaluate(args, s)
+    print(f"{record['protocol']}; {record['wall_s']:.1f} s", flush=True)
+    print(tables(record))
+    s.out.mkdir(parents=True, exist_ok=True)
+    (s.out / "results.json").write_text(json.dumps(record, indent=2))
+    written = write_figures(s, result, args.animate)
+    print(f"wrote {s.out / 'results.json'}" + "".join(f", {p.name}" for p in written))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

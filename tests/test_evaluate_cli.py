@@ -1,0 +1,152 @@
+"""`python -m experiments.evaluate`: committed runs (results/) on every split, both envs, GP-MPC
+through the same code path, and one-line errors."""
+
+import json
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from experiments.evaluate import UsageError, main, parse_indices
+
+ROOT = Path(__file__).resolve().parents[1]
+RESTAURANT_RUN = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"
+SIDEWALK_RUN = ROOT / "results" / "sidewalk" / "mpc-pearl-eps0.2"
+ZARA = ROOT.parent / "shared" / "data" / "crowds_zara01.txt"
+needs_zara = pytest.mark.skipif(not ZARA.is_file(), reason="UCY Zara 01 file not available")
+METRICS = {"SR", "TT", "CFR", "SPL", "MGD", "return"}
+
+
+def _record(out: Path) -> dict:
+    return json.loads((out / "results.json").read_text())
+
+
+def _frames(path: Path) -> int:
+    with Image.open(path) as im:
+        return im.n_frames
+
+
+def test_policy_on_the_whole_test_split_matches_the_runs_results(tmp_path, capsys):
+    assert main([str(RESTAURANT_RUN), "--out", str(tmp_path), "--figures", "none"]) == 0
+    rec = _record(tmp_path)
+    saved = json.loads((RESTAURANT_RUN / "results.json").read_text())["test_adapt"]
+    for k in METRICS:
+        assert rec["metrics"][k] == pytest.approx(saved[k], rel=1e-5, abs=1e-5), k
+    assert rec["tasks"] == list(range(24)) and rec["episodes"] == 3
+    assert len(rec["per_task"]["SR"]) == 1 and len(rec["per_task"]["SR"][0]) == 24
+    table = capsys.readouterr().out
+    assert "| SR |" in table and "| 23 |" in table
+
+
+@pytest.mark.parametrize("split", ["val", "ood", "train"])
+def test_policy_on_each_split(tmp_path, split):
+    # 24 tasks, as in the test split: the same program, compiled once
+    argv = [str(RESTAURANT_RUN), "--split", split, "--tasks", "0-23", "--figures", "0,5"]
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    rec = _record(tmp_path)
+    assert rec["split"] == split and rec["tasks"] == list(range(24))
+    assert set(rec["metrics"]) == METRICS
+    assert (tmp_path / f"trajectory_{split}0.png").is_file()
+    assert (tmp_path / f"trajectory_{split}5.png").is_file()
+
+
+def test_online_with_animation(tmp_path):
+    argv = [str(RESTAURANT_RUN), "--online", "--tasks", "3", "--animate", "--out", str(tmp_path)]
+    assert main(argv) == 0
+    rec = _record(tmp_path)
+    assert rec["protocol"] == "online" and rec["episodes"] == 1 and rec["seeds"] == [0]
+    gif = tmp_path / "episode_test3.gif"
+    assert _frames(gif) == 81 and gif.stat().st_size < 400_000
+
+
+def test_default_out_is_inside_the_run(tmp_path):
+    import shutil
+
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("config.json", "policy.msgpack"):  # all that a policy evaluation needs
+        shutil.copy(RESTAURANT_RUN / name, run / name)
+    assert main([str(run), "--figures", "none"]) == 0
+    rec = _record(run / "eval" / "policy-test")
+    assert rec["episodes"] == 3 and rec["protocol"] == "after 2 adaptation episode(s)"
+
+
+def test_gp_mpc_without_a_run(tmp_path):
+    assert main(["--controller", "gp-mpc", "--tasks", "0", "--out", str(tmp_path)]) == 0
+    rec = _record(tmp_path)
+    assert rec["label"] == "GP-MPC" and rec["run"] is None and rec["mpc_share"] > 0.5
+    assert rec["mpc_status"].get("solved", 0) > 0
+    assert (tmp_path / "trajectory_test0.png").is_file()
+
+
+@pytest.mark.slow
+def test_gp_mpc_on_a_runs_tasks_and_policy_with_mpc(tmp_path):
+    out = tmp_path / "g"
+    argv = [str(RESTAURANT_RUN), "--controller", "gp-mpc", "--split", "val", "--tasks", "0"]
+    assert main([*argv, "--animate", "--out", str(out)]) == 0
+    assert _record(out)["mpc"] == json.loads((RESTAURANT_RUN / "config.json").read_text())["mpc"]
+    assert _frames(out / "episode_val0.gif") == 81
+    out = tmp_path / "p"
+    argv = [str(RESTAURANT_RUN), "--controller", "policy+mpc", "--eps", "1", "--tasks", "0"]
+    assert main([*argv, "--animate", "--out", str(out)]) == 0
+    rec = _record(out)
+    assert rec["eps"] == 1.0 and rec["mpc_share"] > 0
+    assert _frames(out / "episode_test0.gif") == 81
+
+
+@needs_zara
+@pytest.mark.parametrize("split", ["test", "ood", "train"])
+def test_sidewalk_run_on_each_split(tmp_path, split):
+    argv = [str(SIDEWALK_RUN), "--split", split, "--online", "--tasks", "0"]
+    argv += ["--data", str(ZARA), "--out", str(tmp_path)]
+    if split == "test":
+        argv.append("--animate")
+    assert main(argv) == 0
+    rec = _record(tmp_path)
+    assert rec["env"] == "sidewalk" and rec["split"] == split and set(rec["metrics"]) == METRICS
+    if split == "test":  # 251 steps shown as every third one (and the last)
+        assert _frames(tmp_path / "episode_test0.gif") == 85
+
+
+@needs_zara
+def test_sidewalk_has_no_val_split(tmp_path, capsys):
+    argv = [str(SIDEWALK_RUN), "--split", "val", "--data", str(ZARA), "--out", str(tmp_path)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: sidewalk --split val") and "\n" not in err
+
+
+def _error(argv, capsys) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err, err
+    return err
+
+
+def test_errors_are_one_line(tmp_path, capsys):
+    assert "is this a run directory" in _error([str(tmp_path)], capsys)
+    assert "no such directory" in _error([str(tmp_path / "nope")], capsys)
+    assert "needs a run directory" in _error([], capsys)
+    err = _error([str(SIDEWALK_RUN), "--data", str(tmp_path / "zara.txt")], capsys)
+    assert "zara.txt does not exist" in err
+    assert "out of range" in _error([str(RESTAURANT_RUN), "--tasks", "30"], capsys)
+    assert "seed(s)" in _error([str(RESTAURANT_RUN), "--seed-index", "3"], capsys)
+    assert "GP-MPC does not adapt" in _error(["--controller", "gp-mpc", "--online"], capsys)
+    assert "MPCConfig" in _error(["--controller", "gp-mpc", "--set", "nope=1"], capsys)
+    (tmp_path / "config.json").write_text((RESTAURANT_RUN / "config.json").read_text())
+    assert "policy.msgpack" in _error([str(tmp_path)], capsys)
+
+
+def test_bad_split_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as e:
+        main([str(RESTAURANT_RUN), "--split", "holdout"])
+    assert e.value.code == 2
+    assert "invalid choice: 'holdout'" in capsys.readouterr().err
+
+
+def test_parse_indices():
+    assert parse_indices("all", 3, "--tasks") == [0, 1, 2]
+    assert parse_indices("none", 3, "--tasks") == []
+    assert parse_indices("4,0-2,2", 5, "--tasks") == [0, 1, 2, 4]
+    with pytest.raises(UsageError, match="expected indices"):
+        parse_indices("a-b", 5, "--tasks")
