@@ -393,3 +393,40 @@ def test_redraw_behaviours_changes_only_the_visited_tasks_and_needs_a_family_tha
     from mpcpearl_jax.envs import can_redraw
 
     assert can_redraw("restaurant") and not can_redraw("sidewalk")
+
+
+def _ego_ref(pose, points, scale):
+    d = np.asarray(points, np.float64) - pose[:2]
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
+    return np.clip(local / scale, -1, 1)
+
+
+@pytest.mark.parametrize("env_name", ["restaurant", "sidewalk"])
+def test_relative_observation_matches_numpy(env_name):
+    from mpcpearl_jax.envs import make_env, make_tasks
+    from mpcpearl_jax.envs.types import EnvState
+
+    base = make_env(env_name)
+    env = make_env(env_name, observe_relative=True)
+    tasks = make_tasks(env_name, "test", 0, config=env.config)
+    task = jax.tree_util.tree_map(lambda x: x[1], tasks)
+    nh, ns = task.human_pos.shape[1], task.static_lo.shape[0]
+    n0 = base.obs_dim(tasks)
+    assert env.obs_dim(tasks) == n0 + 2 * (nh + ns + 1)
+    rng = np.random.default_rng(0)
+    lo, hi = np.asarray(env.config.arena_lo), np.asarray(env.config.arena_hi)
+    for t in (0, 7, 30):
+        pose = np.array([*rng.uniform(lo + 0.5, hi - 0.5), rng.uniform(-np.pi, np.pi)])
+        state = EnvState(pose=jnp.asarray(pose, jnp.float32), t=jnp.asarray(t, jnp.int32))
+        got = np.asarray(env.observe(state, task))
+        np.testing.assert_allclose(got[:n0], np.asarray(base.observe(state, task)), atol=1e-6)
+        h, m = np.asarray(task.human_pos[t]), np.asarray(task.human_mask[t])
+        want_h = np.where(m[:, None], _ego_ref(pose, h, 5.0), 1.0).reshape(-1)
+        nearest = np.clip(pose[:2], np.asarray(task.static_lo), np.asarray(task.static_hi))
+        want_s = _ego_ref(pose, nearest, 5.0).reshape(-1)
+        want_g = _ego_ref(pose, np.asarray(task.goal)[None], 5.0).reshape(-1)
+        np.testing.assert_allclose(got[n0:], np.concatenate([want_h, want_s, want_g]), atol=1e-5)
+    # a point straight ahead of the robot is at (+d, 0) in its frame
+    pose = np.array([0.0, 0.0, np.pi / 2])
+    np.testing.assert_allclose(_ego_ref(pose, [[0.0, 2.0]], 5.0), [[0.4, 0.0]], atol=1e-12)

@@ -37,7 +37,8 @@ class NavEnv:
         num_h = params.human_pos.shape[-2]
         num_s = params.static_lo.shape[-2] if self.config.observe_static else 0
         num_v = num_h if self.config.observe_velocity else 0
-        return 3 + 2 * num_h + 2 * num_v + 2 * num_s
+        num_r = num_h + params.static_lo.shape[-2] + 1 if self.config.observe_relative else 0
+        return 3 + 2 * num_h + 2 * num_v + 2 * num_s + 2 * num_r
 
     # ------------------------------------------------------------------ API
     def reset(self, key: Array, params: TaskParams) -> tuple[Array, EnvState]:
@@ -105,7 +106,8 @@ class NavEnv:
 
     def observe(self, state: EnvState, params: TaskParams) -> Array:
         """Observation in [-1, 1]: pose, people (absent ones at (-1, -1)), [people's last-step
-        displacement (extension `observe_velocity`)], [static centres]."""
+        displacement (extension `observe_velocity`)], [static centres], [people, nearest static
+        points and goal in the robot's frame (extension `observe_relative`)]."""
         humans, mask = self.humans_at(params, state.t)
         h = jnp.where(mask[:, None], self.normalize_xy(humans), -1.0)
         parts = [self.normalize_xy(state.pose[:2]), state.pose[2:3] / jnp.pi, h.reshape(-1)]
@@ -116,6 +118,19 @@ class NavEnv:
             parts.append(jnp.where((mask & prev_mask)[:, None], vel, 0.0).reshape(-1))
         if self.config.observe_static:
             parts.append(self.normalize_xy(params.static_center).reshape(-1))
+        if self.config.observe_relative:  # extension: egocentric positions
+            pos, th = state.pose[:2], state.pose[2]
+            c, s = jnp.cos(th), jnp.sin(th)
+
+            def ego(q: Array) -> Array:  # world points [N, 2] -> robot frame, scaled, clipped
+                d = q - pos
+                local = jnp.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
+                return jnp.clip(local / self.config.relative_scale, -1.0, 1.0)
+
+            nearest = jnp.clip(pos, params.static_lo, params.static_hi)  # [S, 2]
+            parts.append(jnp.where(mask[:, None], ego(humans), 1.0).reshape(-1))
+            parts.append(ego(nearest).reshape(-1))
+            parts.append(ego(params.goal[None]).reshape(-1))
         return jnp.concatenate(parts).astype(jnp.float32)
 
     def _check_action(self, action: Array) -> None:

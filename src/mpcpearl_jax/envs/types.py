@@ -63,6 +63,12 @@ class NavConfig:
     # observation (0 for a person absent at t or t - 1, and at t = 0)
     observe_velocity: bool = False
     velocity_scale: float = 4.0  # m/s mapped to 1
+    # extension (off in the paper): egocentric features appended to the observation: each
+    # person's position (absent: (1, 1)), the nearest point of each static obstacle and the goal,
+    # relative to the robot and rotated into its heading frame, divided by relative_scale and
+    # clipped to [-1, 1]
+    observe_relative: bool = False
+    relative_scale: float = 5.0  # m mapped to 1
 
     def __post_init__(self) -> None:
         n = type(self).__name__
@@ -77,6 +83,7 @@ class NavConfig:
             "goal_event_radius",
             "collision_event_factor",
             "velocity_scale",
+            "relative_scale",
         ):
             v = getattr(self, f)
             _check(
