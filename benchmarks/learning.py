@@ -60,6 +60,7 @@ OUTPUTS = (
     "policy.msgpack",
     "results.json",
     "learning_curves.png",
+    "episode_test0.gif",
 )
 
 
@@ -104,6 +105,11 @@ def make_parser(env: str = "restaurant") -> argparse.ArgumentParser:
         action="store_true",
         help="save policy.msgpack only, not the orbax checkpoint of the whole training state "
         "(replay buffers: hundreds of MB for the cpu/paper presets; needed only for --resume)",
+    )
+    p.add_argument(
+        "--tensorboard",
+        action="store_true",
+        help="also log the metrics rows to <out>/tensorboard (watch with tensorboard --logdir)",
     )
     return p
 
@@ -189,6 +195,7 @@ def check_out(out: Path, overwrite: bool) -> str | None:
         for fig in out.glob("trajectory_test*.png"):
             fig.unlink()
         shutil.rmtree(out / "checkpoints", ignore_errors=True)
+        shutil.rmtree(out / "tensorboard", ignore_errors=True)
     try:
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
@@ -280,6 +287,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.eval_minutes is not None and not args.eval_minutes > 0:
         print(f"error: --eval-minutes must be positive, got {args.eval_minutes}", file=sys.stderr)
         return 2
+    if args.tensorboard:
+        from mpcpearl_jax.livelog import missing
+
+        if missing():
+            print(f"error: {missing()}", file=sys.stderr)
+            return 2
     label = args.label or default_label(args.env, args.preset, args.algo, cfg.train.eps)
     out = args.out or Path("runs") / "learning" / label
     err = check_out(out, args.overwrite)
@@ -319,11 +332,13 @@ def train_for(
     online: bool = False,
     clock=time.perf_counter,
     on_point=_print_point,
+    tensorboard=None,
 ) -> tuple[Any, list[dict[str, Any]], dict[str, Any]]:
     """Train until `budget_s` seconds of `trainer.iteration` calls have passed; evaluate at 0,
     every `every_s` training seconds and at the end (evaluation is off the clock).
 
-    Appends one JSON line per iteration to `log_path`. Returns (state, eval points, info) with
+    Appends one JSON line per iteration to `log_path` (and writes it to `tensorboard`, a
+    `mpcpearl_jax.livelog.TensorBoardLog`, if given). Returns (state, eval points, info) with
     info = {iterations, train_s, eval_s, first_iteration_s, stopped}; stopped is "budget" or
     "diverged: ..." (then `state` is the last one evaluated and must not be used any more: the
     failed iteration donated it).
@@ -387,6 +402,8 @@ def train_for(
             next_eval_s = (math.floor(info["train_s"] / every_s) + 1) * every_s
         with log_path.open("a") as f:
             f.write(json.dumps(row) + "\n")
+        if tensorboard is not None:
+            tensorboard.write(row)
         if last:
             break
     return state, points, info
@@ -438,15 +455,25 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
     tc = cfg.train
     log_path = out / LOG_FILE
     log_path.write_text("")
-    state, points, info = train_for(
-        trainer,
-        state,
-        budget_s=budget_s,
-        every_s=every_s,
-        val_tasks=val_tasks,
-        log_path=log_path,
-        online=online,
-    )
+    tb = None
+    if args.tensorboard:
+        from mpcpearl_jax.livelog import TB_DIR, TensorBoardLog
+
+        tb = TensorBoardLog(out / TB_DIR)
+    try:
+        state, points, info = train_for(
+            trainer,
+            state,
+            budget_s=budget_s,
+            every_s=every_s,
+            val_tasks=val_tasks,
+            log_path=log_path,
+            online=online,
+            tensorboard=tb,
+        )
+    finally:
+        if tb is not None:
+            tb.close()
     done, train_s, eval_s = info["iterations"], info["train_s"], info["eval_s"]
     stopped, first_iteration_s = info["stopped"], info["first_iteration_s"]
     load_end = _loadavg()

@@ -75,6 +75,11 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
     p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-eps<eps>)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--tensorboard",
+        action="store_true",
+        help="also log the metrics to <out>/tensorboard (watch with tensorboard --logdir runs)",
+    )
     return p
 
 
@@ -214,6 +219,11 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         print(f"error: {error_line(e)}", file=sys.stderr, flush=True)
         return code
 
+    if args.tensorboard:
+        from mpcpearl_jax.livelog import LiveLogError, missing
+
+        if missing():
+            return fail(LiveLogError(missing()))
     try:  # everything up to training: each check names the field, file or folder
         cfg = build_config(args, env, **extra)
         check_config(cfg)
@@ -228,7 +238,9 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         return fail(e)
     t0 = time.perf_counter()
     try:
-        trainer, state = train_session(sess, progress=not args.no_progress, handle_sigint=True)
+        trainer, state = train_session(
+            sess, progress=not args.no_progress, handle_sigint=True, tensorboard=args.tensorboard
+        )
     except RunInterrupted as e:
         print(str(e), file=sys.stderr, flush=True)
         return 130

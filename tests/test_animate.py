@@ -1,4 +1,4 @@
-"""Animated episodes (mpcpearl_jax.animate) and the TensorBoard mirror of metrics.jsonl."""
+"""Animated episodes (mpcpearl_jax.animate)."""
 
 import jax
 import jax.numpy as jnp
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from mpcpearl_jax import animate, livelog
+from mpcpearl_jax import animate
 from mpcpearl_jax.envs import make_env, make_tasks
 
 
@@ -88,24 +88,3 @@ def test_animate_episode_checks_shapes(tmp_path, straight_episode):
     with pytest.raises(ValueError, match="one task"):
         tasks = jax.tree_util.tree_map(lambda x: x[None], task)
         animate.animate_episode(tmp_path / "x.gif", tasks, env.config, traj["position"])
-
-
-def test_tensorboard_log_holds_the_metrics_rows(tmp_path):
-    rows = [
-        {"iteration": 1, "train_return": -50.0, "mpc_reasons": {"solved": 3}, "note": "x"},
-        {"iteration": 2, "train_return": -20.5, "test_SR": 0.25, "flag": True},
-    ]
-    with livelog.TensorBoardLog(tmp_path / "tb") as tb:
-        for row in rows:
-            tb.write(row)
-    got = livelog.read_scalars(tmp_path / "tb")
-    assert got == {
-        "train_return": [(1, -50.0), (2, -20.5)],
-        "mpc_reasons/solved": [(1, 3.0)],
-        "test_SR": [(2, 0.25)],
-    }
-
-
-def test_scalars_of_skips_non_numbers():
-    row = {"a": 1, "b": float("nan"), "c": True, "d": "s", "e": {"f": 2.5, "g": None}}
-    assert livelog.scalars_of(row) == {"a": 1.0, "e/f": 2.5}

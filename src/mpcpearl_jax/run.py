@@ -227,27 +227,36 @@ def train(
     resume: bool = False,
     progress: bool = True,
     handle_sigint: bool = False,
+    tensorboard: bool = False,
 ) -> tuple[Trainer, TrainState]:
     """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl); -> (trainer, state).
 
     With handle_sigint, Ctrl-C abandons the current phase at its next boundary (at most one update
     chunk, ~10 s), saves a checkpoint of the last finished iteration if it is still in memory,
-    and raises RunInterrupted."""
-    return train_session(prepare(cfg, out, resume), progress, handle_sigint)
+    and raises RunInterrupted. With tensorboard, every metrics row also goes to out/tensorboard
+    (`mpcpearl_jax.livelog`)."""
+    return train_session(prepare(cfg, out, resume), progress, handle_sigint, tensorboard)
 
 
 def train_session(
-    sess: Session, progress: bool = True, handle_sigint: bool = False
+    sess: Session, progress: bool = True, handle_sigint: bool = False, tensorboard: bool = False
 ) -> tuple[Trainer, TrainState]:
     """Train a prepared session (see `train`)."""
+    tb = None
+    if tensorboard:  # a resumed run hides its earlier points from the first iteration redone
+        from mpcpearl_jax.livelog import TB_DIR, TensorBoardLog
+
+        tb = TensorBoardLog(sess.run_dir / TB_DIR, purge_step=sess.done + 1 if sess.done else None)
     with _sigint_flag(handle_sigint) as stop:
         try:
-            return sess.trainer, _loop(sess, progress, stop)
+            return sess.trainer, _loop(sess, progress, stop, tb)
         finally:
             sess.ckpt.close()
+            if tb is not None:
+                tb.close()
 
 
-def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None) -> TrainState:
+def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=None) -> TrainState:
     cfg, trainer, ckpt, state = sess.cfg, sess.trainer, sess.ckpt, sess.state
     log_path = sess.run_dir / LOG_FILE
     done, saved, total = sess.done, sess.saved, cfg.train.iterations
@@ -279,6 +288,8 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None) -> Tra
             log["wall_s"] = time.perf_counter() - t_start
             sess.rows.append(log)
             append_log(log_path, log)
+            if tb is not None:
+                tb.write(log)
             if done % tc.checkpoint_interval == 0 or done == total or stopping():
                 ckpt.save(done, state, _policy_params(state))
                 saved = done
@@ -334,6 +345,7 @@ def final_evaluation(
     print(results_table(results))
     plot_learning_curves(run_dir)
     _trajectory_figure(trainer, raw, run_dir)
+    _episode_gif(trainer, raw, run_dir, label)
     return results
 
 
@@ -387,6 +399,15 @@ def plot_learning_curves(run_dir: Path) -> Path | None:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _episode_gif(trainer: Trainer, raw: dict, run_dir: Path, label: str) -> Path:
+    """episode_test0.gif: seed 0's evaluated episode on test task 0 (`mpcpearl_jax.animate`)."""
+    from mpcpearl_jax.animate import animate_result
+
+    title = f"{label} (seed 0), {trainer.cfg.env} test task 0"
+    path = run_dir / "episode_test0.gif"
+    return animate_result(path, raw, trainer.test_tasks, trainer.env.config, title=title)
 
 
 def _trajectory_figure(trainer: Trainer, raw: dict, run_dir: Path, n: int = 4) -> None:
