@@ -39,7 +39,7 @@ def _load(run: Path) -> tuple[dict, list[dict], dict | None]:
         if not (run / name).is_file():
             raise NotARun(f"{run}: not a run directory (no {name})")
     cfg = _json(run / "config.json")
-    if not isinstance(cfg.get("train"), dict) or not isinstance(cfg.get("pearl"), dict):
+    if not isinstance(cfg, dict):
         raise NotARun(f"{run / 'config.json'}: not a run configuration")
     try:
         rows = read_log(run / LOG_FILE)
