@@ -236,6 +236,9 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         sess = prepare(cfg, out, resume=args.resume)
     except (ValueError, TypeError, OSError, CheckpointError, RunDirError) as e:
         return fail(e)
+    except KeyboardInterrupt:
+        print("interrupted before training started", file=sys.stderr, flush=True)
+        return 130
     t0 = time.perf_counter()
     try:
         trainer, state = train_session(
@@ -243,6 +246,9 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         )
     except RunInterrupted as e:
         print(str(e), file=sys.stderr, flush=True)
+        return 130
+    except KeyboardInterrupt:  # a second Ctrl-C: stopped at once, the last checkpoint stands
+        print("interrupted; continue with --resume", file=sys.stderr, flush=True)
         return 130
     except (OSError, CheckpointError) as e:
         return fail(e)
@@ -253,5 +259,13 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         final_evaluation(trainer, state, out, label_of(cfg))
     except OSError as e:
         return fail(e)
+    except KeyboardInterrupt:
+        print(
+            f"interrupted in the final evaluation; training is saved (iteration "
+            f"{cfg.train.iterations}): evaluate it with --resume",
+            file=sys.stderr,
+            flush=True,
+        )
+        return 130
     print(f"results, curves and figures in {out}", flush=True)
     return 0

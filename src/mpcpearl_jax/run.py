@@ -278,7 +278,7 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
             try:
                 state, log = trainer.iteration(state, stop=stop)
             except IterationAbandoned:
-                raise RunInterrupted(saved, done - saved) from None
+                raise RunInterrupted(max(saved, 0), done - max(saved, 0)) from None
             done = log["iteration"]
             tc = cfg.train
             if (tc.eval_interval and done % tc.eval_interval == 0) or done == total:

@@ -112,6 +112,7 @@ class Trainer:
         self.mpc_capacity = tc.mpc_buffer_capacity if self.use_mpc_buffer else 1
         self.update_phase = jax.jit(self._update_phase, donate_argnums=0)
         self.update_chunk = UPDATE_CHUNK
+        self._init_state_jit = jax.jit(self._init_state)
         self._update_steps_jit = jax.jit(self._update_steps, donate_argnums=0)
         self.evaluate_adapt = eval_lib.make_evaluator(
             self.env, self.nets, tc.eval_adapt_episodes, online=False
@@ -122,6 +123,11 @@ class Trainer:
 
     # ------------------------------------------------------------------ state
     def init_state(self) -> TrainState:
+        """The state before iteration 0 (one jitted program: the same values as built op by op,
+        compiled once and kept by the compilation cache, where op by op takes seconds)."""
+        return self._init_state_jit()
+
+    def _init_state(self) -> TrainState:
         cfg = self.cfg
         keys = jnp.stack([jax.random.PRNGKey(cfg.seed + s) for s in range(cfg.seeds)])
         keys, sub = _split_keys(keys, 1)
