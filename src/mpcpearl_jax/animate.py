@@ -70,7 +70,7 @@ def animate_episode(
     acted_by: Sequence[str] | None = None,
     title: str | None = None,
     max_frames: int = 90,
-    fps: float = 10.0,
+    fps: int = 10,
     width_in: float = 4.2,
     dpi: int = 80,
 ) -> Path:
@@ -104,7 +104,7 @@ def animate_episode(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     steps = frame_steps(horizon, max_frames)
-    with matplotlib.rc_context(_RC):
+    with matplotlib.rc_context(_RC):  # type: ignore[arg-type]  # keys typed as literals
         fig, draw = _figure(task, config, pos, col, head, acted_by, steps, title, width_in)
         try:
             anim = FuncAnimation(fig, draw, frames=len(steps), blit=False)
