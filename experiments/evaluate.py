@@ -137,6 +137,7 @@ class Setup:
     policies: list = field(default_factory=list)  # LoadedPolicy per evaluated seed
     seed_ids: list[int] = field(default_factory=list)
     mpc: dict = field(default_factory=dict)  # MPCConfig overrides
+    eps: float | None = None  # policy+mpc: MPC probability on an event
 
 
 def _mpc_overrides(items: list[str], base: dict) -> dict:
@@ -175,6 +176,8 @@ def setup(args: argparse.Namespace) -> Setup:
         raise UsageError("--online and --episodes apply to the policy (GP-MPC does not adapt)")
     if ctrl != "policy" and args.online:
         raise UsageError(f"--online applies to --controller policy, not {ctrl}")
+    if ctrl == "gp-mpc" and args.eps is not None:
+        raise UsageError("--eps applies to --controller policy+mpc (GP-MPC acts on every step)")
     if ctrl == "policy" and (args.set or args.eps is not None):
         raise UsageError("--set and --eps apply to the MPC controllers (gp-mpc, policy+mpc)")
     if args.episodes is not None and args.episodes < 0:
@@ -213,7 +216,7 @@ def setup(args: argparse.Namespace) -> Setup:
 
     base_mpc = dict(cfg.mpc) if cfg else dict(ENV_EXTRAS.get(env_name, {}).get("mpc", {}))
     mpc = _mpc_overrides(args.set, base_mpc) if ctrl != "policy" else {}
-    policies, seed_ids, label = [], [], "GP-MPC"
+    policies, seed_ids, label, eps = [], [], "GP-MPC", None
     if ctrl != "gp-mpc":
         seeds = cfg.seeds
         if args.seed_index is not None and not 0 <= args.seed_index < seeds:
@@ -228,7 +231,6 @@ def setup(args: argparse.Namespace) -> Setup:
             eps = cfg.train.eps if args.eps is None else args.eps
             if not 0.0 <= eps <= 1.0:
                 raise UsageError(f"--eps {eps}: must be in [0, 1]")
-            args.eps = eps
             label = f"{label} + MPC (eps {eps:g})"
     elif args.seed_index is not None:
         raise UsageError("--seed-index applies to a run's policy, not to gp-mpc")
@@ -254,6 +256,7 @@ def setup(args: argparse.Namespace) -> Setup:
         policies=policies,
         seed_ids=seed_ids,
         mpc=mpc,
+        eps=eps,
     )
 
 
@@ -431,8 +434,8 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
         protocol = "MPC at every step"
         result, stats = run_gp_mpc(s, key)
     else:
-        protocol = f"training-style episode: prior z, MPC on an event with probability {args.eps:g}"
-        result, stats = run_policy_mpc(s, key, args.eps)
+        protocol = f"training-style episode: prior z, MPC on an event with probability {s.eps:g}"
+        result, stats = run_policy_mpc(s, key, s.eps)
     wall = time.perf_counter() - t0
     summary = eval_lib.summarize(result, s.tasks, s.env_config.robot_radius)
     record: dict[str, Any] = {
@@ -457,7 +460,7 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
     if s.controller != "policy":
         record["mpc"] = s.mpc
         if s.controller == "policy+mpc":
-            record["eps"] = args.eps
+            record["eps"] = s.eps
         record["mpc_share"] = float(np.mean(result["used_mpc"]))
         record["mpc_status"] = dict(stats["status"])
         record["mpc_reasons"] = dict(stats["reasons"])

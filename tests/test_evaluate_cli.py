@@ -132,6 +132,7 @@ def test_errors_are_one_line(tmp_path, capsys):
     assert "out of range" in _error([str(RESTAURANT_RUN), "--tasks", "30"], capsys)
     assert "seed(s)" in _error([str(RESTAURANT_RUN), "--seed-index", "3"], capsys)
     assert "GP-MPC does not adapt" in _error(["--controller", "gp-mpc", "--online"], capsys)
+    assert "policy+mpc" in _error(["--controller", "gp-mpc", "--eps", "0.5"], capsys)
     assert "MPCConfig" in _error(["--controller", "gp-mpc", "--set", "nope=1"], capsys)
     (tmp_path / "config.json").write_text((RESTAURANT_RUN / "config.json").read_text())
     assert "policy.msgpack" in _error([str(tmp_path)], capsys)
