@@ -303,14 +303,19 @@ def load_policy(
     tasks = make_tasks(cfg.env, "test", cfg.task_seed, config=env.config, **kw)
     obs_dim = env.obs_dim(tasks)
     nets = Networks(cfg.pearl, obs_dim, env.action_dim)
-    template = nets.init(jax.random.PRNGKey(0))
+    template = jax.eval_shape(nets.init, jax.random.PRNGKey(0))  # shapes only: no compute
     template = {k: template[k] for k in ("policy", "encoder")}
-    stacked = jax.tree_util.tree_map(lambda x: jnp.stack([x] * cfg.seeds), template)
+    stacked = jax.tree_util.tree_map(
+        lambda x: jax.ShapeDtypeStruct((cfg.seeds, *x.shape), x.dtype), template
+    )
     pfile = run_dir / POLICY_FILE
     if not pfile.is_file():
         raise CheckpointError(f"{pfile}: missing; the run saved no policy yet")
     try:
         params = serialization.from_bytes(stacked, pfile.read_bytes())
+        shapes = jax.tree_util.tree_map(lambda x: tuple(x.shape), params)
+        if shapes != jax.tree_util.tree_map(lambda x: tuple(x.shape), stacked):
+            raise ValueError("parameter shapes differ from the configuration's networks")
     except Exception as e:
         raise CheckpointError(f"{pfile}: corrupt or from a different network size: {e}") from e
     params = jax.tree_util.tree_map(lambda x: jnp.asarray(x[seed_index]), params)
