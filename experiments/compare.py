@@ -3,7 +3,8 @@
     python -m experiments.compare RUN_DIR [RUN_DIR ...] --out results/restaurant-cpu \
         [--gp-mpc runs/gp_mpc/restaurant_test.json]
 
-Reads each run's metrics.jsonl and results.json (written by experiments.restaurant/sidewalk) and
+Reads each run's metrics.jsonl and results.json (written by experiments.restaurant,
+sidewalk or grbal) and
 writes curves.png (train return, test return, SR, CFR against iteration and gradient steps), a
 table.md with this project's numbers next to the paper's, and summary.json.
 """
@@ -51,6 +52,8 @@ def _load(run: Path) -> tuple[dict, list[dict], dict | None]:
 
 
 def _label(cfg: dict) -> str:
+    if cfg.get("method") == "grbal":  # written by experiments.grbal
+        return "GrBAL"
     eps = cfg["train"]["eps"]
     base = "MPC-PEARL" if cfg["pearl"]["use_context"] else "MPC-SAC"
     if eps == 0:
@@ -123,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
         text += "\n\nGP-MPC (this project, same test tasks): " + ", ".join(
             f"{k} {m[k]:.2f}" for k in METRIC_NAMES if k in m
         )
+    notes = {res["paper_note"] for _, res in finished if res.get("paper_note")}
+    text += "".join(f"\n\n{note}" for note in sorted(notes))
     (args.out / "table.md").write_text(text + "\n")
     summary = {
         "runs": [
@@ -131,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
                 "label": _label(c),
                 "iterations": rows[-1]["iteration"] if rows else 0,
                 "gradient_steps_per_seed": (rows[-1]["iteration"] if rows else 0)
-                * c["train"]["updates_per_iteration"],
+                * c.get("train", c.get("grbal", {}))["updates_per_iteration"],
                 "seeds": c["seeds"],
                 "wall_s": rows[-1].get("wall_s") if rows else None,
                 "results": res,
