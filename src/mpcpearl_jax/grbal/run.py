@@ -1,0 +1,214 @@
+"""Run GrBAL: train with checkpoints and a metrics log, evaluate, write figures and the results
+table (the same files as `mpcpearl_jax.run`, so `experiments.compare` reads both).
+
+Used by `python -m experiments.grbal`.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from mpcpearl_jax.checkpoint import CONFIG_FILE, Checkpointer, CheckpointError, atomic_write
+from mpcpearl_jax.grbal.config import GrbalExperimentConfig
+from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
+from mpcpearl_jax.run import (
+    LOG_FILE,
+    PAPER,
+    append_log,
+    plot_learning_curves,
+    read_log,
+    results_table,
+)
+
+LABEL = "GrBAL"
+# The paper prints no GrBAL numbers (its restaurant bar charts only); its text (Sec. IV-A):
+PAPER_NOTE = (
+    "paper GrBAL (restaurant): no numbers printed (bar charts only); 'GrBAL presents the worst "
+    "performance in terms of all metrics', slightly below MPC-SAC (SR 0.17, TT 73.33, CFR 0.69, "
+    "SPL 0.14, MGD 74.90)"
+)
+
+
+def save_config(run_dir: Path, cfg: GrbalExperimentConfig) -> None:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write(run_dir / CONFIG_FILE, cfg.to_json())
+
+
+def load_config(run_dir: Path) -> GrbalExperimentConfig:
+    path = run_dir / CONFIG_FILE
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no config.json; is this a run directory?")
+    try:
+        return GrbalExperimentConfig.from_dict(json.loads(path.read_text()))
+    except (json.JSONDecodeError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{path}: not a GrBAL run config ({e})") from e
+
+
+def check_resumable(saved: GrbalExperimentConfig, cfg: GrbalExperimentConfig, run_dir) -> None:
+    """Resuming needs the same config except for the number of iterations."""
+    a, b = saved.to_dict(), cfg.to_dict()
+    a["grbal"].pop("iterations")
+    b["grbal"].pop("iterations")
+    a, b = json.loads(json.dumps(a)), json.loads(json.dumps(b))
+    diff = [
+        f"grbal.{k}"
+        for k in sorted(set(a["grbal"]) | set(b["grbal"]))
+        if a["grbal"].get(k) != b["grbal"].get(k)
+    ]
+    diff += [k for k in sorted(set(a) | set(b)) if k != "grbal" and a.get(k) != b.get(k)]
+    if diff:
+        raise CheckpointError(
+            f"{run_dir}: the saved config differs from the requested one in {diff}; "
+            "resume with the same settings (only --iterations may change) or use a new --out"
+        )
+
+
+def _eval_row(trainer: GrbalTrainer, state: GrbalState) -> dict[str, Any]:
+    """test_* = the headline evaluation (online on the sidewalk, after adaptation otherwise),
+    test_online_* / test_adapt_* = both."""
+    both = trainer.evaluate_both(state)
+    row: dict[str, Any] = {}
+    for mode, ev in both.items():
+        row.update({f"test_{mode}_{k}": v for k, v in ev.items() if k in _ROW_KEYS})
+    head = both["online" if trainer.cfg.online_eval else "adapt"]
+    row.update({f"test_{k}": v for k, v in head.items() if k in _ROW_KEYS})
+    return row
+
+
+_ROW_KEYS = ("SR", "TT", "CFR", "SPL", "MGD", "return")
+
+
+def _progress_line(log: dict, total: int) -> str:
+    parts = [
+        f"it {log['iteration']}/{total}",
+        f"fit {log['update_s']:.1f}s",
+        f"collect {log['collect_s']:.1f}s",
+        f"loss pre {log['model_pre_loss']:.3f} post {log['model_post_loss']:.3f}",
+        f"train ret {log['train_return']:.0f} SR {log['train_success']:.2f}",
+    ]
+    if "test_SR" in log:
+        parts.append(
+            f"| test SR {log['test_SR']:.2f} CFR {log['test_CFR']:.2f} "
+            f"ret {log['test_return']:.0f} ({log['eval_s']:.0f}s)"
+        )
+    return "  ".join(parts)
+
+
+def train(
+    cfg: GrbalExperimentConfig,
+    out: str | Path,
+    resume: bool = False,
+    progress: Callable[[str], None] | None = print,
+    budget_s: float | None = None,
+) -> tuple[GrbalTrainer, GrbalState]:
+    """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl); -> (trainer, state).
+
+    budget_s: stop (evaluated and checkpointed, resumable) after the first iteration that ends
+    this many seconds after training started in this process, if the iterations last longer."""
+    run_dir = Path(out)
+    if resume:
+        check_resumable(load_config(run_dir), cfg, run_dir)
+    elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
+        raise CheckpointError(
+            f"{run_dir} already holds checkpoints: pass --resume to continue "
+            "or choose another --out"
+        )
+    save_config(run_dir, cfg)
+    trainer = GrbalTrainer(cfg)
+    g = cfg.grbal
+    ckpt = Checkpointer(run_dir, keep=g.keep_checkpoints)
+    state = trainer.init_state()
+    if resume and ckpt.latest() is not None:
+        state = ckpt.restore(state)
+    done = int(np.asarray(state.iteration)[0])
+    log_path = run_dir / LOG_FILE
+    rows = read_log(log_path, done)
+    atomic_write(log_path, "".join(json.dumps(r) + "\n" for r in rows))
+    wall0 = rows[-1].get("wall_s", 0.0) if rows else 0.0
+    t_start = time.perf_counter()
+    while done < g.iterations:
+        state, log = trainer.iteration(state)
+        done = log["iteration"]
+        out_of_time = budget_s is not None and time.perf_counter() - t_start >= budget_s
+        last = done == g.iterations or out_of_time
+        if (g.eval_interval and done % g.eval_interval == 0) or last:
+            t0 = time.perf_counter()
+            log.update(_eval_row(trainer, state))
+            log["eval_s"] = time.perf_counter() - t0
+        log["wall_s"] = wall0 + time.perf_counter() - t_start
+        append_log(log_path, log)
+        if done % g.checkpoint_interval == 0 or last:
+            ckpt.save(done, state, trainer.model_params(state))
+        if progress is not None:
+            progress(_progress_line(log, g.iterations))
+        if out_of_time:
+            if progress is not None:
+                progress(f"time budget of {budget_s:.0f} s reached after iteration {done}")
+            break
+    ckpt.close()
+    return trainer, state
+
+
+def final_evaluation(trainer: GrbalTrainer, state: GrbalState, out: str | Path) -> dict[str, Any]:
+    """Test tasks (adaptation and online) and OOD tasks; results.json, curves and figures."""
+    from mpcpearl_jax.envs import make_tasks
+
+    run_dir = Path(out)
+    cfg = trainer.cfg
+    results: dict[str, Any] = {"label": LABEL, "env": cfg.env, "config": cfg.to_dict()}
+    both = trainer.evaluate_both(state)
+    adapt, online = both["adapt"], both["online"]
+    raw = {"adapt": adapt.pop("_raw"), "online": online.pop("_raw")}
+    results["test_adapt"] = adapt
+    results["test_online"] = online
+    try:
+        kw: dict[str, Any] = {"data": cfg.data} if cfg.data else {}
+        kw.update(cfg.task_options)
+        ood = make_tasks(cfg.env, "ood", cfg.task_seed, config=trainer.env.config, **kw)
+        res = trainer.evaluate(state, tasks=ood)
+        res.pop("_raw")
+        results["ood_adapt"] = res
+    except ValueError as e:  # a family without an OOD split
+        results["ood_adapt"] = {"skipped": str(e)}
+    results["paper"] = PAPER.get(cfg.env, {})
+    no_result = "no GrBAL result in the paper"
+    results["paper_note"] = PAPER_NOTE if cfg.env == "restaurant" else no_result
+    (run_dir / "results.json").write_text(json.dumps(results, indent=2))
+    print(results_table(results))
+    print(results["paper_note"])
+    plot_learning_curves(run_dir)
+    trajectory_figures(trainer, raw, run_dir)
+    return results
+
+
+def trajectory_figures(trainer: GrbalTrainer, raw: dict, run_dir: Path, n: int = 4) -> None:
+    """The first n test tasks, seed 0: the evaluated episode after adaptation and the online one."""
+    from mpcpearl_jax import viz
+
+    for i in range(min(n, int(trainer.test_tasks.start.shape[0]))):
+        task = jax.tree_util.tree_map(lambda x, i=i: x[i], trainer.test_tasks)
+        paths = {
+            f"GrBAL {mode}": (np.asarray(r["position"][0, i]), np.asarray(r["collision"][0, i]))
+            for mode, r in raw.items()
+        }
+        path = run_dir / f"trajectory_test{i}.png"
+        if trainer.cfg.env == "sidewalk":  # the paper's sidewalk style
+            from mpcpearl_jax.envs.sidewalk import plot_sidewalk
+
+            plot_sidewalk(task, trainer.env.config, paths, path)
+        else:
+            viz.save_trajectory_figure(
+                path,
+                task,
+                {k: p for k, (p, _) in paths.items()},
+                {k: c for k, (_, c) in paths.items()},
+                trainer.env.config,
+                title=f"GrBAL, {trainer.cfg.env} test task {i}",
+            )
