@@ -29,6 +29,7 @@ SCRIPTS = (
     "mpc_latency",
     "memory",
     "iteration",
+    "grbal_planner",
 )
 
 

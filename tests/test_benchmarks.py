@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-SCRIPTS = ["env_throughput", "pearl_step", "policy_latency", "memory", "iteration"]
+SCRIPTS = ["env_throughput", "pearl_step", "policy_latency", "memory", "iteration", "grbal_planner"]
 
 
 @pytest.fixture
