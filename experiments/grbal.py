@@ -30,7 +30,11 @@ ONLINE_HEADLINE = {"sidewalk": True}  # online adaptation is the sidewalk headli
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m experiments.grbal", description=__doc__)
+    p = argparse.ArgumentParser(
+        prog="python -m experiments.grbal",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--env", default="restaurant", choices=("restaurant", "sidewalk"))
     p.add_argument("--preset", default="default", choices=sorted(PRESETS))
     p.add_argument("--iterations", type=int, help="training iterations (fit + collection)")
