@@ -64,6 +64,10 @@ class ObsLayout(NamedTuple):
 def layout_of(env, tasks) -> ObsLayout:
     """The observation layout of `env` (a NavEnv) on its tasks (stacked or single)."""
     cfg = env.config
+    if cfg.observe_relative:
+        from mpcpearl_jax.envs.types import ConfigError
+
+        raise ConfigError("env.observe_relative: not supported by GrBAL's learned model")
     h = int(tasks.human_pos.shape[-2])
     s = int(tasks.static_lo.shape[-2]) if cfg.observe_static else 0
     return ObsLayout(h, h if cfg.observe_velocity else 0, s)
