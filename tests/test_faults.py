@@ -192,6 +192,7 @@ def test_mpc_collection_does_not_depend_on_earlier_iterations():
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
         np.testing.assert_array_equal(x, y)
     assert logs_a == logs_b and logs_a[0]["mpc_rows"] > 0
+    assert tr.bridge._episode is not None  # the collector stamps its batches of episodes
 
 
 def test_osqp_solver_state_does_not_carry_between_solves():
@@ -244,22 +245,37 @@ def test_bridge_forgets_plans_of_an_earlier_episode_batch():
 @pytest.mark.slow
 @pytest.mark.parametrize("eps", [0.0, 0.2])
 def test_kill9_at_random_points_of_the_command_line(tmp_path, eps):
-    """The real command line (training, then the final evaluation) killed with SIGKILL six times:
-    during a checkpoint write, right after a metrics line, at three random moments and during the
-    final evaluation; every time resumed with --resume. It ends identical to a run never stopped
-    (checkpoint, policy, metrics and results.json)."""
+    """The real command line (training, then the final evaluation) killed with SIGKILL six times,
+    each time resumed with --resume: at a random moment of start-up, during a checkpoint write,
+    at three random moments of training (a random iteration, then a random delay into it) and
+    during the final evaluation. It ends identical to a run never stopped (checkpoint, policy,
+    metrics and results.json)."""
+    iterations = 12
     ref, run = tmp_path / "ref", tmp_path / "run"
-    t0 = time.monotonic()
-    proc = spawn(small_args(eps, ref), tmp_path / "ref.txt", cli=True)
+    proc = spawn(small_args(eps, ref, iterations), tmp_path / "ref.txt", cli=True)
     assert proc.wait(timeout=600) == 0, (tmp_path / "ref.txt").read_text()[-3000:]
-    duration = time.monotonic() - t0
-    args = small_args(eps, run)
-    rng = random.Random(1234)
-    at = sorted(rng.uniform(3.0, 0.9 * duration) for _ in range(3))
+    args = small_args(eps, run, iterations)
+    rng = random.Random(1234 + int(10 * eps))
+    rows = sorted(rng.sample(range(3, iterations - 1, 2), 3))  # 2 apart: each one still ahead
+    clock = {}
+
+    def after(n: int, delay: float):
+        def cond(log) -> bool:
+            if rows_at_least(run, n)():
+                clock.setdefault(n, time.monotonic())
+                return time.monotonic() - clock[n] >= delay
+            return False
+
+        return cond
+
+    t_start = rng.uniform(1.0, 6.0)
     points = [
+        (f"start-up, {t_start:.1f} s", lambda log: time.monotonic() - started >= t_start),
         ("checkpoint write", lambda log: writing_checkpoint(run, min_step=2)()),
-        ("after a metrics line", lambda log: rows_at_least(run, 4)()),
-        *[(f"{t:.1f} s after start", lambda log, t=t: time.monotonic() - started >= t) for t in at],
+        *[
+            (f"iteration {n + 1}, +{d:.2f} s", after(n, d))
+            for n, d in ((n, rng.uniform(0.0, 0.3)) for n in rows)
+        ],  # fmt: skip
         ("final evaluation", lambda log: "evaluating" in log.read_text()),
     ]
     report = []
@@ -267,7 +283,7 @@ def test_kill9_at_random_points_of_the_command_line(tmp_path, eps):
         log = tmp_path / f"victim{i}.txt"
         log.touch()
         started = time.monotonic()
-        proc = spawn([*args, "--resume"] if run.exists() else args, log, cli=True)
+        proc = spawn([*args, "--resume"] if (run / "config.json").exists() else args, log, cli=True)
         killed = kill_when(proc, lambda cond=cond, log=log: cond(log), timeout=600)
         report.append((name, killed))
         if not killed:  # it finished first: nothing left to interrupt
