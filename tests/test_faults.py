@@ -561,3 +561,50 @@ def test_load_policy_checks_shapes_and_values(ref0):
     with pytest.raises(ValueError, match="obs: expected shape"):
         act(jnp.zeros(o + 3), jnp.zeros(pol.latent_dim))
     assert bool(jnp.all(jnp.isnan(act(jnp.full(o, jnp.nan), infer_z(ctx)))))
+
+
+def test_mpc_pool_workers_exit_when_the_training_process_is_killed(tmp_path):
+    """A SIGKILLed parent leaves no MPC worker behind (watch_parent)."""
+    script = tmp_path / "parent.py"
+    script.write_text(
+        "import os, time\n"
+        "from concurrent.futures import ProcessPoolExecutor\n"
+        "from multiprocessing import get_context\n"
+        "from mpcpearl_jax.mpc.solver import watch_parent\n"
+        "if __name__ == '__main__':\n"
+        "    pool = ProcessPoolExecutor(2, mp_context=get_context('spawn'),\n"
+        "                               initializer=watch_parent, initargs=(os.getpid(), 0.2))\n"
+        "    pids = set(pool.submit(os.getpid).result() for _ in range(4))\n"
+        "    print(' '.join(map(str, pids)), flush=True)\n"
+        "    time.sleep(60)\n"
+    )
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    pids = [int(p) for p in proc.stdout.readline().split()]
+    assert pids
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    deadline = time.time() + 10
+    alive = pids
+    while alive and time.time() < deadline:
+        time.sleep(0.2)
+        alive = [p for p in pids if _alive(p)]
+    assert not alive, f"orphaned MPC workers {alive}"
+
+
+def _alive(pid: int) -> bool:
+    import os
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped) counts as gone
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split()[2] != "Z"
+    except OSError:
+        return False

@@ -14,6 +14,7 @@ actions depend only on its own episode (exact resume of training).
 
 from __future__ import annotations
 
+import os
 import time
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
@@ -35,6 +36,7 @@ from mpcpearl_jax.mpc.solver import (
     SQPSolver,
     solve_in_worker,
     solver_params,
+    watch_parent,
 )
 
 # per-row status codes returned by the bridge
@@ -235,7 +237,10 @@ class MPCBridge:
         if self.cfg.n_workers > 1 and len(probs) > 1:
             if self._pool is None:
                 self._pool = ProcessPoolExecutor(
-                    self.cfg.n_workers, mp_context=get_context("spawn")
+                    self.cfg.n_workers,
+                    mp_context=get_context("spawn"),
+                    initializer=watch_parent,
+                    initargs=(os.getpid(),),
                 )
             return list(self._pool.map(solve_in_worker, [params] * len(probs), probs, inits))
         solver = self._solvers.get(params)

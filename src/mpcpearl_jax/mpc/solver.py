@@ -515,3 +515,18 @@ def solve_in_worker(
     if solver is None:
         solver = _WORKER_SOLVERS[params] = SQPSolver(params)
     return solver.solve(prob, u_init)
+
+
+def watch_parent(parent_pid: int, interval_s: float = 2.0) -> None:
+    """Pool-worker initializer: exit when the training process is gone (killed with SIGKILL or
+    SIGTERM, no chance to shut the pool down), instead of lingering as an orphan."""
+    import os
+    import threading
+
+    def watch() -> None:
+        while True:
+            time.sleep(interval_s)
+            if os.getppid() != parent_pid:
+                os._exit(0)
+
+    threading.Thread(target=watch, daemon=True, name="watch-parent").start()
