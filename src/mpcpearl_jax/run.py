@@ -65,7 +65,9 @@ class RunInterrupted(Exception):
 
     def __init__(self, iteration: int, lost: int = 0):
         self.iteration, self.lost = iteration, lost
-        extra = f" ({lost} later iteration(s) not saved)" if lost else ""
+        span = f"{iteration + 1}-{iteration + lost}" if lost > 1 else f"{iteration + 1}"
+        extra = f" (iteration(s) {span}, finished after the last checkpoint, are redone)"
+        extra = extra if lost else ""
         super().__init__(f"interrupted at iteration {iteration}; continue with --resume{extra}")
 
 
