@@ -184,17 +184,21 @@ def prepare(cfg: ExperimentConfig, out: str | Path, resume: bool = False) -> Ses
     check_writable(run_dir)
     trainer = Trainer(cfg)
     ckpt = Checkpointer(run_dir, keep=cfg.train.keep_checkpoints)
-    state = trainer.init_state()
-    saved = -1
-    if resume and ckpt.steps():
-        state = ckpt.restore(state)
-        saved = ckpt.restored_step
-    done = int(np.asarray(state.iteration)[0])
-    if cfg.train.iterations < done:
-        raise CheckpointError(
-            f"{run_dir} has finished {done} iterations; --iterations {cfg.train.iterations} is "
-            f"below that (give --iterations {done} or more, or another --out)"
-        )
+    try:
+        state = trainer.init_state()
+        saved = -1
+        if resume and ckpt.steps():
+            state = ckpt.restore(state)
+            saved = ckpt.restored_step
+        done = int(np.asarray(state.iteration)[0])
+        if cfg.train.iterations < done:
+            raise CheckpointError(
+                f"{run_dir} has finished {done} iterations; --iterations {cfg.train.iterations} "
+                f"is below that (give --iterations {done} or more, or another --out)"
+            )
+    except BaseException:
+        ckpt.close()
+        raise
     log_path = run_dir / LOG_FILE
     rows = read_log(log_path, done)
     save_config(run_dir, cfg)
