@@ -38,17 +38,7 @@ def planner_rows(preset_name: str, batches, cfg: dict[str, Any]) -> list[dict[st
     model = DynamicsModel(layout, g.hidden)
     params = model.init(jax.random.PRNGKey(0))
     norm = identity_normalizer(layout)
-    planner = Planner(
-        model,
-        env.config,
-        horizon=g.plan_horizon,
-        num_samples=g.num_samples,
-        iterations=g.mppi_iterations,
-        noise_std=g.noise_std,
-        temperature=g.temperature,
-        gamma=g.gamma,
-        robot_model=g.robot_model,
-    )
+    planner = Planner.from_config(model, env.config, g)
     m, od = g.past, layout.obs_dim
 
     def step(obs, hist, task, key, adapt: bool):

@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from typing import Any
+from typing import Any, Self
 
 from mpcpearl_jax.envs.types import ConfigError
 from mpcpearl_jax.pearl.config import PearlConfig
@@ -114,8 +114,22 @@ class TrainConfig:
         return self.mpc_demo_share * max(0.0, 1.0 - iteration / self.mpc_demo_iterations)
 
 
+class SerializableConfig:
+    """`replace`, `to_dict` and `to_json` of a frozen experiment-config dataclass (saved with
+    its runs as config.json); each class adds its own `from_dict`."""
+
+    def replace(self, **changes: Any) -> Self:
+        return dataclasses.replace(self, **changes)  # type: ignore[type-var]
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)  # type: ignore[call-overload]
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+
 @dataclasses.dataclass(frozen=True)
-class ExperimentConfig:
+class ExperimentConfig(SerializableConfig):
     """Everything a run needs; `to_json`/`from_json` round-trip it (saved with checkpoints)."""
 
     env: str = "restaurant"
@@ -148,15 +162,6 @@ class ExperimentConfig:
                 "PearlConfig.bc_weight: behaviour cloning needs MPC samples in the batch "
                 "(set train.mpc_buffer_fraction > 0)"
             )
-
-    def replace(self, **changes: Any) -> ExperimentConfig:
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
     @classmethod
     def from_dict(cls, d: dict) -> ExperimentConfig:

@@ -9,10 +9,10 @@ value raises `ConfigError` naming the field.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from typing import Any
 
+from mpcpearl_jax.config import SerializableConfig
 from mpcpearl_jax.envs.types import ConfigError
 
 ROBOT_MODELS = ("learned", "known")
@@ -119,7 +119,7 @@ class GrbalConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class GrbalExperimentConfig:
+class GrbalExperimentConfig(SerializableConfig):
     """Everything a GrBAL run needs; saved as config.json (resume checks it)."""
 
     env: str = "restaurant"
@@ -145,15 +145,6 @@ class GrbalExperimentConfig:
                 raise ConfigError(f"GrbalExperimentConfig.{f}: must be a dict")
         if self.method != "grbal":
             raise ConfigError("GrbalExperimentConfig.method: must be 'grbal'")
-
-    def replace(self, **changes: Any) -> GrbalExperimentConfig:
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
     @classmethod
     def from_dict(cls, d: dict) -> GrbalExperimentConfig:

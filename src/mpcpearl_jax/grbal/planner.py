@@ -30,6 +30,7 @@ from jax import Array
 from mpcpearl_jax import physics
 from mpcpearl_jax.dynamics import bicycle_step, to_physical
 from mpcpearl_jax.envs.types import NavConfig, TaskParams
+from mpcpearl_jax.grbal.config import GrbalConfig
 from mpcpearl_jax.grbal.model import DynamicsModel, Normalizer, ObsLayout
 
 
@@ -113,6 +114,21 @@ class Planner:
         self.noise_std, self.temperature = noise_std, temperature
         self.gamma = gamma
         self.known_robot = robot_model == "known"
+
+    @classmethod
+    def from_config(cls, model: DynamicsModel, env_cfg: NavConfig, g: GrbalConfig) -> Planner:
+        """The planner of a `GrbalConfig` (horizon, samples, MPPI iterations, noise, ...)."""
+        return cls(
+            model,
+            env_cfg,
+            horizon=g.plan_horizon,
+            num_samples=g.num_samples,
+            iterations=g.mppi_iterations,
+            noise_std=g.noise_std,
+            temperature=g.temperature,
+            gamma=g.gamma,
+            robot_model=g.robot_model,
+        )
 
     def initial_mean(self) -> Array:
         return jnp.zeros((self.horizon, 2))

@@ -89,17 +89,7 @@ class GrbalTrainer:
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         assert self.layout.obs_dim == self.obs_dim
         self.model = DynamicsModel(self.layout, g.hidden)
-        self.planner = Planner(
-            self.model,
-            self.env.config,
-            horizon=g.plan_horizon,
-            num_samples=g.num_samples,
-            iterations=g.mppi_iterations,
-            noise_std=g.noise_std,
-            temperature=g.temperature,
-            gamma=g.gamma,
-            robot_model=g.robot_model,
-        )
+        self.planner = Planner.from_config(self.model, self.env.config, g)
         self.optimizer = optax.adam(g.lr)
         self.meta_step = make_meta_step(self.model, g.past, g.inner_lr, self.optimizer)
         self.capacity = g.buffer_episodes * self.horizon
