@@ -218,6 +218,8 @@ def test_paper_presets_have_every_extension_off(name):
     assert cfg.train.mpc_demo_step_prob == 1.0
     assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
     assert not cfg.mpc.get("unsafe_recovery", False)
+    for field in ("observe_velocity", "observe_relative", "sensing_radius"):
+        assert not cfg.env_overrides.get(field), field
 
 
 def test_cpu_presets_differ_only_in_the_extensions():
@@ -430,3 +432,45 @@ def test_relative_observation_matches_numpy(env_name):
     # a point straight ahead of the robot is at (+d, 0) in its frame
     pose = np.array([0.0, 0.0, np.pi / 2])
     np.testing.assert_allclose(_ego_ref(pose, [[0.0, 2.0]], 5.0), [[0.4, 0.0]], atol=1e-12)
+
+
+def test_sensing_radius_hides_far_people_everywhere_in_the_observation():
+    from mpcpearl_jax.envs import make_env, make_tasks
+    from mpcpearl_jax.envs.types import EnvState
+
+    full = make_env("restaurant", observe_velocity=True, observe_relative=True)
+    env = make_env("restaurant", observe_velocity=True, observe_relative=True, sensing_radius=3.0)
+    tasks = make_tasks("restaurant", "test", 0, config=env.config)
+    task = jax.tree_util.tree_map(lambda x: x[3], tasks)
+    nh, ns = task.human_pos.shape[1], task.static_lo.shape[0]
+    assert env.obs_dim(tasks) == full.obs_dim(tasks)
+    rng = np.random.default_rng(1)
+    hidden_seen = 0
+    for t in (1, 10, 25, 60):
+        pose = np.array([*rng.uniform(-4.0, 4.0, 2), rng.uniform(-np.pi, np.pi)])
+        state = EnvState(pose=jnp.asarray(pose, jnp.float32), t=jnp.asarray(t, jnp.int32))
+        got, ref = np.asarray(env.observe(state, task)), np.asarray(full.observe(state, task))
+        h, m = np.asarray(task.human_pos[t]), np.asarray(task.human_mask[t])
+        m_prev = np.asarray(task.human_mask[t - 1])
+        seen = m & (np.linalg.norm(h - pose[:2], axis=-1) <= 3.0)
+        hidden_seen += int((m & ~seen).sum())
+        want_h = np.where(seen[:, None], np.clip(h / 5.0, -1, 1), -1.0).reshape(-1)
+        np.testing.assert_allclose(got[3 : 3 + 2 * nh], want_h, atol=1e-5)
+        vel = got[3 + 2 * nh : 3 + 4 * nh].reshape(nh, 2)
+        np.testing.assert_array_equal(vel[~(seen & m_prev)], 0.0)
+        np.testing.assert_allclose(
+            vel[seen & m_prev],
+            ref[3 + 2 * nh : 3 + 4 * nh].reshape(nh, 2)[seen & m_prev],
+            atol=1e-6,
+        )
+        off = 3 + 4 * nh + 2 * ns  # egocentric people
+        ego = got[off : off + 2 * nh].reshape(nh, 2)
+        np.testing.assert_array_equal(ego[~seen], 1.0)
+        np.testing.assert_allclose(
+            ego[seen], ref[off : off + 2 * nh].reshape(nh, 2)[seen], atol=1e-6
+        )
+        np.testing.assert_allclose(got[off + 2 * nh :], ref[off + 2 * nh :], atol=1e-6)  # static
+        np.testing.assert_allclose(got[:3], ref[:3], atol=1e-6)
+    assert hidden_seen > 0  # the case under test occurred
+    with pytest.raises(ConfigError, match="sensing_radius"):
+        make_env("restaurant", sensing_radius=-1.0)

@@ -107,8 +107,12 @@ class NavEnv:
     def observe(self, state: EnvState, params: TaskParams) -> Array:
         """Observation in [-1, 1]: pose, people (absent ones at (-1, -1)), [people's last-step
         displacement (extension `observe_velocity`)], [static centres], [people, nearest static
-        points and goal in the robot's frame (extension `observe_relative`)]."""
+        points and goal in the robot's frame (extension `observe_relative`)]. With the extension
+        `sensing_radius` a person farther than it from the robot counts as absent throughout."""
         humans, mask = self.humans_at(params, state.t)
+        if self.config.sensing_radius > 0:  # extension: people out of range look absent
+            dist = jnp.linalg.norm(humans - state.pose[:2], axis=-1)
+            mask = mask & (dist <= self.config.sensing_radius)
         h = jnp.where(mask[:, None], self.normalize_xy(humans), -1.0)
         parts = [self.normalize_xy(state.pose[:2]), state.pose[2:3] / jnp.pi, h.reshape(-1)]
         if self.config.observe_velocity:  # extension: people's last-step displacement

@@ -69,6 +69,10 @@ class NavConfig:
     # clipped to [-1, 1]
     observe_relative: bool = False
     relative_scale: float = 5.0  # m mapped to 1
+    # extension (off in the paper): limited sensing range; a person farther than sensing_radius
+    # metres from the robot is reported as absent in every part of the observation (0 = the
+    # paper's unlimited range). The MPC and the reward still see everybody.
+    sensing_radius: float = 0.0
 
     def __post_init__(self) -> None:
         n = type(self).__name__
@@ -92,7 +96,15 @@ class NavConfig:
                 f,
                 f"must be a positive finite number, got {v!r}",
             )
-        for f in ("r_safe", "q_weight", "r_weight", "w_dynamic", "w_static", "w_goal"):
+        for f in (
+            "r_safe",
+            "q_weight",
+            "r_weight",
+            "w_dynamic",
+            "w_static",
+            "w_goal",
+            "sensing_radius",
+        ):
             v = getattr(self, f)
             _check(
                 isinstance(v, (int, float)) and math.isfinite(v) and v >= 0,

@@ -68,6 +68,10 @@ def layout_of(env, tasks) -> ObsLayout:
         from mpcpearl_jax.envs.types import ConfigError
 
         raise ConfigError("env.observe_relative: not supported by GrBAL's learned model")
+    if cfg.sensing_radius > 0:
+        from mpcpearl_jax.envs.types import ConfigError
+
+        raise ConfigError("env.sensing_radius: not supported by GrBAL's learned model")
     h = int(tasks.human_pos.shape[-2])
     s = int(tasks.static_lo.shape[-2]) if cfg.observe_static else 0
     return ObsLayout(h, h if cfg.observe_velocity else 0, s)
