@@ -6,13 +6,15 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.mpc.bridge import MPCBridge
 
-BRAKE = jnp.array([-1.0, 0.0])  # normalized action for zero speed, straight wheels
+# normalized action for zero speed, straight wheels (NumPy: importing starts no JAX backend)
+BRAKE = np.array([-1.0, 0.0], np.float32)
 
 
 def make_gp_mpc_rollout(

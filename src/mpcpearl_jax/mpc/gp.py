@@ -16,14 +16,17 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from mpcpearl_jax.mpc.config import MPCConfig
 
 _JITTER = 1e-6
 # box on the log-hyperparameters (lengthscale, signal std, noise std), for a stable Cholesky
-_LOG_LO = jnp.log(jnp.array([0.05, 1e-3, 1e-3]))
-_LOG_HI = jnp.log(jnp.array([20.0, 2.0, 0.5]))
+# (NumPy float32, bit-identical to jnp.log: importing the package must not start a JAX backend,
+# so that jax.distributed.initialize can still run after it)
+_LOG_LO = np.log(np.array([0.05, 1e-3, 1e-3], np.float32))
+_LOG_HI = np.log(np.array([20.0, 2.0, 0.5], np.float32))
 
 
 class GPHyper(NamedTuple):
