@@ -415,7 +415,7 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
     import jax
 
     from benchmarks.harness import available_cores, machine_info, print_table
-    from mpcpearl_jax.checkpoint import POLICY_FILE, Checkpointer, save_config
+    from mpcpearl_jax.checkpoint import POLICY_FILE, Checkpointer, save_config, save_network
     from mpcpearl_jax.envs import make_tasks
     from mpcpearl_jax.run import LOG_FILE, _policy_params, final_evaluation
     from mpcpearl_jax.trainer import Trainer
@@ -441,6 +441,7 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
     t_wall0 = time.perf_counter()
     trainer = Trainer(cfg)
     build_s = time.perf_counter() - t_wall0
+    save_network(out, trainer.nets)
     t0 = time.perf_counter()
     state = trainer.init_state()
     jax.block_until_ready(state)

@@ -9,7 +9,7 @@
 Controllers:
   policy      the run's policy with the meta-test protocol (MPC off): --episodes adaptation
               episodes, then the evaluated one; or --online (one episode, z re-inferred every
-              t_update steps). Needs RUN_DIR (only policy.msgpack and config.json are read).
+              t_update steps). Needs RUN_DIR (config.json, policy.msgpack, network.json).
   gp-mpc      the risk-aware MPC at every step (the paper's GP-MPC column). With RUN_DIR it runs
               on that run's tasks with its MPC settings; without, on --env with the defaults.
   policy+mpc  one training-style episode per task: z from the prior, stochastic policy, the MPC

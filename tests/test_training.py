@@ -143,6 +143,14 @@ def test_load_policy_acts_like_training_policy(tmp_path):
     assert a.shape == (5, 2) and bool(jnp.all(jnp.abs(a) <= 1))
     with pytest.raises(ValueError, match="seed_index"):
         load_policy(tmp_path / "run", seed_index=2)
+    # the network dims are saved beside the parameters; without them (runs saved before
+    # network.json existed) they come from the parameter shapes
+    spec = json.loads((tmp_path / "run" / "network.json").read_text())
+    assert spec == trainer.nets.spec()
+    (tmp_path / "run" / "network.json").unlink()
+    old = load_policy(tmp_path / "run", seed_index=1)
+    assert old.nets.spec() == spec
+    np.testing.assert_array_equal(np.asarray(old.jit()[0](obs, z)), np.asarray(act(obs, z)))
 
 
 @pytest.mark.parametrize(

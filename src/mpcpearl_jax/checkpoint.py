@@ -1,9 +1,13 @@
 """Checkpoints (orbax) of the full training state, and `load_policy` for use outside training.
 
 A run directory holds:
-  config.json         the ExperimentConfig (what `load_policy` and `--resume` rebuild from)
+  config.json         the ExperimentConfig (what `--resume` rebuilds from)
+  network.json        the network dimensions and sizes (`Networks.spec`, as brax saves its
+                      network config), written with config.json
   checkpoints/<it>/   orbax checkpoints of the whole TrainState (last few kept)
   policy.msgpack      policy + encoder parameters of every seed (flax serialization)
+`load_policy` reads config.json, network.json and policy.msgpack only: no environment is built,
+so a run loads without its data file.
 
 Every file is written atomically (a temporary file renamed over the old one; orbax commits a
 checkpoint the same way), so a process killed at any moment leaves the previous version intact.
@@ -29,7 +33,6 @@ from flax import serialization
 from jax import Array
 
 from mpcpearl_jax.config import ExperimentConfig
-from mpcpearl_jax.envs import make_env, make_tasks
 from mpcpearl_jax.pearl.networks import Networks
 
 
@@ -39,6 +42,7 @@ class CheckpointError(RuntimeError):
 
 CONFIG_FILE = "config.json"
 POLICY_FILE = "policy.msgpack"
+NETWORK_FILE = "network.json"
 
 
 def atomic_write(path: Path, data: bytes | str) -> None:
@@ -62,6 +66,11 @@ def save_config(run_dir: Path, cfg: ExperimentConfig) -> None:
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write(run_dir / CONFIG_FILE, cfg.to_json())
+
+
+def save_network(run_dir: Path, nets: Networks) -> None:
+    """network.json: what `load_policy` rebuilds the networks from (`Networks.spec`)."""
+    atomic_write(Path(run_dir) / NETWORK_FILE, json.dumps(nets.spec(), indent=2, sort_keys=True))
 
 
 def load_config(run_dir: str | Path) -> ExperimentConfig:
@@ -220,7 +229,6 @@ class LoadedPolicy:
     config: ExperimentConfig
     params: dict
     nets: Networks
-    env_config: Any
 
     @property
     def obs_dim(self) -> int:
@@ -286,37 +294,44 @@ class LoadedPolicy:
         return jax.jit(self.act), jax.jit(self.infer_z)
 
 
+def _spec_from_shapes(raw: dict, cfg: ExperimentConfig) -> dict:
+    """The `Networks.spec` of a run saved before network.json existed: obs and action dims from
+    the shapes of the policy network's first and last layers, the rest from config.json."""
+    layers = raw["policy"]["params"]["MLP_0"]
+    dense = sorted(layers, key=lambda name: int(name.rsplit("_", 1)[-1]))
+    n_in = int(layers[dense[0]]["kernel"].shape[-2])  # obs_dim + latent_dim
+    n_out = int(layers[dense[-1]]["kernel"].shape[-1])  # 2 action_dim (mean, log_std)
+    return Networks(cfg.pearl, n_in - cfg.pearl.latent_dim, n_out // 2).spec()
+
+
 def load_policy(
     path: str | Path, seed_index: int = 0, data: str | Path | None = None
 ) -> LoadedPolicy:
     """Rebuild the trained policy of seed `seed_index` from a run directory (see module doc).
 
-    data: the run's trajectory file (sidewalk) where the path in config.json is not valid here."""
+    data: accepted for compatibility and ignored (no data file is needed)."""
+    del data
     run_dir = Path(path)
     cfg = load_config(run_dir)
-    if data is not None:
-        cfg = cfg.replace(data=str(data))
     if not 0 <= seed_index < cfg.seeds:
         raise ValueError(f"seed_index {seed_index} out of range: the run has {cfg.seeds} seed(s)")
-    env = make_env(cfg.env, **cfg.env_overrides)
-    kw = {"data": cfg.data} if cfg.data else {}
-    tasks = make_tasks(cfg.env, "test", cfg.task_seed, config=env.config, **kw)
-    obs_dim = env.obs_dim(tasks)
-    nets = Networks(cfg.pearl, obs_dim, env.action_dim)
-    template = jax.eval_shape(nets.init, jax.random.PRNGKey(0))  # shapes only: no compute
-    template = {k: template[k] for k in ("policy", "encoder")}
-    stacked = jax.tree_util.tree_map(
-        lambda x: jax.ShapeDtypeStruct((cfg.seeds, *x.shape), x.dtype), template
-    )
-    pfile = run_dir / POLICY_FILE
+    pfile, nfile = run_dir / POLICY_FILE, run_dir / NETWORK_FILE
     if not pfile.is_file():
         raise CheckpointError(f"{pfile}: missing; the run saved no policy yet")
     try:
-        params = serialization.from_bytes(stacked, pfile.read_bytes())
+        raw = serialization.msgpack_restore(pfile.read_bytes())
+        spec = json.loads(nfile.read_text()) if nfile.is_file() else _spec_from_shapes(raw, cfg)
+        nets = Networks.from_spec(spec, cfg.pearl)
+        template = jax.eval_shape(nets.init, jax.random.PRNGKey(0))  # shapes only: no compute
+        template = {k: template[k] for k in ("policy", "encoder")}
+        stacked = jax.tree_util.tree_map(
+            lambda x: jax.ShapeDtypeStruct((cfg.seeds, *x.shape), x.dtype), template
+        )
+        params = serialization.from_state_dict(stacked, raw)
         shapes = jax.tree_util.tree_map(lambda x: tuple(x.shape), params)
         if shapes != jax.tree_util.tree_map(lambda x: tuple(x.shape), stacked):
-            raise ValueError("parameter shapes differ from the configuration's networks")
+            raise ValueError("parameter shapes differ from the saved networks")
     except Exception as e:
         raise CheckpointError(f"{pfile}: corrupt or from a different network size: {e}") from e
     params = jax.tree_util.tree_map(lambda x: jnp.asarray(x[seed_index]), params)
-    return LoadedPolicy(cfg, params, nets, env.config)
+    return LoadedPolicy(cfg, params, nets)

@@ -31,6 +31,7 @@ from mpcpearl_jax.checkpoint import (
     check_resumable,
     load_config,
     save_config,
+    save_network,
 )
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.envs.types import ConfigError
@@ -199,6 +200,7 @@ def prepare(cfg: ExperimentConfig, out: str | Path, resume: bool = False) -> Ses
     except BaseException:
         ckpt.close()
         raise
+    save_network(run_dir, trainer.nets)  # what load_policy needs beside policy.msgpack
     log_path = run_dir / LOG_FILE
     rows = read_log(log_path, done)
     save_config(run_dir, cfg)

@@ -131,18 +131,64 @@ def kl_to_standard_normal(mean: Array, var: Array) -> Array:
     return 0.5 * jnp.sum(var + mean**2 - 1.0 - jnp.log(var), axis=-1)
 
 
+# the PearlConfig fields that shape the networks (saved with a policy, see `Networks.spec`)
+NETWORK_FIELDS = (
+    "latent_dim",
+    "hidden",
+    "encoder_hidden",
+    "layer_norm",
+    "log_std_min",
+    "log_std_max",
+    "min_posterior_var",
+    "use_context",
+)
+
+
 class Networks:
     """The flax modules of one PEARL agent, built from a config."""
 
     def __init__(self, cfg: PearlConfig, obs_dim: int, action_dim: int):
         self.cfg = cfg
-        self.obs_dim = obs_dim
-        self.action_dim = action_dim
+        self.obs_dim = int(obs_dim)
+        self.action_dim = int(action_dim)
         self.context_dim = 2 * obs_dim + action_dim + 1
         self.policy = PolicyNet(cfg.hidden, action_dim, cfg.log_std_min, cfg.log_std_max)
         self.q = TwinQ(cfg.hidden, cfg.layer_norm)
         self.v = ValueNet(cfg.hidden, cfg.layer_norm)
         self.encoder = ContextEncoder(cfg.encoder_hidden, cfg.latent_dim, cfg.min_posterior_var)
+
+    def spec(self) -> dict[str, Any]:
+        """Everything that shapes the networks, as JSON-ready values (saved beside a policy as
+        network.json, as brax saves its network config): `from_spec` rebuilds them from it
+        alone, without the environment."""
+        out: dict[str, Any] = {
+            "obs_dim": self.obs_dim,
+            "action_dim": self.action_dim,
+            "context_dim": self.context_dim,
+        }
+        for f in NETWORK_FIELDS:
+            v = getattr(self.cfg, f)
+            out[f] = list(v) if isinstance(v, tuple) else v
+        return out
+
+    @classmethod
+    def from_spec(cls, spec: dict[str, Any], cfg: PearlConfig | None = None) -> Networks:
+        """The networks of `spec` (see `spec`); the other PearlConfig fields (losses, schedule)
+        come from `cfg` (default: PearlConfig()). ValueError if the spec is incomplete or its
+        context_dim does not match its obs and action dims."""
+        missing = [f for f in ("obs_dim", "action_dim", *NETWORK_FIELDS) if f not in spec]
+        if missing:
+            raise ValueError(f"network spec lacks {missing}")
+        fields = {
+            f: tuple(spec[f]) if isinstance(spec[f], list) else spec[f] for f in NETWORK_FIELDS
+        }
+        nets = cls((cfg or PearlConfig()).replace(**fields), spec["obs_dim"], spec["action_dim"])
+        if "context_dim" in spec and spec["context_dim"] != nets.context_dim:
+            raise ValueError(
+                f"network spec: context_dim {spec['context_dim']} != 2 obs_dim + action_dim + 1 "
+                f"= {nets.context_dim}"
+            )
+        return nets
 
     def init(self, key: Array) -> dict:
         """Parameters {policy, q, v, encoder} for a fresh agent."""
