@@ -67,11 +67,12 @@ class JaxSide:
         import jax
         import jax.numpy as jnp
 
-        from mpcpearl_jax.pearl.learner import Transitions, init_learner, make_update_fn
+        from mpcpearl_jax.pearl import Networks, Transitions, init_learner, make_update
 
         self.jax = jax
-        update = make_update_fn(cfg, OBS_DIM, ACTION_DIM)
-        init = lambda k: init_learner(k, cfg, OBS_DIM, ACTION_DIM)
+        nets = Networks(cfg, OBS_DIM, ACTION_DIM)
+        update = make_update(nets)
+        init = lambda k: init_learner(k, nets)
         lead = () if seeds is None else (seeds,)
         nb = random_numpy_batch(cfg, seed=0, lead=lead)
         self.batch = Transitions(*(jnp.asarray(nb[k]) for k in Transitions._fields))

@@ -24,7 +24,7 @@ from mpcpearl_jax.grbal.model import (
 )
 from mpcpearl_jax.grbal.planner import mppi
 from mpcpearl_jax.pearl import buffers
-from mpcpearl_jax.pearl.learner import Transitions
+from mpcpearl_jax.pearl.types import Transitions
 
 ZARA = Path(__file__).resolve().parents[2] / "shared" / "data" / "crowds_zara01.txt"
 TINY = ObsLayout(num_humans=1, num_velocity=0, num_static=1)  # obs [x, y, th, hx, hy, sx, sy]

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mpcpearl_jax.envs.types import ConfigError
-from mpcpearl_jax.pearl import PearlConfig, Transitions, init_learner, losses, make_update_fn
+from mpcpearl_jax.pearl import PearlConfig, Transitions, init_learner, losses, make_update
 from mpcpearl_jax.pearl.networks import (
     Networks,
     kl_to_standard_normal,
@@ -105,11 +105,11 @@ def test_gradients_reach_exactly_the_right_parameters():
     assert _nonzero(g[0]["q"]) and _nonzero(g[0]["encoder"])
     assert not _nonzero(g[1])
     # policy loss: no gradient into Q params or the encoder (z detached)
-    z, _, _ = losses.sample_task_z(nets, params["encoder"], ctx, key)
+    z = nets.sample_z(params["encoder"], ctx, key)
     zb = jnp.broadcast_to(z[:, None], batch.obs.shape[:2] + z.shape[-1:])
 
     def pol(p_pi, p_q, p_enc):
-        zz, _, _ = losses.sample_task_z(nets, p_enc, ctx, key)
+        zz = nets.sample_z(p_enc, ctx, key)
         zz = jnp.broadcast_to(jax.lax.stop_gradient(zz)[:, None], zb.shape)
         return losses.policy_loss(
             p_pi, nets, jax.lax.stop_gradient(p_q), batch.obs, zz, key, 1e-3, 1e-3
@@ -127,8 +127,9 @@ def test_gradients_reach_exactly_the_right_parameters():
 
 def test_update_changes_params_and_respects_detach():
     """One full update: policy and V change; the encoder changes only through Q + KL."""
-    state = init_learner(jax.random.PRNGKey(0), SMALL, OBS, A)
-    update = make_update_fn(SMALL, OBS, A)
+    nets = Networks(SMALL, OBS, A)
+    state = init_learner(jax.random.PRNGKey(0), nets)
+    update = make_update(nets)
     new, m = update(
         state, _batch(jax.random.PRNGKey(1)), _context(jax.random.PRNGKey(2)), jax.random.PRNGKey(3)
     )
@@ -144,10 +145,9 @@ def test_update_changes_params_and_respects_detach():
 
 
 def test_update_traces_once():
-    state = init_learner(jax.random.PRNGKey(0), SMALL, OBS, A)
-    from mpcpearl_jax.pearl.learner import make_update_body
-
-    body = chex.assert_max_traces(make_update_body(SMALL, OBS, A), n=1)
+    nets = Networks(SMALL, OBS, A)
+    state = init_learner(jax.random.PRNGKey(0), nets)
+    body = chex.assert_max_traces(make_update(nets, jit=False), n=1)
     upd = jax.jit(body)
     for i in range(3):
         state, _ = upd(
@@ -163,8 +163,8 @@ def test_sac_mode_uses_constant_latent():
     cfg = SMALL.replace(use_context=False)
     nets = Networks(cfg, OBS, A)
     params = nets.init(jax.random.PRNGKey(0))
-    z, mean, var = losses.sample_task_z(
-        nets, params["encoder"], _context(jax.random.PRNGKey(1)), jax.random.PRNGKey(2)
+    z, mean, var = nets.posterior_sample(
+        params["encoder"], _context(jax.random.PRNGKey(1)), jax.random.PRNGKey(2)
     )
     assert not jnp.any(z) and float(jnp.sum(kl_to_standard_normal(mean, var))) == 0.0
 

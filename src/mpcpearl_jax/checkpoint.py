@@ -267,10 +267,7 @@ class LoadedPolicy:
 
     def infer_z(self, context: Array, mask: Array | None = None, key: Array | None = None):
         context, mask = self._context(context, mask)
-        if not self.nets.cfg.use_context:
-            return jnp.zeros((self.latent_dim,))
-        mean, var = self.nets.posterior(self.params["encoder"], context, mask)
-        return mean if key is None else mean + jnp.sqrt(var) * jax.random.normal(key, mean.shape)
+        return self.nets.sample_z(self.params["encoder"], context, key, mask)
 
     def act(self, obs: Array, z: Array, key: Array | None = None) -> Array:
         obs = self._obs(obs)

@@ -17,8 +17,8 @@ from jax import Array
 
 from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import TaskParams
-from mpcpearl_jax.pearl.learner import Transitions
 from mpcpearl_jax.pearl.networks import Networks
+from mpcpearl_jax.pearl.types import Transitions
 
 
 class Episodes(NamedTuple):

@@ -15,18 +15,8 @@ from jax import Array
 from mpcpearl_jax import metrics
 from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import TaskParams
-from mpcpearl_jax.pearl.learner import Transitions, context_from
 from mpcpearl_jax.pearl.networks import Networks
-
-
-def _sample_z(nets: Networks, enc_params, ctx: Array, mask: Array, key: Array) -> Array:
-    """z ~ q(z | masked context [C, D]); z ~ N(0, I) when the mask is empty (or no encoder)."""
-    mean, var = nets.posterior(enc_params, ctx, mask)
-    has = jnp.any(mask > 0) & nets.cfg.use_context
-    mean = jnp.where(has, mean, 0.0)
-    var = jnp.where(has, var, 1.0)
-    z = mean + jnp.sqrt(var) * jax.random.normal(key, mean.shape)
-    return z if nets.cfg.use_context else jnp.zeros_like(z)
+from mpcpearl_jax.pearl.types import Transitions, context_from
 
 
 def _episode(
@@ -47,14 +37,15 @@ def _episode(
     """
     horizon = env.config.horizon
     k0, k_run = jax.random.split(key)
-    z0 = _sample_z(nets, params["encoder"], ctx, mask, k0)
+    # z ~ q(z | masked context so far); the prior N(0, I) while the mask is empty
+    z0 = nets.sample_z(params["encoder"], ctx, k0, mask)
     obs0, state0 = env.reset(k0, task)
 
     def body(carry, xs):
         obs, state, z, ctx, mask = carry
         t, k = xs
         if t_update is not None:
-            z_new = _sample_z(nets, params["encoder"], ctx, mask, k)
+            z_new = nets.sample_z(params["encoder"], ctx, k, mask)
             z = jnp.where((t % t_update == 0) & (t > 0), z_new, z)
         a = nets.act(params["policy"], obs, z, None)
         nobs, nstate, r, _, info = env.step(k, state, a, task)

@@ -27,8 +27,9 @@ from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.envs import can_redraw, make_env, make_tasks, redraw_tasks
 from mpcpearl_jax.envs.types import ConfigError, TaskParams
 from mpcpearl_jax.pearl import buffers
-from mpcpearl_jax.pearl.learner import LearnerState, context_from, init_learner, make_update_body
+from mpcpearl_jax.pearl.learner import LearnerState, init_learner, make_update
 from mpcpearl_jax.pearl.networks import Networks
+from mpcpearl_jax.pearl.types import context_from
 
 
 class TrainingDiverged(RuntimeError):
@@ -104,7 +105,7 @@ class Trainer:
         self._collector = collect_lib.make_collector(
             self.env, self.nets, self.bridge, tc.eps, demo_prob=tc.mpc_demo_step_prob
         )
-        self._update_body = make_update_body(cfg.pearl, self.obs_dim, self.action_dim)
+        self._update_body = make_update(self.nets, jit=False)
         self.collect_phase = jax.jit(
             self._collect_phase, static_argnums=(2, 3, 4, 5), donate_argnums=0
         )
@@ -131,9 +132,7 @@ class Trainer:
         cfg = self.cfg
         keys = jnp.stack([jax.random.PRNGKey(cfg.seed + s) for s in range(cfg.seeds)])
         keys, sub = _split_keys(keys, 1)
-        learner = jax.vmap(lambda k: init_learner(k, cfg.pearl, self.obs_dim, self.action_dim))(
-            sub[:, 0]
-        )
+        learner = jax.vmap(lambda k: init_learner(k, self.nets))(sub[:, 0])
         # phases donate their input state: give the learner's aliased leaves (target V = V at
         # init) their own buffers; the replay buffers are created unaliased and at full size once
         learner = jax.tree_util.tree_map(lambda x: jnp.array(x, copy=True), learner)
@@ -154,15 +153,11 @@ class Trainer:
 
         def per_seed(learner, enc, key, rows_s):
             k_c, k_z = jax.random.split(key)
-            shape = (rows_s.shape[0], cfg.latent_dim)
-            if not cfg.use_context:
-                return jnp.zeros(shape)
-            noise = jax.random.normal(k_z, shape)
-            if not posterior:
-                return noise
+            if not posterior:  # the prior N(0, I) (z = 0 without an encoder)
+                shape = (rows_s.shape[0], cfg.latent_dim)
+                return jax.random.normal(k_z, shape) if cfg.use_context else jnp.zeros(shape)
             ctx = context_from(buffers.sample(enc, k_c, rows_s, cfg.context_size))
-            mean, var = self.nets.posterior(learner.params["encoder"], ctx)
-            return mean + jnp.sqrt(var) * noise
+            return self.nets.sample_z(learner.params["encoder"], ctx, k_z)
 
         return jax.vmap(per_seed)(state.learner, state.enc, keys, rows)
 

@@ -30,8 +30,8 @@ import optax
 from flax import struct
 from jax import Array
 
-from mpcpearl_jax.pearl.learner import Transitions
 from mpcpearl_jax.pearl.networks import MLP
+from mpcpearl_jax.pearl.types import Transitions
 
 Params = dict
 

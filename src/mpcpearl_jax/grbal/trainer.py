@@ -44,7 +44,7 @@ from mpcpearl_jax.grbal.model import (
 )
 from mpcpearl_jax.grbal.planner import Planner
 from mpcpearl_jax.pearl import buffers
-from mpcpearl_jax.pearl.learner import Transitions
+from mpcpearl_jax.pearl.types import Transitions
 
 
 class TrainingDiverged(RuntimeError):

@@ -1,14 +1,9 @@
 """PEARL (SAC + probabilistic context encoder) in JAX: networks, losses, buffers, learner."""
 
 from mpcpearl_jax.pearl.config import PearlConfig
-from mpcpearl_jax.pearl.learner import (
-    LearnerState,
-    Transitions,
-    context_from,
-    init_learner,
-    make_update_fn,
-)
+from mpcpearl_jax.pearl.learner import LearnerState, init_learner, make_update
 from mpcpearl_jax.pearl.networks import Networks
+from mpcpearl_jax.pearl.types import Transitions, context_from
 
 __all__ = [
     "LearnerState",
@@ -17,5 +12,5 @@ __all__ = [
     "Transitions",
     "context_from",
     "init_learner",
-    "make_update_fn",
+    "make_update",
 ]

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from flax import struct
 from jax import Array
 
-from mpcpearl_jax.pearl.learner import Transitions
+from mpcpearl_jax.pearl.types import Transitions
 
 
 class TaskBuffer(struct.PyTreeNode):

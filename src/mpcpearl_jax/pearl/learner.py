@@ -1,12 +1,10 @@
-"""The jitted PEARL update (Algorithm 1, training stage) and its state.
+"""The PEARL update (Algorithm 1, training stage) and its state.
 
-`make_update_fn` gives one gradient step over a meta-batch; `make_update_scan` runs N of them
-as one `lax.scan` that samples meta-batches from device buffers.
+`make_update(nets)` builds one gradient step over a meta-batch; the trainer composes it into a
+`lax.scan` over steps that samples meta-batches from device buffers.
 """
 
 from __future__ import annotations
-
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -17,21 +15,9 @@ from jax import Array
 from mpcpearl_jax.pearl import losses
 from mpcpearl_jax.pearl.config import PearlConfig
 from mpcpearl_jax.pearl.networks import Networks
+from mpcpearl_jax.pearl.types import Transitions, context_from
 
-
-class Transitions(NamedTuple):
-    """A batch of transitions; leading shape [...] e.g. [MB, B]."""
-
-    obs: Array  # [..., O]
-    action: Array  # [..., A] normalized
-    reward: Array  # [...] unscaled
-    next_obs: Array  # [..., O]
-    done: Array  # [...] 1.0 on true termination (never in these tasks: time limits bootstrap)
-
-
-def context_from(t: Transitions) -> Array:
-    """Context rows (s, a, r, s') [..., 2 O + A + 1] with the unscaled reward (method §7)."""
-    return jnp.concatenate([t.obs, t.action, t.reward[..., None], t.next_obs], axis=-1)
+__all__ = ["LearnerState", "Transitions", "context_from", "init_learner", "make_update"]
 
 
 @struct.dataclass
@@ -51,10 +37,10 @@ def _optimizer(cfg: PearlConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), adam)
 
 
-def init_learner(key: Array, cfg: PearlConfig, obs_dim: int, action_dim: int) -> LearnerState:
-    nets = Networks(cfg, obs_dim, action_dim)
+def init_learner(key: Array, nets: Networks) -> LearnerState:
+    """Fresh parameters, optimizer states and target V of the agent `nets`."""
     params = nets.init(key)
-    opt = _optimizer(cfg)
+    opt = _optimizer(nets.cfg)
     opt_state = {
         "q_enc": opt.init({"q": params["q"], "encoder": params["encoder"]}),
         "policy": opt.init(params["policy"]),
@@ -133,11 +119,11 @@ def _update(
     return new_state, metrics
 
 
-def make_update_body(cfg: PearlConfig, obs_dim: int, action_dim: int):
-    """Un-jitted `update(state, batch [MB, B], context [MB, C, D], key, demo_mask=None) ->
-    (state, metrics)`, for composing into scans (see `trainer`)."""
-    nets = Networks(cfg, obs_dim, action_dim)
-    opt = _optimizer(cfg)
+def make_update(nets: Networks, jit: bool = True):
+    """`update(state, batch [MB, B], context [MB, C, D], key, demo_mask=None) -> (state,
+    metrics)`: one gradient step of the agent `nets`; jit=False gives the plain function, for
+    composing into scans (see `trainer`)."""
+    cfg, opt = nets.cfg, _optimizer(nets.cfg)
 
     def update(
         state: LearnerState,
@@ -148,9 +134,4 @@ def make_update_body(cfg: PearlConfig, obs_dim: int, action_dim: int):
     ):
         return _update(nets, cfg, opt, state, batch, context, key, demo_mask)
 
-    return update
-
-
-def make_update_fn(cfg: PearlConfig, obs_dim: int, action_dim: int):
-    """The jitted `make_update_body`: one gradient step."""
-    return jax.jit(make_update_body(cfg, obs_dim, action_dim))
+    return jax.jit(update) if jit else update

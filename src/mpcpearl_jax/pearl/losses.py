@@ -8,22 +8,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jax import Array
 
 from mpcpearl_jax.pearl.networks import Networks, kl_to_standard_normal, tanh_gaussian
-
-
-def sample_task_z(nets: Networks, enc_params, context: Array, key: Array):
-    """Posterior q_phi(z | c^i) per task and a reparameterised sample.
-
-    context [MB, C, D] -> z [MB, L], (mean, var) [MB, L].
-    """
-    mean, var = nets.posterior(enc_params, context)
-    if not nets.cfg.use_context:  # plain SAC: a constant latent, no encoder, no KL
-        zeros = jnp.zeros_like(mean)
-        return zeros, zeros, jnp.ones_like(var)
-    z = mean + jnp.sqrt(var) * jax.random.normal(key, mean.shape)
-    return z, mean, var
 
 
 def critic_encoder_loss(
@@ -41,7 +27,7 @@ def critic_encoder_loss(
 
     The encoder gets gradients from the Q loss and the KL only. Returns (loss, aux).
     """
-    z, mean, var = sample_task_z(nets, q_enc_params["encoder"], context, key)
+    z, mean, var = nets.posterior_sample(q_enc_params["encoder"], context, key)  # [MB, L]
     zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])  # [MB, B, L]
     q1, q2 = nets.q_values(q_enc_params["q"], batch.obs, batch.action, zb)
     target_v = nets.value(target_v_params, batch.next_obs, jax.lax.stop_gradient(zb))

@@ -224,6 +224,41 @@ class Networks:
         mean, var = self.factors(enc_params, context)
         return product_of_gaussians(mean, var, mask)
 
+    def posterior_sample(
+        self,
+        enc_params: Any,
+        context: Array,
+        key: Array | None = None,
+        mask: Array | None = None,
+    ) -> tuple[Array, Array, Array]:
+        """The one sampler of z ~ q(z | c) (PEARL eq. for q_phi): (z, mean, var) [..., L].
+
+        context [..., C, D]; mask [..., C] (1 = use the row): where it selects no row, q is the
+        prior N(0, I). z = mean + sqrt(var) * noise (reparameterised), the posterior mean when
+        key is None. Without an encoder (`use_context` false, plain SAC) z = 0 and (mean, var) =
+        (0, 1), so the KL term vanishes.
+        """
+        shape = context.shape[:-2] + (self.cfg.latent_dim,)
+        if not self.cfg.use_context:
+            return jnp.zeros(shape), jnp.zeros(shape), jnp.ones(shape)
+        mean, var = self.posterior(enc_params, context, mask)
+        if mask is not None:
+            has = jnp.any(mask > 0, axis=-1, keepdims=True)
+            mean, var = jnp.where(has, mean, 0.0), jnp.where(has, var, 1.0)
+        if key is None:
+            return mean, mean, var
+        return mean + jnp.sqrt(var) * jax.random.normal(key, mean.shape), mean, var
+
+    def sample_z(
+        self,
+        enc_params: Any,
+        context: Array,
+        key: Array | None = None,
+        mask: Array | None = None,
+    ) -> Array:
+        """z [..., L] ~ q(z | context [..., C, D]): see `posterior_sample`."""
+        return self.posterior_sample(enc_params, context, key, mask)[0]
+
     def act(self, policy_params: Any, obs: Array, z: Array, key: Array | None) -> Array:
         """Normalized action [..., A]: a tanh-Gaussian sample, or tanh(mean) when key is None."""
         mean, log_std = self.policy_out(policy_params, obs, z)
