@@ -274,7 +274,7 @@ def summary_rows(record: dict[str, Any]) -> list[dict[str, Any]]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
-    from mpcpearl_jax.envs.types import ConfigError
+    from mpcpearl_jax.errors import ConfigError
 
     try:
         cfg = build_config(args, args.env, **ENV_EXTRAS[args.env])
@@ -343,7 +343,7 @@ def train_for(
     "diverged: ..." (then `state` is the last one evaluated and must not be used any more: the
     failed iteration donated it).
     """
-    from mpcpearl_jax.trainer import TrainingDiverged
+    from mpcpearl_jax.errors import TrainingDiverged
 
     ups = trainer.cfg.train.updates_per_iteration
     points: list[dict[str, Any]] = []

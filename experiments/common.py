@@ -11,7 +11,8 @@ import typing
 from pathlib import Path
 
 from mpcpearl_jax.config import PRESETS, ExperimentConfig, TrainConfig, preset
-from mpcpearl_jax.envs.types import ConfigError, NavConfig
+from mpcpearl_jax.envs.types import NavConfig
+from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.mpc.config import MPCConfig
 from mpcpearl_jax.pearl.config import PearlConfig
 
@@ -202,7 +203,7 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
     """Exit codes: 0 done, 2 a command-line error (config, data, checkpoint, permissions: one
     line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (resumable)."""
     args = parser(env).parse_args(argv)
-    from mpcpearl_jax.checkpoint import CheckpointError
+    from mpcpearl_jax.errors import CheckpointError, TrainingDiverged
     from mpcpearl_jax.run import (
         RunDirError,
         RunInterrupted,
@@ -211,7 +212,6 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         prepare,
         train_session,
     )
-    from mpcpearl_jax.trainer import TrainingDiverged
 
     def fail(e: BaseException, code: int = 2) -> int:
         if args.debug:

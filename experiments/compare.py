@@ -31,7 +31,7 @@ def _json(path: Path) -> dict:
 
 
 def _load(run: Path) -> tuple[dict, list[dict], dict | None]:
-    from mpcpearl_jax.checkpoint import CheckpointError
+    from mpcpearl_jax.errors import CheckpointError
     from mpcpearl_jax.run import LOG_FILE, read_log
 
     if not run.is_dir():

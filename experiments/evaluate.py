@@ -36,7 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from mpcpearl_jax.envs import SPLITS, make_env, make_tasks
-from mpcpearl_jax.envs.types import ConfigError, NavConfig, TaskParams
+from mpcpearl_jax.envs.types import NavConfig, TaskParams
+from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.metrics import METRIC_NAMES
 
 CONTROLLERS = ("policy", "gp-mpc", "policy+mpc")
@@ -390,9 +391,9 @@ def tables(record: dict) -> str:
 
 def write_figures(s: Setup, result: dict, animate: bool) -> list[Path]:
     """A trajectory PNG (and a GIF with animate) of the first evaluated seed on each figure
-    task; the sidewalk in the paper's sidewalk style."""
+    task, in the family's style (its registered viewer)."""
     from mpcpearl_jax import animate as anim_lib
-    from mpcpearl_jax import viz
+    from mpcpearl_jax.envs import save_trajectory
 
     written = []
     who = f"seed {s.seed_ids[0]}" if s.seed_ids else s.label
@@ -402,12 +403,7 @@ def write_figures(s: Setup, result: dict, animate: bool) -> list[Path]:
         pos, col = np.asarray(result["position"][0, j]), np.asarray(result["collision"][0, j])
         title = f"{s.label}{f' ({who})' if s.seed_ids else ''}, {s.env_name} {s.split} task {t}"
         png = s.out / f"trajectory_{s.split}{t}.png"
-        if s.env_name == "sidewalk":
-            from mpcpearl_jax.envs.sidewalk import plot_sidewalk
-
-            plot_sidewalk(task, s.env_config, {who: (pos, col)}, png, title=title)
-        else:
-            viz.save_trajectory_figure(png, task, {who: pos}, {who: col}, s.env_config, title)
+        save_trajectory(s.env_name, png, task, {who: (pos, col)}, s.env_config, title)
         written.append(png)
         if animate:
             gif = anim_lib.animate_result(
@@ -471,7 +467,7 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
 
 def main(argv: list[str] | None = None) -> int:
     args = make_parser().parse_args(argv)
-    from mpcpearl_jax.checkpoint import CheckpointError
+    from mpcpearl_jax.errors import CheckpointError
 
     try:
         s = setup(args)

@@ -114,17 +114,15 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _plot(args, env, tasks, traj) -> None:
-    try:
-        from mpcpearl_jax import viz
-    except ImportError:
-        return
+    from mpcpearl_jax.envs import save_trajectory
+
     i = args.plot_task
     params = jax.tree_util.tree_map(lambda a: a[i], tasks)
-    png = viz.save_trajectory_figure(
+    png = save_trajectory(
+        args.env,
         args.out / f"{args.env}_{args.split}_task{i}.png",
         params,
-        {"GP-MPC": traj["position"][i]},
-        {"GP-MPC": traj["collision"][i]},
+        {"GP-MPC": (traj["position"][i], traj["collision"][i])},
         env.config,
         title=f"GP-MPC, {args.env} {args.split} task {i}",
     )

@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.grbal.config import PRESETS, GrbalExperimentConfig, preset
 
 ONLINE_HEADLINE = {"sidewalk": True}  # online adaptation is the sidewalk headline (paper)
@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    from mpcpearl_jax.checkpoint import CheckpointError
+    from mpcpearl_jax.errors import CheckpointError
     from mpcpearl_jax.grbal.run import final_evaluation, train
 
     out = args.out or Path("runs") / f"{args.env}-{args.preset}-grbal"

@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
-from mpcpearl_jax import viz  # noqa: E402
+from mpcpearl_jax.envs import drawing  # noqa: E402
 from mpcpearl_jax.envs.types import NavConfig, TaskParams  # noqa: E402
 
 POLICY_COLOR = "0.6"
@@ -127,8 +127,8 @@ def _figure(task, config, pos, col, head, acted_by, steps, title, width_in):
     fig = plt.figure(figsize=(width_in, height))
     ax = fig.add_axes((0.01, footer / height, 0.98, width_in * aspect / height))
     ax.set_axis_off()
-    viz._draw_arena(ax, config)
-    viz._draw_static(ax, task, config)
+    drawing._draw_arena(ax, config)
+    drawing._draw_static(ax, task, config)
     flash = Rectangle(lo, *(hi - lo), fill=False, edgecolor=COLLISION_COLOR, lw=4, zorder=8)
     flash.set_visible(False)
     ax.add_patch(flash)
@@ -146,9 +146,9 @@ def _figure(task, config, pos, col, head, acted_by, steps, title, width_in):
     r_ring = config.human_radius + config.r_safe
     people = []
     for _ in range(humans.shape[1]):
-        body = Circle((0, 0), config.human_radius, color=viz.HUMAN_COLOR, alpha=0.55, zorder=3)
-        ring = Circle((0, 0), r_ring, fill=False, color=viz.HUMAN_COLOR, lw=0.8, ls="--")
-        (trail,) = ax.plot([], [], "-", color=viz.HUMAN_COLOR, lw=0.8, alpha=0.5, zorder=2)
+        body = Circle((0, 0), config.human_radius, color=drawing.HUMAN_COLOR, alpha=0.55, zorder=3)
+        ring = Circle((0, 0), r_ring, fill=False, color=drawing.HUMAN_COLOR, lw=0.8, ls="--")
+        (trail,) = ax.plot([], [], "-", color=drawing.HUMAN_COLOR, lw=0.8, alpha=0.5, zorder=2)
         ax.add_patch(body)
         ax.add_patch(ring)
         people.append((body, ring, trail))

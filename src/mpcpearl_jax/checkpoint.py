@@ -33,12 +33,8 @@ from flax import serialization
 from jax import Array
 
 from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.pearl.networks import Networks
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint is missing, corrupt, or does not match the configuration."""
-
 
 CONFIG_FILE = "config.json"
 POLICY_FILE = "policy.msgpack"

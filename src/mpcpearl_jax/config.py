@@ -11,7 +11,7 @@ import json
 import math
 from typing import Any, Self
 
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.pearl.config import PearlConfig
 
 

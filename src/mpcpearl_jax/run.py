@@ -26,7 +26,6 @@ import numpy as np
 
 from mpcpearl_jax.checkpoint import (
     Checkpointer,
-    CheckpointError,
     atomic_write,
     check_resumable,
     load_config,
@@ -34,7 +33,8 @@ from mpcpearl_jax.checkpoint import (
     save_network,
 )
 from mpcpearl_jax.config import ExperimentConfig
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.distributed import first_local, is_primary, to_host
+from mpcpearl_jax.errors import CheckpointError, ConfigError
 from mpcpearl_jax.metrics import METRIC_NAMES
 from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState
 
@@ -419,19 +419,14 @@ def _episode_gif(trainer: Trainer, raw: dict, run_dir: Path, label: str) -> Path
 
 
 def _trajectory_figure(trainer: Trainer, raw: dict, run_dir: Path, n: int = 4) -> None:
-    """The first n test tasks with seed 0's evaluated episode (paper-style figures)."""
-    from mpcpearl_jax import viz
+    """The first n test tasks with seed 0's evaluated episode (paper-style figures, in the
+    family's style: its registered viewer)."""
+    from mpcpearl_jax.envs import save_trajectory
 
     for i in range(min(n, int(trainer.test_tasks.start.shape[0]))):
         task = jax.tree_util.tree_map(lambda x, i=i: x[i], trainer.test_tasks)
         pos = np.asarray(raw["position"][0, i])
         col = np.asarray(raw["collision"][0, i])
         path = run_dir / f"trajectory_test{i}.png"
-        if trainer.cfg.env == "sidewalk":  # the paper's sidewalk style: pedestrians as circles
-            from mpcpearl_jax.envs.sidewalk import plot_sidewalk
-
-            plot_sidewalk(task, trainer.env.config, {"policy (seed 0)": (pos, col)}, path)
-        else:
-            viz.save_trajectory_figure(
-                path, task, {"policy (seed 0)": pos}, {"policy (seed 0)": col}, trainer.env.config
-            )
+        robots = {"policy (seed 0)": (pos, col)}
+        save_trajectory(trainer.cfg.env, path, task, robots, trainer.env.config)

@@ -25,15 +25,12 @@ from mpcpearl_jax import collect as collect_lib
 from mpcpearl_jax import evaluate as eval_lib
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.envs import can_redraw, make_env, make_tasks, redraw_tasks
-from mpcpearl_jax.envs.types import ConfigError, TaskParams
+from mpcpearl_jax.envs.types import TaskParams
+from mpcpearl_jax.errors import ConfigError, TrainingDiverged
 from mpcpearl_jax.pearl import buffers
 from mpcpearl_jax.pearl.learner import LearnerState, init_learner, make_update
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import context_from
-
-
-class TrainingDiverged(RuntimeError):
-    """A loss became NaN/inf; the last good checkpoint is kept."""
 
 
 class IterationAbandoned(Exception):

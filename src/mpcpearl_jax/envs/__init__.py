@@ -1,16 +1,20 @@
 """Navigation environments: `make_env(name)` and `make_tasks(name, split, seed=0)`.
 
-Task families register a config and a task builder here; see `register` to add your own.
+Task families register a config, a task builder and optionally a redraw function and a figure
+viewer here (each family's package registers itself on import: `restaurant`, `sidewalk`); see
+`register` to add your own.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
 from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.numpy_ref import NumpyNavEnv, task_to_numpy
-from mpcpearl_jax.envs.types import ConfigError, EnvState, NavConfig, StepInfo, TaskParams
+from mpcpearl_jax.envs.types import EnvState, NavConfig, StepInfo, TaskParams
+from mpcpearl_jax.errors import ConfigError
 
 SPLITS = ("train", "test", "ood", "val")
 
@@ -18,6 +22,8 @@ SPLITS = ("train", "test", "ood", "val")
 _REGISTRY: dict[str, tuple[NavConfig, Callable[..., TaskParams]]] = {}
 # name -> redraw(seed, config, task_ids, stream, **kwargs) -> stacked TaskParams (optional)
 _REDRAW: dict[str, Callable[..., TaskParams]] = {}
+# name -> viewer(path, task, robots, config, title=None) -> Path (optional; see save_trajectory)
+_VIEWER: dict[str, Callable[..., Path]] = {}
 
 
 def register(
@@ -25,17 +31,21 @@ def register(
     config: NavConfig,
     builder: Callable[..., TaskParams],
     redraw: Callable[..., TaskParams] | None = None,
+    viewer: Callable[..., Path] | None = None,
 ) -> None:
     """Register a task family so that `make_env(name)` and `make_tasks(name, ...)` know it.
 
     `redraw(seed, config, task_ids, stream, **kwargs)`, optional, returns the training tasks
     `task_ids` with their people's behaviour drawn anew from the random stream `stream` (a tuple
-    of ints); it backs the `TrainConfig.redraw_behaviours` extension."""
+    of ints); it backs the `TrainConfig.redraw_behaviours` extension.
+    `viewer(path, task, robots, config, title=None)`, optional, saves the family's trajectory
+    figure (see `save_trajectory`); default: `envs.drawing.save_robots_figure`."""
     _REGISTRY[name] = (config, builder)
-    if redraw is not None:
-        _REDRAW[name] = redraw
-    else:
-        _REDRAW.pop(name, None)
+    for table, fn in ((_REDRAW, redraw), (_VIEWER, viewer)):
+        if fn is not None:
+            table[name] = fn
+        else:
+            table.pop(name, None)
 
 
 def can_redraw(name: str) -> bool:
@@ -87,31 +97,27 @@ def make_tasks(
     return builder(split, seed, config or default, **kwargs)
 
 
-def _restaurant_builder(split: str, seed: int, config: NavConfig, **kwargs: Any) -> TaskParams:
-    from mpcpearl_jax.envs.restaurant import make_restaurant_tasks
-
-    unknown = set(kwargs) - {"train_behaviours"}
-    if unknown:
-        raise TypeError(f"make_tasks('restaurant') got unexpected arguments {sorted(unknown)}")
-    return make_restaurant_tasks(split, seed, config, **kwargs)
-
-
-def _restaurant_redraw(
-    seed: int, config: NavConfig, task_ids: Any, stream: tuple[int, ...], **kwargs: Any
-) -> TaskParams:
-    from mpcpearl_jax.envs.restaurant import redraw_train_tasks
-
-    return redraw_train_tasks(seed, config, task_ids, stream, **kwargs)
+def save_trajectory(
+    name: str,
+    path: str | Path,
+    task: TaskParams,
+    robots: Mapping[str, tuple[Any, Any]],
+    config: NavConfig | None = None,
+    title: str | None = None,
+) -> Path:
+    """Save the trajectory figure of one task of family `name` in the family's style (its
+    registered viewer, or the shared default). robots: label -> (positions [T + 1, 2],
+    collisions [T] bool or None). Returns the path."""
+    default, _ = _lookup(name)
+    viewer = _VIEWER.get(name)
+    if viewer is None:
+        from mpcpearl_jax.envs.drawing import save_robots_figure as viewer
+    return viewer(Path(path), task, robots, config or default, title)
 
 
 def _register_builtin() -> None:
-    from mpcpearl_jax.envs.restaurant import RESTAURANT_CONFIG
-
-    register("restaurant", RESTAURANT_CONFIG, _restaurant_builder, _restaurant_redraw)
-    try:  # the sidewalk family registers itself when present
-        from mpcpearl_jax.envs import sidewalk  # noqa: F401
-    except ImportError:
-        pass
+    """The built-in families register themselves on import (an import error is an error)."""
+    from mpcpearl_jax.envs import restaurant, sidewalk  # noqa: F401
 
 
 _register_builtin()
@@ -143,5 +149,6 @@ __all__ = [
     "make_tasks",
     "redraw_tasks",
     "register",
+    "save_trajectory",
     "task_to_numpy",
 ]

@@ -20,9 +20,7 @@ import jax.numpy as jnp
 from flax import struct
 from jax import Array
 
-
-class ConfigError(ValueError):
-    """A configuration value is invalid; the message names the field."""
+from mpcpearl_jax.errors import ConfigError  # its home is errors.py (re-exported here)
 
 
 def _check(cond: bool, cls_name: str, field: str, msg: str) -> None:

@@ -13,7 +13,7 @@ import math
 from typing import Any
 
 from mpcpearl_jax.config import SerializableConfig
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 
 ROBOT_MODELS = ("learned", "known")
 

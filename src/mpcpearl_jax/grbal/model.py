@@ -65,11 +65,11 @@ def layout_of(env, tasks) -> ObsLayout:
     """The observation layout of `env` (a NavEnv) on its tasks (stacked or single)."""
     cfg = env.config
     if cfg.observe_relative:
-        from mpcpearl_jax.envs.types import ConfigError
+        from mpcpearl_jax.errors import ConfigError
 
         raise ConfigError("env.observe_relative: not supported by GrBAL's learned model")
     if cfg.sensing_radius > 0:
-        from mpcpearl_jax.envs.types import ConfigError
+        from mpcpearl_jax.errors import ConfigError
 
         raise ConfigError("env.sensing_radius: not supported by GrBAL's learned model")
     h = int(tasks.human_pos.shape[-2])

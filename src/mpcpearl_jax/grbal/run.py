@@ -15,7 +15,8 @@ from typing import Any
 import jax
 import numpy as np
 
-from mpcpearl_jax.checkpoint import CONFIG_FILE, Checkpointer, CheckpointError, atomic_write
+from mpcpearl_jax.checkpoint import CONFIG_FILE, Checkpointer, atomic_write
+from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
 from mpcpearl_jax.run import (
@@ -190,7 +191,7 @@ def final_evaluation(trainer: GrbalTrainer, state: GrbalState, out: str | Path) 
 
 def trajectory_figures(trainer: GrbalTrainer, raw: dict, run_dir: Path, n: int = 4) -> None:
     """The first n test tasks, seed 0: the evaluated episode after adaptation and the online one."""
-    from mpcpearl_jax import viz
+    from mpcpearl_jax.envs import save_trajectory
 
     for i in range(min(n, int(trainer.test_tasks.start.shape[0]))):
         task = jax.tree_util.tree_map(lambda x, i=i: x[i], trainer.test_tasks)
@@ -199,16 +200,5 @@ def trajectory_figures(trainer: GrbalTrainer, raw: dict, run_dir: Path, n: int =
             for mode, r in raw.items()
         }
         path = run_dir / f"trajectory_test{i}.png"
-        if trainer.cfg.env == "sidewalk":  # the paper's sidewalk style
-            from mpcpearl_jax.envs.sidewalk import plot_sidewalk
-
-            plot_sidewalk(task, trainer.env.config, paths, path)
-        else:
-            viz.save_trajectory_figure(
-                path,
-                task,
-                {k: p for k, (p, _) in paths.items()},
-                {k: c for k, (_, c) in paths.items()},
-                trainer.env.config,
-                title=f"GrBAL, {trainer.cfg.env} test task {i}",
-            )
+        title = f"GrBAL, {trainer.cfg.env} test task {i}"
+        save_trajectory(trainer.cfg.env, path, task, paths, trainer.env.config, title)

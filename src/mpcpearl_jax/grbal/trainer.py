@@ -31,7 +31,8 @@ from jax import Array
 
 from mpcpearl_jax import evaluate as eval_lib
 from mpcpearl_jax.envs import make_env, make_tasks
-from mpcpearl_jax.envs.types import ConfigError, TaskParams
+from mpcpearl_jax.envs.types import TaskParams
+from mpcpearl_jax.errors import ConfigError, TrainingDiverged
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.model import (
     DynamicsModel,
@@ -45,10 +46,6 @@ from mpcpearl_jax.grbal.model import (
 from mpcpearl_jax.grbal.planner import Planner
 from mpcpearl_jax.pearl import buffers
 from mpcpearl_jax.pearl.types import Transitions
-
-
-class TrainingDiverged(RuntimeError):
-    """The model loss became NaN/inf; the last good checkpoint is kept."""
 
 
 class GrbalState(struct.PyTreeNode):

@@ -6,7 +6,7 @@ import dataclasses
 import math
 from typing import Any
 
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 
 
 @dataclasses.dataclass(frozen=True)

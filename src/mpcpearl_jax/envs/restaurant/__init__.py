@@ -1,5 +1,8 @@
-"""The restaurant task family (method §3)."""
+"""The restaurant task family (method §3); registers itself with `mpcpearl_jax.envs`."""
 
+from typing import Any
+
+from mpcpearl_jax.envs import register
 from mpcpearl_jax.envs.restaurant.generator import (
     TABLE_CONFIGS,
     CrowdModel,
@@ -8,7 +11,7 @@ from mpcpearl_jax.envs.restaurant.generator import (
     simulate_crowd,
     table_layout,
 )
-from mpcpearl_jax.envs.types import NavConfig
+from mpcpearl_jax.envs.types import NavConfig, TaskParams
 
 RESTAURANT_CONFIG = NavConfig(
     name="restaurant",
@@ -19,6 +22,16 @@ RESTAURANT_CONFIG = NavConfig(
     arena_hi=(5.0, 5.0),
     observe_static=True,
 )
+
+
+def _builder(split: str, seed: int, config: NavConfig, **kwargs: Any) -> TaskParams:
+    unknown = set(kwargs) - {"train_behaviours"}
+    if unknown:
+        raise TypeError(f"make_tasks('restaurant') got unexpected arguments {sorted(unknown)}")
+    return make_restaurant_tasks(split, seed, config, **kwargs)
+
+
+register("restaurant", RESTAURANT_CONFIG, _builder, redraw=redraw_train_tasks)
 
 __all__ = [
     "RESTAURANT_CONFIG",

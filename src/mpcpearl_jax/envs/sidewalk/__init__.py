@@ -47,7 +47,13 @@ def _builder(split: str, seed: int, config: NavConfig, **kwargs: Any) -> TaskPar
     return make_sidewalk_tasks(split, seed, config, **kwargs)
 
 
-register("sidewalk", SIDEWALK_CONFIG, _builder)
+def _viewer(path, task: TaskParams, robots, config: NavConfig, title: str | None = None):
+    """The paper's sidewalk style: pedestrians as circles, buildings as grey boxes."""
+    plot_sidewalk(task, config, robots, path, title=title)
+    return path
+
+
+register("sidewalk", SIDEWALK_CONFIG, _builder, viewer=_viewer)
 
 __all__ = [
     "GOAL",

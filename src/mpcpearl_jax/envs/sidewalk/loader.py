@@ -26,12 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from mpcpearl_jax.errors import DataFormatError
+
 VIDEO_FPS = 25.0  # ETH/UCY frame numbers count frames of a 25 fps video
 NUM_COLUMNS = 4
 
 
-class DataFormatError(ValueError):
-    """A trajectory file is malformed; the message names the file (and the line)."""
+__all__ = ["DataFormatError"]  # re-exported from mpcpearl_jax.errors, its home
 
 
 @dataclasses.dataclass(frozen=True)

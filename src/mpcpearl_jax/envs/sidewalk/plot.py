@@ -64,7 +64,7 @@ def plot_sidewalk(
     """
     from matplotlib.figure import Figure
 
-    from mpcpearl_jax.viz import draw_robot_path
+    from mpcpearl_jax.envs.drawing import draw_robot_path
 
     fig = Figure(figsize=(6.4, 5.4))
     ax = fig.add_subplot()

@@ -14,7 +14,7 @@ import dataclasses
 
 import numpy as np
 
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 
 
 @dataclasses.dataclass(frozen=True)

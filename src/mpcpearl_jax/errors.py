@@ -1,0 +1,25 @@
+"""Every error type the package raises for a user to act on, in one place at the bottom of the
+import graph (it imports nothing): configs, envs, data loaders, checkpoints and trainers raise
+these, and command lines catch them without importing the layers that raise them."""
+
+from __future__ import annotations
+
+
+class ConfigError(ValueError):
+    """A configuration value is invalid; the message names the field."""
+
+
+class DataFormatError(ValueError):
+    """A data file (e.g. an ETH/UCY trajectory file) is malformed; the message names the file
+    and the line."""
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, corrupt, or does not match the configuration."""
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss became NaN/inf; the last good checkpoint is kept."""
+
+
+__all__ = ["CheckpointError", "ConfigError", "DataFormatError", "TrainingDiverged"]
