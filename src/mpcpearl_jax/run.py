@@ -33,7 +33,6 @@ from mpcpearl_jax.checkpoint import (
     save_network,
 )
 from mpcpearl_jax.config import ExperimentConfig
-from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, ConfigError
 from mpcpearl_jax.metrics import METRIC_NAMES
 from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState
