@@ -39,7 +39,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from experiments.common import ENV_EXTRAS, add_config_options, build_config, label_of
+from experiments.common import ENV_EXTRAS, add_config_options, build_config
+from mpcpearl_jax.report import run_label
 
 METRICS = ("SR", "CFR", "TT", "SPL", "MGD", "return")
 SPLITS = ("test", "val")
@@ -432,7 +433,7 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
         )
     online = cfg.online_eval
     print(
-        f"[learning] {label_of(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
+        f"[learning] {run_label(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
         f"budget={args.minutes:g} min, eval every {every_s / 60:.3g} min "
         f"({'online' if online else 'adaptation'} protocol), out={out}",
         flush=True,
@@ -484,7 +485,7 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
     save_config(out, cfg)
     record: dict[str, Any] = {
         "label": label,
-        "algo": label_of(cfg),
+        "algo": run_label(cfg),
         "env": cfg.env,
         "preset": args.preset,
         "argv": args.argv,
@@ -532,7 +533,7 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
     record["timing"]["iteration_s_median"] = statistics.median(steady) if steady else None
     curve_path = out / "curve.json"
     curve_path.write_text(json.dumps(record, indent=2))
-    plot_curve(points, out / "curve.png", f"{label}: {label_of(cfg)}, {args.minutes:g} min")
+    plot_curve(points, out / "curve.png", f"{label}: {run_label(cfg)}, {args.minutes:g} min")
     if done == 0:
         print(f"error: no iteration finished; {curve_path} written", file=sys.stderr)
         return 1

@@ -11,16 +11,19 @@ import typing
 from pathlib import Path
 
 from mpcpearl_jax.config import PRESETS, ExperimentConfig, TrainConfig, preset
+from mpcpearl_jax.envs import mpc_defaults
 from mpcpearl_jax.envs.types import NavConfig
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.mpc.config import MPCConfig
 from mpcpearl_jax.pearl.config import PearlConfig
+from mpcpearl_jax.report import run_label
 
 # Config extras each environment's entry point passes to `build_config` (and `main`).
 ENV_EXTRAS: dict[str, dict] = {
     "restaurant": {},
-    # online adaptation is the sidewalk headline (as in the paper); MPC speed cap = env v_max
-    "sidewalk": {"online_eval": True, "mpc": {"v_max": None}},
+    # online adaptation is the sidewalk headline (as in the paper); the family's MPC defaults
+    # (`envs.mpc_defaults`) come with its registration
+    "sidewalk": {"online_eval": True},
 }
 
 
@@ -129,8 +132,8 @@ def _field_value(item: str, section: str, field: str, text: str):
 
 def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfig:
     base = preset(args.preset)
-    if "mpc" in extra:  # family defaults on top of the preset's MPC settings
-        extra = {**extra, "mpc": {**base.mpc, **extra["mpc"]}}
+    # the family's MPC defaults (its registration), then the caller's, on top of the preset's
+    extra = {**extra, "mpc": {**base.mpc, **mpc_defaults(env), **extra.get("mpc", {})}}
     cfg = base.replace(env=env, **extra)
     sections: dict[str, dict] = {
         "pearl": {},
@@ -182,13 +185,6 @@ def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfi
     )
 
 
-def label_of(cfg: ExperimentConfig) -> str:
-    eps = cfg.train.eps
-    if not cfg.pearl.use_context:
-        return f"MPC-SAC {eps:g}" if eps > 0 else "SAC"
-    return f"MPC-PEARL {eps:g}" if eps > 0 else "PEARL"
-
-
 def error_line(e: BaseException) -> str:
     """One line for a command-line error: OSErrors name their file, others carry their own."""
     if isinstance(e, OSError) and e.filename is not None:
@@ -229,7 +225,7 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         check_config(cfg)
         out = args.out or Path("runs") / f"{env}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"
         print(
-            f"[{env}] {label_of(cfg)} preset={args.preset} seeds={cfg.seeds} "
+            f"[{env}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "
             f"iterations={cfg.train.iterations} out={out}",
             flush=True,
         )
@@ -256,7 +252,7 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         return fail(e, 1)
     print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
     try:
-        final_evaluation(trainer, state, out, label_of(cfg))
+        final_evaluation(trainer, state, out, run_label(cfg))
     except OSError as e:
         return fail(e)
     except KeyboardInterrupt:

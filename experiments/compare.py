@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from mpcpearl_jax.metrics import METRIC_NAMES
+from mpcpearl_jax.report import comparison_table, plot_learning_curves, run_label
 
 
 class NotARun(ValueError):
@@ -51,54 +52,6 @@ def _load(run: Path) -> tuple[dict, list[dict], dict | None]:
     return cfg, rows, res
 
 
-def _label(cfg: dict) -> str:
-    if cfg.get("method") == "grbal":  # written by experiments.grbal
-        return "GrBAL"
-    eps = cfg["train"]["eps"]
-    base = "MPC-PEARL" if cfg["pearl"]["use_context"] else "MPC-SAC"
-    if eps == 0:
-        return "PEARL" if cfg["pearl"]["use_context"] else "SAC"
-    return f"{base} {eps:g}"
-
-
-def plot(runs: list[tuple[str, dict, list[dict]]], out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 4, figsize=(17, 3.6))
-    for label, _cfg, rows in runs:
-        it = [r["iteration"] for r in rows]
-        axes[0].plot(it, [r["train_return"] for r in rows], lw=0.8, label=label)
-        ev = [r for r in rows if "test_SR" in r]
-        x = [r["iteration"] for r in ev]
-        for ax, key in zip(axes[1:], ("test_return", "test_SR", "test_CFR"), strict=True):
-            ax.plot(x, [r[key] for r in ev], marker="o", ms=3, label=label)
-    titles = ("train return (posterior-z episodes)", "test return", "test SR", "test CFR")
-    for ax, title in zip(axes, titles, strict=True):
-        ax.set_title(title)
-        ax.set_xlabel("iteration")
-        ax.grid(alpha=0.3)
-    axes[0].legend()
-    fig.tight_layout()
-    fig.savefig(out / "curves.png", dpi=110)
-    plt.close(fig)
-
-
-def table(results: list[tuple[str, dict]], paper: dict) -> str:
-    cols = []
-    for label, res in results:
-        cols.append((f"{label} (2 adapt. eps.)", res["test_adapt"]))
-        cols.append((f"{label} (online)", res["test_online"]))
-    cols += [(f"paper {k}", v) for k, v in paper.items()]
-    lines = ["| metric | " + " | ".join(c for c, _ in cols) + " |", "|---|" + "---|" * len(cols)]
-    for m in METRIC_NAMES:
-        cells = ["-" if d.get(m) is None else f"{d[m]:.2f}" for _, d in cols]
-        lines.append(f"| {m} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.compare", description=__doc__)
     ap.add_argument("runs", nargs="+", type=Path)
@@ -116,10 +69,12 @@ def main(argv: list[str] | None = None) -> int:
 
         print(f"error: {error_line(e)}", file=sys.stderr)
         return 2
-    plot([(_label(c), c, rows) for _, c, rows, _ in loaded], args.out)
-    finished = [(_label(c), res) for _, c, _, res in loaded if res is not None]
+    plot_learning_curves(
+        [(run_label(c), rows) for _, c, rows, _ in loaded], args.out / "curves.png"
+    )
+    finished = [(run_label(c), res) for _, c, _, res in loaded if res is not None]
     paper = finished[0][1].get("paper", {}) if finished else {}
-    text = table(finished, paper)
+    text = comparison_table(finished, paper)
     if args.gp_mpc and args.gp_mpc.is_file():
         gp = json.loads(args.gp_mpc.read_text())
         m = gp.get("metrics", gp)
@@ -133,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         "runs": [
             {
                 "run": str(r),
-                "label": _label(c),
+                "label": run_label(c),
                 "iterations": rows[-1]["iteration"] if rows else 0,
                 "gradient_steps_per_seed": (rows[-1]["iteration"] if rows else 0)
                 * c.get("train", c.get("grbal", {}))["updates_per_iteration"],

@@ -162,8 +162,9 @@ def _mpc_overrides(items: list[str], base: dict) -> dict:
 
 def setup(args: argparse.Namespace) -> Setup:
     """Resolve the command line; raises UsageError (and CheckpointError) with a one-line reason."""
-    from experiments.common import ENV_EXTRAS, label_of
     from mpcpearl_jax.checkpoint import load_config, load_policy
+    from mpcpearl_jax.envs import mpc_defaults
+    from mpcpearl_jax.report import run_label
 
     ctrl = args.controller
     cfg = None
@@ -215,7 +216,7 @@ def setup(args: argparse.Namespace) -> Setup:
             raise UsageError(f"--figures: task(s) {missing} are not evaluated (see --tasks)")
     tasks = jax.tree_util.tree_map(lambda x: x[np.asarray(task_ids)], all_tasks)
 
-    base_mpc = dict(cfg.mpc) if cfg else dict(ENV_EXTRAS.get(env_name, {}).get("mpc", {}))
+    base_mpc = dict(cfg.mpc) if cfg else mpc_defaults(env_name)
     mpc = _mpc_overrides(args.set, base_mpc) if ctrl != "policy" else {}
     policies, seed_ids, label, eps = [], [], "GP-MPC", None
     if ctrl != "gp-mpc":
@@ -227,7 +228,7 @@ def setup(args: argparse.Namespace) -> Setup:
             policies = [load_policy(args.run, s, data=data) for s in seed_ids]
         except (ValueError, TypeError, OSError) as e:
             raise UsageError(f"{args.run}: cannot load the policy: {e}") from e
-        label = label_of(cfg)
+        label = run_label(cfg)
         if ctrl == "policy+mpc":
             eps = cfg.train.eps if args.eps is None else args.eps
             if not 0.0 <= eps <= 1.0:

@@ -18,13 +18,9 @@ import jax
 import numpy as np
 
 from mpcpearl_jax import metrics
-from mpcpearl_jax.envs import make_env, make_tasks
+from mpcpearl_jax.envs import make_env, make_tasks, mpc_defaults
 from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
-
-PAPER_GP_MPC = {
-    "restaurant": {"SR": 0.67, "TT": 59.62, "CFR": 0.83, "SPL": 0.63, "MGD": 30.13},
-    "sidewalk": {"SR": 0.48},
-}
+from mpcpearl_jax.report import PAPER, metrics_table
 
 
 def parse_overrides(items: list[str]) -> dict:
@@ -68,9 +64,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.max_tasks:
         tasks = jax.tree_util.tree_map(lambda a: a[: args.max_tasks], tasks)
     overrides = parse_overrides(args.set)
-    if args.env != "restaurant":  # the authors' speed cap of 5 m/s is a restaurant setting
-        overrides.setdefault("v_max", None)
-    cfg = MPCConfig(**overrides)
+    cfg = MPCConfig(**{**mpc_defaults(args.env), **overrides})
     bridge = make_mpc_bridge(env, cfg)
     t0 = time.perf_counter()
     traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(args.sample_seed), tasks)
@@ -81,11 +75,9 @@ def main(argv: list[str] | None = None) -> None:
         traj["position"], traj["collision"], traj["in_goal"], tasks.goal, env.config.robot_radius
     )
     stats = bridge.stats()
-    paper = PAPER_GP_MPC.get(args.env, {})
+    paper = PAPER.get(args.env, {}).get("GP-MPC", {})
     print(f"GP-MPC on {args.env}/{args.split}: {tasks.num_tasks} tasks, {wall:.1f} s")
-    print("| metric | this run | paper GP-MPC |\n|---|---|---|")
-    for k in metrics.METRIC_NAMES:
-        print(f"| {k} | {m[k]:.3f} | {paper.get(k, '-')} |")
+    print(metrics_table([("this run", m), ("paper GP-MPC", paper)]))
     solve_ms = 1e3 * np.asarray(stats["solve_s"])
     print(f"status: {stats['status']}  reasons: {stats['reasons']}")
     print(f"solve ms: median {np.median(solve_ms):.2f}, p95 {np.percentile(solve_ms, 95):.2f}")

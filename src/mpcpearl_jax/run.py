@@ -34,26 +34,10 @@ from mpcpearl_jax.checkpoint import (
 )
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.errors import CheckpointError, ConfigError
-from mpcpearl_jax.metrics import METRIC_NAMES
+from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState
 
 LOG_FILE = "metrics.jsonl"
-
-# method §8: the paper's numbers (restaurant: 24 unseen tasks after two adaptation episodes).
-PAPER = {
-    "restaurant": {
-        "PEARL": {"SR": 0.36, "TT": 64.32, "CFR": 0.99, "SPL": 0.31, "MGD": 33.59},
-        "GP-MPC": {"SR": 0.67, "TT": 59.62, "CFR": 0.83, "SPL": 0.63, "MGD": 30.13},
-        "MPC-SAC": {"SR": 0.17, "TT": 73.33, "CFR": 0.69, "SPL": 0.14, "MGD": 74.90},
-        "MPC-PEARL 0.2": {"SR": 0.92, "TT": 38.61, "CFR": 0.99, "SPL": 0.78, "MGD": 22.16},
-        "MPC-PEARL 0.2 (online)": {"SR": 0.83, "TT": 51.65, "CFR": 0.90, "SPL": 0.65, "MGD": 45.79},
-    },
-    "sidewalk": {
-        "MPC-PEARL 0.2 (online)": {"SR": 0.67, "TT": 211.35, "SPL": 0.44},
-        "GP-MPC": {"SR": 0.48},
-        "PEARL (online)": {"SR": 0.03, "TT": 249.61, "CFR": 0.84, "SPL": 0.03},
-    },
-}
 
 
 class RunDirError(RuntimeError):
@@ -350,62 +334,10 @@ def final_evaluation(
     results["paper"] = PAPER.get(trainer.cfg.env, {})
     (run_dir / "results.json").write_text(json.dumps(results, indent=2))
     print(results_table(results))
-    plot_learning_curves(run_dir)
+    plot_learning_curves([(label, read_log(run_dir / LOG_FILE))], run_dir / "learning_curves.png")
     _trajectory_figure(trainer, raw, run_dir)
     _episode_gif(trainer, raw, run_dir, label)
     return results
-
-
-def results_table(results: dict[str, Any]) -> str:
-    """Markdown table: this run (adaptation / online / OOD) next to the paper's columns."""
-    cols = [
-        (f"{results['label']}", results["test_adapt"]),
-        (f"{results['label']} (online)", results["test_online"]),
-    ]
-    if "SR" in results.get("ood_adapt", {}):
-        cols.append((f"{results['label']} (OOD)", results["ood_adapt"]))
-    cols += [(f"paper {k}", v) for k, v in results.get("paper", {}).items()]
-    lines = ["| metric | " + " | ".join(c for c, _ in cols) + " |", "|---|" + "---|" * len(cols)]
-    for m in METRIC_NAMES:
-        vals = []
-        for _, d in cols:
-            v = d.get(m)
-            vals.append("-" if v is None else f"{v:.2f}")
-        lines.append(f"| {m} | " + " | ".join(vals) + " |")
-    return "\n".join(lines)
-
-
-def plot_learning_curves(run_dir: Path) -> Path | None:
-    """learning_curves.png: train return, test return, SR, CFR against iteration."""
-    rows = read_log(run_dir / LOG_FILE)
-    if not rows:
-        return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 4, figsize=(16, 3.5))
-    it = [r["iteration"] for r in rows]
-    axes[0].plot(it, [r["train_return"] for r in rows], lw=1)
-    axes[0].set_title("train return (posterior episodes)")
-    ev = [r for r in rows if "test_SR" in r]
-    for ax, key, title in zip(
-        axes[1:],
-        ("test_return", "test_SR", "test_CFR"),
-        ("test return", "test SR", "test CFR"),
-        strict=True,
-    ):
-        ax.plot([r["iteration"] for r in ev], [r[key] for r in ev], marker="o", ms=3)
-        ax.set_title(title)
-    for ax in axes:
-        ax.set_xlabel("iteration")
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    path = run_dir / "learning_curves.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 def _episode_gif(trainer: Trainer, raw: dict, run_dir: Path, label: str) -> Path:

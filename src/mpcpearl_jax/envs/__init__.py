@@ -24,6 +24,8 @@ _REGISTRY: dict[str, tuple[NavConfig, Callable[..., TaskParams]]] = {}
 _REDRAW: dict[str, Callable[..., TaskParams]] = {}
 # name -> viewer(path, task, robots, config, title=None) -> Path (optional; see save_trajectory)
 _VIEWER: dict[str, Callable[..., Path]] = {}
+# name -> MPCConfig field defaults of the family (optional; see mpc_defaults)
+_MPC_DEFAULTS: dict[str, dict[str, Any]] = {}
 
 
 def register(
@@ -32,6 +34,7 @@ def register(
     builder: Callable[..., TaskParams],
     redraw: Callable[..., TaskParams] | None = None,
     viewer: Callable[..., Path] | None = None,
+    mpc_defaults: dict[str, Any] | None = None,
 ) -> None:
     """Register a task family so that `make_env(name)` and `make_tasks(name, ...)` know it.
 
@@ -39,8 +42,11 @@ def register(
     `task_ids` with their people's behaviour drawn anew from the random stream `stream` (a tuple
     of ints); it backs the `TrainConfig.redraw_behaviours` extension.
     `viewer(path, task, robots, config, title=None)`, optional, saves the family's trajectory
-    figure (see `save_trajectory`); default: `envs.drawing.save_robots_figure`."""
+    figure (see `save_trajectory`); default: `envs.drawing.save_robots_figure`.
+    `mpc_defaults`, optional: MPCConfig fields this family sets unless a run overrides them
+    (see `mpc_defaults`)."""
     _REGISTRY[name] = (config, builder)
+    _MPC_DEFAULTS[name] = dict(mpc_defaults or {})
     for table, fn in ((_REDRAW, redraw), (_VIEWER, viewer)):
         if fn is not None:
             table[name] = fn
@@ -97,6 +103,13 @@ def make_tasks(
     return builder(split, seed, config or default, **kwargs)
 
 
+def mpc_defaults(name: str) -> dict[str, Any]:
+    """The MPCConfig field defaults of family `name` (a copy), applied under a run's own MPC
+    settings by every command line (e.g. the sidewalk's speed cap: the env's v_max)."""
+    _lookup(name)
+    return dict(_MPC_DEFAULTS.get(name, {}))
+
+
 def save_trajectory(
     name: str,
     path: str | Path,
@@ -147,6 +160,7 @@ __all__ = [
     "env_names",
     "make_env",
     "make_tasks",
+    "mpc_defaults",
     "redraw_tasks",
     "register",
     "save_trajectory",

@@ -19,14 +19,8 @@ from mpcpearl_jax.checkpoint import CONFIG_FILE, Checkpointer, atomic_write
 from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
-from mpcpearl_jax.run import (
-    LOG_FILE,
-    PAPER,
-    append_log,
-    plot_learning_curves,
-    read_log,
-    results_table,
-)
+from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
+from mpcpearl_jax.run import LOG_FILE, append_log, read_log
 
 LABEL = "GrBAL"
 # The paper prints no GrBAL numbers (its restaurant bar charts only); its text (Sec. IV-A):
@@ -184,7 +178,7 @@ def final_evaluation(trainer: GrbalTrainer, state: GrbalState, out: str | Path) 
     (run_dir / "results.json").write_text(json.dumps(results, indent=2))
     print(results_table(results))
     print(results["paper_note"])
-    plot_learning_curves(run_dir)
+    plot_learning_curves([(LABEL, read_log(run_dir / LOG_FILE))], run_dir / "learning_curves.png")
     trajectory_figures(trainer, raw, run_dir)
     return results
 

@@ -53,7 +53,9 @@ def _viewer(path, task: TaskParams, robots, config: NavConfig, title: str | None
     return path
 
 
-register("sidewalk", SIDEWALK_CONFIG, _builder, viewer=_viewer)
+# the authors' MPC speed cap of 5 m/s is a restaurant setting: on the sidewalk the MPC may use
+# the env's v_max
+register("sidewalk", SIDEWALK_CONFIG, _builder, viewer=_viewer, mpc_defaults={"v_max": None})
 
 __all__ = [
     "GOAL",

@@ -1,0 +1,107 @@
+"""Reporting, in one place: the paper's numbers, run labels, results tables and learning curves.
+
+Used by `run` (a run's final table and curves), `grbal.run`, `experiments.compare` (several runs
+side by side) and `experiments.gp_mpc` (the GP-MPC baseline next to the paper's column).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from mpcpearl_jax.metrics import METRIC_NAMES
+
+# method §8: the paper's numbers (restaurant: 24 unseen tasks after two adaptation episodes).
+PAPER = {
+    "restaurant": {
+        "PEARL": {"SR": 0.36, "TT": 64.32, "CFR": 0.99, "SPL": 0.31, "MGD": 33.59},
+        "GP-MPC": {"SR": 0.67, "TT": 59.62, "CFR": 0.83, "SPL": 0.63, "MGD": 30.13},
+        "MPC-SAC": {"SR": 0.17, "TT": 73.33, "CFR": 0.69, "SPL": 0.14, "MGD": 74.90},
+        "MPC-PEARL 0.2": {"SR": 0.92, "TT": 38.61, "CFR": 0.99, "SPL": 0.78, "MGD": 22.16},
+        "MPC-PEARL 0.2 (online)": {"SR": 0.83, "TT": 51.65, "CFR": 0.90, "SPL": 0.65, "MGD": 45.79},
+    },
+    "sidewalk": {
+        "MPC-PEARL 0.2 (online)": {"SR": 0.67, "TT": 211.35, "SPL": 0.44},
+        "GP-MPC": {"SR": 0.48},
+        "PEARL (online)": {"SR": 0.03, "TT": 249.61, "CFR": 0.84, "SPL": 0.03},
+    },
+}
+
+
+def run_label(cfg: Any) -> str:
+    """The method's name of a run config (an ExperimentConfig, or a config.json dict, GrBAL's
+    included): MPC-PEARL 0.2, PEARL, MPC-SAC 0.2, SAC or GrBAL."""
+    d = cfg if isinstance(cfg, dict) else dataclasses.asdict(cfg)
+    if d.get("method") == "grbal":  # written by experiments.grbal
+        return "GrBAL"
+    eps, context = d["train"]["eps"], d["pearl"]["use_context"]
+    if eps == 0:
+        return "PEARL" if context else "SAC"
+    return f"{'MPC-PEARL' if context else 'MPC-SAC'} {eps:g}"
+
+
+def metrics_table(columns: Sequence[tuple[str, dict]]) -> str:
+    """Markdown table, one row per metric (SR, TT, CFR, SPL, MGD), one column per (name,
+    metrics dict); '-' where a column lacks a metric."""
+    lines = [
+        "| metric | " + " | ".join(c for c, _ in columns) + " |",
+        "|---|" + "---|" * len(columns),
+    ]
+    for m in METRIC_NAMES:
+        cells = ["-" if d.get(m) is None else f"{d[m]:.2f}" for _, d in columns]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def paper_columns(paper: dict) -> list[tuple[str, dict]]:
+    return [(f"paper {k}", v) for k, v in paper.items()]
+
+
+def results_table(results: dict[str, Any]) -> str:
+    """One run's results.json: adaptation / online / OOD next to the paper's columns."""
+    label = results["label"]
+    cols = [(f"{label}", results["test_adapt"]), (f"{label} (online)", results["test_online"])]
+    if "SR" in results.get("ood_adapt", {}):
+        cols.append((f"{label} (OOD)", results["ood_adapt"]))
+    return metrics_table(cols + paper_columns(results.get("paper", {})))
+
+
+def comparison_table(results: Sequence[tuple[str, dict]], paper: dict) -> str:
+    """Several runs (label, results.json) side by side, then the paper's columns."""
+    cols = []
+    for label, res in results:
+        cols.append((f"{label} (2 adapt. eps.)", res["test_adapt"]))
+        cols.append((f"{label} (online)", res["test_online"]))
+    return metrics_table(cols + paper_columns(paper))
+
+
+def plot_learning_curves(runs: Sequence[tuple[str, list[dict]]], path: Path) -> Path | None:
+    """Train return, test return, SR and CFR against iteration for each (label, metrics rows)
+    (a legend when there are several); None when there is nothing to plot."""
+    if not any(rows for _, rows in runs):
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 4, figsize=(16, 3.5))
+    for label, rows in runs:
+        axes[0].plot([r["iteration"] for r in rows], [r["train_return"] for r in rows], lw=1)
+        ev = [r for r in rows if "test_SR" in r]
+        x = [r["iteration"] for r in ev]
+        for ax, key in zip(axes[1:], ("test_return", "test_SR", "test_CFR"), strict=True):
+            ax.plot(x, [r[key] for r in ev], marker="o", ms=3, label=label)
+    titles = ("train return (posterior episodes)", "test return", "test SR", "test CFR")
+    for ax, title in zip(axes, titles, strict=True):
+        ax.set_title(title)
+        ax.set_xlabel("iteration")
+        ax.grid(alpha=0.3)
+    if len(runs) > 1:
+        axes[1].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
