@@ -43,6 +43,12 @@ def add_config_options(
     p.add_argument("--seeds", type=int, help="independent seeds trained in one program")
     p.add_argument("--seed", type=int, help="base seed (seed s uses seed + s)")
     p.add_argument(
+        "--devices",
+        type=int,
+        help="devices the seeds are split over (default: every device the seed count divides "
+        "evenly into; per-seed results do not depend on it)",
+    )
+    p.add_argument(
         "--algo",
         choices=("pearl", "sac"),
         default="pearl",
@@ -84,6 +90,12 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
         action="store_true",
         help="also log the metrics to <out>/tensorboard (watch with tensorboard --logdir runs)",
     )
+    g = p.add_argument_group(
+        "several processes or hosts (jax.distributed; all three, the same command on each)"
+    )
+    g.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0")
+    g.add_argument("--num-processes", type=int, metavar="N", help="number of processes")
+    g.add_argument("--process-id", type=int, metavar="I", help="this process, 0 to N - 1")
     return p
 
 
@@ -150,6 +162,8 @@ def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfi
         sections[""]["seeds"] = args.seeds
     if args.seed is not None:
         sections[""]["seed"] = args.seed
+    if getattr(args, "devices", None) is not None:
+        sections[""]["devices"] = args.devices
     if getattr(args, "data", None) is not None:
         if not Path(args.data).is_file():
             raise ConfigError(f"--data {args.data}: no such file")
@@ -221,6 +235,9 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         if missing():
             return fail(LiveLogError(missing()))
     try:  # everything up to training: each check names the field, file or folder
+        from mpcpearl_jax.distributed import initialize
+
+        initialize(args.coordinator, args.num_processes, args.process_id)  # before any JAX work
         cfg = build_config(args, env, **extra)
         check_config(cfg)
         out = args.out or Path("runs") / f"{env}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"

@@ -80,10 +80,12 @@ def load_config(run_dir: str | Path) -> ExperimentConfig:
 
 
 def check_resumable(saved: ExperimentConfig, cfg: ExperimentConfig, run_dir: Path) -> None:
-    """Resuming needs the same config except for the number of iterations."""
+    """Resuming needs the same config except for the number of iterations (and the number of
+    devices: per-seed results do not depend on it, orbax restores onto the new layout)."""
     da, db = saved.to_dict(), cfg.to_dict()
-    da["train"].pop("iterations")
-    db["train"].pop("iterations")
+    for d in (da, db):
+        d["train"].pop("iterations")
+        d.pop("devices", None)
     diff = _diff(json.loads(json.dumps(da)), json.loads(json.dumps(db)))
     if diff:
         raise CheckpointError(
@@ -123,7 +125,8 @@ class Checkpointer:
     def save(self, step: int, state, policy_params: dict) -> None:
         self.manager.save(step, args=ocp.args.StandardSave(state))
         self.manager.wait_until_finished()
-        atomic_write(self.run_dir / POLICY_FILE, serialization.to_bytes(policy_params))
+        if jax.process_index() == 0:  # every process saves its shards above; one writes this
+            atomic_write(self.run_dir / POLICY_FILE, serialization.to_bytes(policy_params))
 
     def restore(
         self, template, step: int | None = None, report: Callable[[str], None] | None = None

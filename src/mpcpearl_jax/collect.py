@@ -44,6 +44,7 @@ def make_collector(
     eps: float = 0.0,
     deterministic: bool = False,
     demo_prob: float = 1.0,
+    mesh=None,
 ) -> Callable:
     """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R], demo=None) -> Episodes`.
 
@@ -51,10 +52,14 @@ def make_collector(
     an event fires and a uniform draw is <= eps (paper Algorithm 1); its (normalized) actions go
     into the episodes unmarked, except for the `used_mpc` log. `demo` [S, R] bool (the MPC warm
     start extension, `TrainConfig.mpc_demo_share`) makes the MPC act on those rows at every step
-    with probability `demo_prob` (1 = every step).
+    with probability `demo_prob` (1 = every step). `mesh` (`mpcpearl_jax.distributed`): the
+    seed axis, hence the flat rows, is split over its devices; the bridge then runs per shard
+    (`MPCBridge.on_mesh`).
     """
     horizon = env.config.horizon
     use_mpc = bridge is not None
+    if use_mpc and mesh is not None:
+        bridge = bridge.on_mesh(mesh)  # type: ignore[union-attr]
 
     def policy_actions(policy_params, obs, z, key):
         # obs [S, R, O], z [S, R, L] -> [S, R, A]

@@ -145,9 +145,20 @@ class ExperimentConfig(SerializableConfig):
     # (extension: more crowd behaviours per table layout in the training split; paper 15)
     task_options: dict = dataclasses.field(default_factory=dict)
     online_eval: bool = False  # report online adaptation as the headline evaluation
+    # devices the seeds are split over (mpcpearl_jax.distributed); 0 = every device the seed
+    # count divides evenly into. Per-seed results do not depend on it.
+    devices: int = 0
 
     def __post_init__(self) -> None:
         _pos_int(self, "seeds")
+        d = self.devices
+        if not (isinstance(d, int) and not isinstance(d, bool) and d >= 0):
+            raise ConfigError(f"ExperimentConfig.devices: must be a non-negative int, got {d!r}")
+        if d and self.seeds % d:
+            raise ConfigError(
+                f"ExperimentConfig.devices: {self.seeds} seed(s) do not split evenly over {d} "
+                "devices; give a seed count that is a multiple of it"
+            )
         for f in ("seed", "task_seed"):
             if not isinstance(getattr(self, f), int):
                 raise ConfigError(f"ExperimentConfig.{f}: must be an int")

@@ -33,6 +33,7 @@ from mpcpearl_jax.checkpoint import (
     save_network,
 )
 from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, ConfigError
 from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState
@@ -174,7 +175,7 @@ def prepare(cfg: ExperimentConfig, out: str | Path, resume: bool = False) -> Ses
         if resume and ckpt.steps():
             state = ckpt.restore(state)
             saved = ckpt.restored_step
-        done = int(np.asarray(state.iteration)[0])
+        done = int(first_local(state.iteration))
         if cfg.train.iterations < done:
             raise CheckpointError(
                 f"{run_dir} has finished {done} iterations; --iterations {cfg.train.iterations} "
@@ -186,8 +187,9 @@ def prepare(cfg: ExperimentConfig, out: str | Path, resume: bool = False) -> Ses
     save_network(run_dir, trainer.nets)  # what load_policy needs beside policy.msgpack
     log_path = run_dir / LOG_FILE
     rows = read_log(log_path, done)
-    save_config(run_dir, cfg)
-    _write_log(log_path, rows)
+    if is_primary():  # with several processes, process 0 writes the run's files
+        save_config(run_dir, cfg)
+        _write_log(log_path, rows)
     return Session(cfg, run_dir, trainer, ckpt, state, rows, done, saved)
 
 
@@ -234,7 +236,9 @@ def train_session(
 ) -> tuple[Trainer, TrainState]:
     """Train a prepared session (see `train`)."""
     tb = None
-    if tensorboard:  # a resumed run hides its earlier points from the first iteration redone
+    progress = progress and is_primary()
+    # a resumed run hides its earlier points from the first iteration redone
+    if tensorboard and is_primary():
         from mpcpearl_jax.livelog import TB_DIR, TensorBoardLog
 
         tb = TensorBoardLog(sess.run_dir / TB_DIR, purge_step=sess.done + 1 if sess.done else None)
@@ -278,7 +282,8 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
                 log["eval_s"] = time.perf_counter() - t0
             log["wall_s"] = time.perf_counter() - t_start
             sess.rows.append(log)
-            append_log(log_path, log)
+            if is_primary():
+                append_log(log_path, log)
             if tb is not None:
                 tb.write(log)
             if done % tc.checkpoint_interval == 0 or done == total or stopping():
@@ -300,7 +305,7 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
 
 def _policy_params(state: TrainState) -> dict:
     p = state.learner.params
-    return jax.device_get({"policy": p["policy"], "encoder": p["encoder"]})
+    return to_host({"policy": p["policy"], "encoder": p["encoder"]})
 
 
 def final_evaluation(
@@ -332,6 +337,8 @@ def final_evaluation(
     except ValueError as e:  # a family without an OOD split
         results["ood_adapt"] = {"skipped": str(e)}
     results["paper"] = PAPER.get(trainer.cfg.env, {})
+    if not is_primary():  # every process evaluates its seeds; process 0 writes
+        return results
     (run_dir / "results.json").write_text(json.dumps(results, indent=2))
     print(results_table(results))
     plot_learning_curves([(label, read_log(run_dir / LOG_FILE))], run_dir / "learning_curves.png")

@@ -5,6 +5,8 @@
     event-triggered MPC through one `pure_callback` per step (only when an event fires);
   * the N_train gradient steps as one `lax.scan`, vmapped over seeds, buffers donated;
   * meta-test evaluation (Algorithm 2), vmapped over seeds and tasks.
+With several devices (`cfg.devices`, `mpcpearl_jax.distributed`) the seed axis of every phase is
+split over a device mesh; each seed computes what it computes on one device.
 The whole `TrainState` (params, optimizer states, target nets, buffers, RNG keys, iteration) is a
 pytree, checkpointed by `mpcpearl_jax.checkpoint`.
 """
@@ -24,6 +26,7 @@ from jax import Array
 from mpcpearl_jax import collect as collect_lib
 from mpcpearl_jax import evaluate as eval_lib
 from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.distributed import constrain, first_local, make_mesh, sum_over_processes, to_host
 from mpcpearl_jax.envs import can_redraw, make_env, make_tasks, redraw_tasks
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.errors import ConfigError, TrainingDiverged
@@ -62,6 +65,18 @@ def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
     return both[:, 0], both[:, 1:]
 
 
+def _synchronous(fn: Callable) -> Callable:
+    """fn, returning only once its results are computed. Sharded collection with the MPC: the
+    host callback of each device moves its operands onto a device, which waits behind any work
+    queued there meanwhile; work queued after the collection that needs its results would
+    then never start (a deadlock), so nothing is queued until it is done."""
+
+    def call(*args, **kwargs):
+        return jax.block_until_ready(fn(*args, **kwargs))
+
+    return call
+
+
 class Trainer:
     """Builds everything for an experiment; see module docstring."""
 
@@ -88,6 +103,7 @@ class Trainer:
                 f"TrainConfig.redraw_behaviours: env {cfg.env!r} cannot redraw its training "
                 "behaviours"
             )
+        self.mesh = make_mesh(cfg.seeds, cfg.devices)  # None: one device, no sharding
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         self.action_dim = self.env.action_dim
         self.nets = Networks(cfg.pearl, self.obs_dim, self.action_dim)
@@ -100,12 +116,19 @@ class Trainer:
 
             self.bridge = make_mpc_bridge(self.env, MPCConfig(**cfg.mpc))
         self._collector = collect_lib.make_collector(
-            self.env, self.nets, self.bridge, tc.eps, demo_prob=tc.mpc_demo_step_prob
+            self.env,
+            self.nets,
+            self.bridge,
+            tc.eps,
+            demo_prob=tc.mpc_demo_step_prob,
+            mesh=self.mesh,
         )
         self._update_body = make_update(self.nets, jit=False)
         self.collect_phase = jax.jit(
             self._collect_phase, static_argnums=(2, 3, 4, 5), donate_argnums=0
         )
+        if self.mesh is not None and self.bridge is not None:
+            self.collect_phase = _synchronous(self.collect_phase)
         self.use_mpc_buffer = tc.mpc_buffer_fraction > 0 and tc.uses_mpc
         self.mpc_capacity = tc.mpc_buffer_capacity if self.use_mpc_buffer else 1
         self.update_phase = jax.jit(self._update_phase, donate_argnums=0)
@@ -141,7 +164,7 @@ class Trainer:
             lambda x: jnp.array(jnp.broadcast_to(x, (cfg.seeds, *x.shape))), self.train_tasks
         )
         iteration = jnp.zeros((cfg.seeds,), jnp.int32)
-        return TrainState(learner, rl, enc, mpc, tasks, keys, iteration)
+        return constrain(TrainState(learner, rl, enc, mpc, tasks, keys, iteration), self.mesh)
 
     # ------------------------------------------------------------- collection
     def _row_z(self, state: TrainState, keys: Array, rows: Array, posterior: bool) -> Array:
@@ -204,7 +227,7 @@ class Trainer:
             "demo_rows": jnp.mean(demo, axis=-1) if demo is not None else jnp.zeros(s),
             "steps": jnp.asarray(ep.transitions.reward[0].size),
         }
-        return state.replace(rl=rl, enc=enc, mpc=mpc, key=keys), stats
+        return constrain(state.replace(rl=rl, enc=enc, mpc=mpc, key=keys), self.mesh), stats
 
     def _choose_tasks(self, state: TrainState, k: int) -> tuple[TrainState, Array]:
         keys, sub = _split_keys(state.key, 1)
@@ -216,7 +239,7 @@ class Trainer:
         """Extension `redraw_behaviours`: fresh behaviours for the tasks ids [S, k] about to be
         collected, drawn on the host from a stream fixed by (run seed, seed index, iteration), so
         a resumed run draws the same ones."""
-        ids_np = np.asarray(jax.device_get(ids))
+        ids_np = np.asarray(to_host(ids))
         fresh = [
             redraw_tasks(
                 self.cfg.env,
@@ -299,7 +322,7 @@ class Trainer:
 
             return jax.lax.scan(body, learner, keys)
 
-        return jax.vmap(per_seed)(learner, rl, enc, mpc, step_keys)
+        return constrain(jax.vmap(per_seed)(learner, rl, enc, mpc, step_keys), self.mesh)
 
     # -------------------------------------------------------------- iteration
     def initial_collection(self, state: TrainState) -> tuple[TrainState, dict]:
@@ -323,7 +346,7 @@ class Trainer:
         t0 = time.perf_counter()
         if self.bridge is not None:
             self.bridge.reset_stats()
-        it = int(state.iteration[0])
+        it = int(first_local(state.iteration))
         if it == 0:
             state, _ = self.initial_collection(state)
         share = jnp.float32(tc.demo_share(it + 1))
@@ -339,31 +362,44 @@ class Trainer:
         jax.block_until_ready(state.rl.size)
         t1 = time.perf_counter()
         state, losses = self._chunked_update_phase(state, stop)
-        losses = jax.device_get(losses)
+        losses = to_host(losses)
         t2 = time.perf_counter()
         bad = [k for k, v in losses.items() if not np.all(np.isfinite(v))]
         if bad:
             raise TrainingDiverged(
-                f"non-finite losses {bad} at iteration {int(state.iteration[0]) + 1}; "
+                f"non-finite losses {bad} at iteration {it + 1}; "
                 "the last good checkpoint is kept (lower the learning rate or reward scale)"
             )
         state = state.replace(iteration=state.iteration + 1)
-        log["iteration"] = int(state.iteration[0])
+        log["iteration"] = it + 1
         log["collect_s"] = t1 - t0
         log["update_s"] = t2 - t1
         src = post if post is not None else prior
-        for name in ("return", "success", "collision_free", "event_rate", "mpc_share", "demo_rows"):
-            log[f"train_{name}"] = float(np.mean(jax.device_get(src[name])))
-        log["train_prior_return"] = float(np.mean(jax.device_get(prior["return"])))
+        names = ("return", "success", "collision_free", "event_rate", "mpc_share", "demo_rows")
+        src, prior_ret = to_host(({n: src[n] for n in names}, prior["return"]))
+        for name in names:
+            log[f"train_{name}"] = float(np.mean(src[name]))
+        log["train_prior_return"] = float(np.mean(prior_ret))
         if self.bridge is not None:
             st = self.bridge.stats()
-            log["mpc_calls"] = st["calls"]
-            log["mpc_rows"] = st["rows_solved"]
-            log["mpc_fallbacks"] = st["fallbacks"]
-            log["mpc_fallback_rate"] = st["fallbacks"] / max(st["rows_solved"], 1)
+            # counters and times summed over processes (each solves its own shards' rows);
+            # the reasons are this process's
+            calls, rows, fallbacks, solve_s, host_s = sum_over_processes(
+                [
+                    st["calls"],
+                    st["rows_solved"],
+                    st["fallbacks"],
+                    float(sum(st["solve_s"])),
+                    float(sum(st["host_call_s"])),
+                ]
+            )
+            log["mpc_calls"] = int(calls)
+            log["mpc_rows"] = int(rows)
+            log["mpc_fallbacks"] = int(fallbacks)
+            log["mpc_fallback_rate"] = fallbacks / max(rows, 1)
             log["mpc_reasons"] = st["reasons"]
-            log["mpc_solve_s"] = float(sum(st["solve_s"]))
-            log["mpc_host_s"] = float(sum(st["host_call_s"]))
+            log["mpc_solve_s"] = float(solve_s)
+            log["mpc_host_s"] = float(host_s)
         log.update({k: float(np.mean(v)) for k, v in losses.items()})
         return state, log
 
@@ -383,7 +419,7 @@ class Trainer:
             "policy": state.learner.params["policy"],
             "encoder": state.learner.params["encoder"],
         }
-        result = jax.device_get(fn(key, params, tasks))
+        result = to_host(fn(key, params, tasks))
         return eval_lib.summarize(result, tasks, self.env.config.robot_radius) | {"_raw": result}
 
     def steps_per_iteration(self) -> int:

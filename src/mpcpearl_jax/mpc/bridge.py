@@ -10,11 +10,16 @@ whose t is the previous t + 1 starts from the shifted plan, otherwise from a col
 that run the bridge over several batches of episodes pass an `episode` stamp (the collector does):
 a call with a new stamp forgets every plan first, so no plan outlives its episodes and a row's
 actions depend only on its own episode (exact resume of training).
+
+With the batch sharded over a device mesh (`on_mesh`), the guard and the callback run per shard
+inside a `shard_map`: each device calls its own process's host for its own fired rows only, with
+plan memory and stamp kept per shard (docs/distributed.md).
 """
 
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
@@ -74,6 +79,10 @@ class MPCBridge:
         self._plans = np.zeros((0, cfg.horizon, 2))
         self._plan_t = np.zeros(0, np.int64)
         self._episode: tuple[int, ...] | None = None
+        # per-shard plan memory (plans, plan_t, episode) when sharded; the callbacks of the
+        # devices of one process may run in parallel threads, so the host side takes a lock
+        self._shards: dict[int, tuple[np.ndarray, np.ndarray, tuple[int, ...] | None]] = {}
+        self._lock = threading.Lock()
         self.reset_stats()
 
     # ---------------------------------------------------------------- JAX side
@@ -86,13 +95,49 @@ class MPCBridge:
         policy_actions: Array,
         episode: Array | None = None,
     ) -> tuple[Array, Array, Array]:
-        batch = fire.shape[0]
+        return self._call(key, fire, states, params, policy_actions, self._stamp(episode))
+
+    def on_mesh(self, mesh) -> Any:
+        """The bridge for a flat batch whose leading axis is split over the one-axis `mesh`
+        (`mpcpearl_jax.distributed`): the same signature and per-row results, with one guard and
+        one host callback per shard, in the process that holds it. Returns self without a mesh."""
+        if mesh is None:
+            return self
+        from jax.sharding import PartitionSpec as P
+
+        axis = mesh.axis_names[0]
+
+        def local(key, fire, states, params, policy_actions, stamp):
+            shard = jax.lax.axis_index(axis)
+            row0 = shard * fire.shape[0]
+            return self._call(key, fire, states, params, policy_actions, stamp, shard, row0)
+
+        rows, whole = P(axis), P()
+        # the callback's outputs are per shard, which the varying-axes check cannot see
+        mapped = jax.shard_map(
+            local,
+            mesh=mesh,
+            in_specs=(whole, rows, rows, rows, rows, whole),
+            out_specs=(rows, rows, rows),
+            check_vma=False,
+        )
+        return lambda key, fire, states, params, policy_actions, episode=None: mapped(
+            key, fire, states, params, policy_actions, self._stamp(episode)
+        )
+
+    @staticmethod
+    def _stamp(episode: Array | None) -> Array:
         # [given, stamp...]: 0 = no stamp (the memory is never reset by a call)
         if episode is None:
-            stamp = jnp.zeros((3,), jnp.uint32)
-        else:
-            stamp = jnp.concatenate([jnp.ones((1,), jnp.uint32), jnp.ravel(episode)[:2]])
-            stamp = stamp.astype(jnp.uint32)
+            return jnp.zeros((3,), jnp.uint32)
+        stamp = jnp.concatenate([jnp.ones((1,), jnp.uint32), jnp.ravel(episode)[:2]])
+        return stamp.astype(jnp.uint32)
+
+    def _call(self, key, fire, states, params, policy_actions, stamp, shard=None, row0=None):
+        """The guarded callback on a batch (or, with shard/row0, one shard of it: row0 is the
+        global index of its first row, which keys the GP samples)."""
+        batch = fire.shape[0]
+        shard = jnp.zeros((), jnp.int32) if shard is None else jnp.asarray(shard, jnp.int32)
         out_shapes = (
             jax.ShapeDtypeStruct((batch, 2), jnp.float32),
             jax.ShapeDtypeStruct((batch,), jnp.bool_),
@@ -100,7 +145,7 @@ class MPCBridge:
         )
 
         def solve(_):
-            samples, valid = self.predict_fired(key, fire, states, params)
+            samples, valid = self.predict_fired(key, fire, states, params, row0)
             return jax.pure_callback(
                 self._host,
                 out_shapes,
@@ -115,6 +160,7 @@ class MPCBridge:
                 valid,
                 policy_actions.astype(jnp.float32),
                 stamp,
+                shard,
             )
 
         def skip(_):
@@ -127,32 +173,33 @@ class MPCBridge:
         return jax.lax.cond(jnp.any(fire), solve, skip, None)
 
     def predict_fired(
-        self, key: Array, fire: Array, states: EnvState, params: TaskParams
+        self, key: Array, fire: Array, states: EnvState, params: TaskParams, row0: Any = None
     ) -> tuple[Array, Array]:
         """GP samples [B, K, N_adapt, M, 2] and valid [B, N_adapt], computed for fired rows only.
 
         Up to `cap` fired rows are gathered into a small batch (static size), predicted and
         scattered back (other rows hold zeros, which the host never reads); if more rows fire,
-        every row is predicted.
+        every row is predicted. row0: global index of the first row (a shard of a larger batch).
         """
         batch = fire.shape[0]
+        every = None if row0 is None else row0 + jnp.arange(batch)
         cap = min(batch, max(16, -(-batch // 4)))
         if cap == batch:
-            return self.predict(key, states, params)
+            return self.predict(key, states, params, every)
 
         def compact(_):
             idx = jnp.nonzero(fire, size=cap, fill_value=batch)[0]  # [cap], batch = padding
             take = lambda x: jnp.take(x, idx, axis=0, mode="clip")  # noqa: E731
             sub_s = jax.tree_util.tree_map(take, states)
             sub_p = jax.tree_util.tree_map(take, params)
-            samples, valid = self.predict(key, sub_s, sub_p, idx)
+            samples, valid = self.predict(key, sub_s, sub_p, idx if row0 is None else row0 + idx)
             put = lambda full, part: full.at[idx].set(part, mode="drop")  # noqa: E731
             full_samples = jnp.zeros((batch, *samples.shape[1:]), samples.dtype)
             full_valid = jnp.zeros((batch, *valid.shape[1:]), valid.dtype)
             return put(full_samples, samples), put(full_valid, valid)
 
         return jax.lax.cond(
-            jnp.sum(fire) <= cap, compact, lambda _: self.predict(key, states, params), None
+            jnp.sum(fire) <= cap, compact, lambda _: self.predict(key, states, params, every), None
         )
 
     def predict(
@@ -170,13 +217,26 @@ class MPCBridge:
         return jax.vmap(row)(keys, states.pose, states.t, params.human_pos, params.human_mask)
 
     # ---------------------------------------------------------------- host side
-    def _host(self, fire, pose, t, goal, lo, hi, rad, samples, valid, policy, stamp):
+    def _host(self, *args):
+        # operands read before taking the lock: a callback waiting for its operands while holding
+        # it would stall the callbacks of the other devices, which share XLA's threads
+        *rows, shard = [np.asarray(a) for a in args]
+        with self._lock:
+            shard = int(shard)  # 0 unless sharded: each shard its own plan memory
+            none = (np.zeros((0, self.cfg.horizon, 2)), np.zeros(0, np.int64), None)
+            self._plans, self._plan_t, self._episode = self._shards.get(shard, none)
+            try:
+                return self._host_rows(*rows)
+            finally:
+                self._shards[shard] = (self._plans, self._plan_t, self._episode)
+
+    def _host_rows(self, fire, pose, t, goal, lo, hi, rad, samples, valid, policy, stamp):
         t_start = time.perf_counter()
         fire, t = np.asarray(fire, bool), np.asarray(t, np.int64)
         self._resize(fire.shape[0])
         stamp = tuple(int(x) for x in np.asarray(stamp).ravel())
         if stamp[0] and stamp != self._episode:  # a new batch of episodes: forget old plans
-            self.reset_memory()
+            self._plan_t[:] = -10  # (of these rows only: another shard keeps its own)
             self._episode = stamp
         actions = np.array(policy, np.float32)
         status = np.zeros(fire.shape[0], np.int32)
@@ -287,6 +347,8 @@ class MPCBridge:
     def reset_memory(self) -> None:
         """Forget every row's previous plan (the next solves start cold)."""
         self._plan_t[:] = -10
+        for _, plan_t, _ in self._shards.values():
+            plan_t[:] = -10
 
     def close(self) -> None:
         """Shut the worker pool down (if any)."""

@@ -1,0 +1,173 @@
+"""Many devices and hosts on JAX's own runtime: the seed mesh, `jax.distributed` start-up, and host
+reads of sharded arrays.
+
+Training shards the leading seed axis of `TrainState` (and the flat seeds x tasks x episodes
+collection batch, whose rows are grouped by seed) over a one-axis `jax.sharding.Mesh` named
+`seeds`. Every seed's computation is the same program as on one device (the same keys), so the
+per-seed results do not depend on how the seeds are laid out. With one device no mesh is built
+and nothing changes. docs/distributed.md describes the layout, the MPC callback and the commands.
+
+Several processes (hosts): each one calls `initialize` first (before any JAX computation), then
+runs the same program; each holds the seeds of its own devices, reads of whole arrays go through
+`to_host` (a collective every process takes part in), and files outside orbax's checkpoints are
+written by process 0 only (`is_primary`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from mpcpearl_jax.envs.types import ConfigError
+
+AXIS = "seeds"  # the mesh axis: seeds (and each seed's collection rows) are split along it
+
+
+def initialize(
+    coordinator: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+) -> bool:
+    """Start JAX's distributed runtime (`jax.distributed.initialize`) when the three options are
+    given (all or none; False when none). On CPU the collectives use gloo, so several processes
+    on one machine (or hosts without accelerators) train one sharded program. Must run before
+    any JAX computation; ConfigError naming the option otherwise."""
+    given = (coordinator, num_processes, process_id)
+    if all(v is None for v in given):
+        return False
+    if any(v is None for v in given):
+        raise ConfigError(
+            "--coordinator, --num-processes and --process-id go together (give all three)"
+        )
+    assert coordinator is not None and num_processes is not None and process_id is not None
+    host, sep, port = str(coordinator).rpartition(":")
+    if not (sep and host and port.isdigit() and 0 < int(port) < 65536):
+        raise ConfigError(f"--coordinator {coordinator!r}: expected HOST:PORT (e.g. 10.0.0.1:1234)")
+    if not (isinstance(num_processes, int) and num_processes >= 1):
+        raise ConfigError(f"--num-processes: must be a positive int, got {num_processes!r}")
+    if not (isinstance(process_id, int) and 0 <= process_id < num_processes):
+        raise ConfigError(
+            f"--process-id: must lie in [0, {num_processes - 1}] (--num-processes "
+            f"{num_processes}), got {process_id!r}"
+        )
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        raise ConfigError(
+            "--coordinator: JAX already started a backend in this process; "
+            "jax.distributed.initialize must come first"
+        )
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    try:
+        jax.distributed.initialize(coordinator, num_processes, process_id)
+    except Exception as e:  # noqa: BLE001 - one line for the command line
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise ConfigError(f"--coordinator {coordinator}: cannot join ({first})") from e
+    return True
+
+
+def select_devices(seeds: int, devices: int = 0) -> list:
+    """The devices the seeds are split over: `devices` of them (0 = as many as divide the seeds
+    evenly, at most every device), the same number from each process. ConfigError naming the
+    field when the count is not available or does not split evenly."""
+    procs = jax.process_count()
+    per_proc = [
+        sorted((d for d in jax.devices() if d.process_index == p), key=lambda d: d.id)
+        for p in range(procs)
+    ]
+    local = min(len(ds) for ds in per_proc)
+    total = procs * local
+    where = f"{procs} processes x {local}" if procs > 1 else "this process"
+    if devices:
+        if devices > total:
+            raise ConfigError(
+                f"ExperimentConfig.devices: {devices} asked, {total} available ({where}); "
+                "choose fewer (--devices)"
+            )
+        if devices % procs:
+            raise ConfigError(
+                f"ExperimentConfig.devices: {devices} devices do not split evenly over "
+                f"{procs} processes; give a multiple of {procs}"
+            )
+        if seeds % devices:
+            raise ConfigError(
+                f"ExperimentConfig.seeds: {seeds} seed(s) do not split evenly over {devices} "
+                "devices; give a multiple of --devices as --seeds"
+            )
+        n = devices
+    else:
+        fits = [procs * k for k in range(local, 0, -1) if seeds % (procs * k) == 0]
+        if not fits:
+            raise ConfigError(
+                f"ExperimentConfig.seeds: {seeds} seed(s) do not split evenly over {procs} "
+                f"processes; give a multiple of {procs} as --seeds"
+            )
+        n = fits[0]
+    per = n // procs
+    return [d for ds in per_proc for d in ds[:per]]
+
+
+def make_mesh(seeds: int, devices: int = 0) -> Mesh | None:
+    """The one-axis seed mesh over `select_devices(seeds, devices)`; None for one device (the
+    single-device program, unchanged)."""
+    chosen = select_devices(seeds, devices)
+    if len(chosen) == 1 and jax.process_count() == 1:
+        return None
+    return Mesh(np.array(chosen), (AXIS,))
+
+
+def seed_sharding(mesh: Mesh) -> NamedSharding:
+    """Leading axis split over the mesh, the rest of each array whole on its device."""
+    return NamedSharding(mesh, P(AXIS))
+
+
+def constrain(tree: Any, mesh: Mesh | None) -> Any:
+    """Inside jit: every leaf of `tree` (leading seed axis) laid out by `seed_sharding`; the
+    identity without a mesh."""
+    if mesh is None:
+        return tree
+    sharding = seed_sharding(mesh)
+    return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, sharding), tree)
+
+
+def to_host(tree: Any) -> Any:
+    """`jax.device_get`, also for arrays spread over several processes (gathered with a
+    collective: every process must call it at the same point)."""
+    if jax.process_count() == 1:
+        return jax.device_get(tree)
+    from jax.experimental import multihost_utils
+
+    def leaf(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+        return jax.device_get(x)
+
+    return jax.tree_util.tree_map(leaf, tree)
+
+
+def first_local(x: Any) -> np.ndarray:
+    """The first element of x read from this process's own shard (no collective): for values that
+    are the same for every seed, such as the iteration count."""
+    if isinstance(x, jax.Array):
+        return np.asarray(x.addressable_shards[0].data).reshape(-1)[0]
+    return np.asarray(x).reshape(-1)[0]
+
+
+def is_primary() -> bool:
+    """Whether this process writes the run's files (process 0; orbax coordinates checkpoints)."""
+    return jax.process_index() == 0
+
+
+def sum_over_processes(values: list[float]) -> list[float]:
+    """Host numbers summed over processes (e.g. MPC counters); the values as given in one
+    process."""
+    if jax.process_count() == 1:
+        return values
+    from jax.experimental import multihost_utils
+
+    arr = np.asarray(values, np.float64)
+    return list(np.sum(multihost_utils.process_allgather(arr), axis=0))
