@@ -22,7 +22,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 
 AXIS = "seeds"  # the mesh axis: seeds (and each seed's collection rows) are split along it
 

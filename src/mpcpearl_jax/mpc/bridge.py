@@ -57,6 +57,49 @@ STATUS_NAMES = {
 }
 
 
+_SHARD_CALLBACK: Any = None
+
+
+def _shard_callback(fn, out_shapes, *args):
+    """`jax.pure_callback(fn, out_shapes, *args)` for the body of a `shard_map`, where each
+    device calls `fn` with its own operands. `jax.pure_callback` first copies its operands onto
+    the first CPU device, and with several CPU devices that copy waits behind the program they
+    all run, which waits for the callbacks: a deadlock. This primitive hands `fn` the operands
+    as XLA passes them (NumPy arrays), through the same lowering as `jax.pure_callback`."""
+    global _SHARD_CALLBACK
+    if _SHARD_CALLBACK is None:
+        from jax._src import callback as jcb
+        from jax._src import core
+        from jax.interpreters import mlir
+
+        prim = core.Primitive("mpc_shard_callback")
+        prim.multiple_results = True
+        prim.def_abstract_eval(lambda *avals, fn, result_avals: list(result_avals))
+
+        def lowering(ctx, *operands, fn, result_avals):
+            axis_context = ctx.module_context.axis_context
+            sharding = jcb._callback_op_sharding(axis_context, None, ctx.avals_out)
+            out, _, _ = jcb.emit_python_callback(
+                ctx,
+                lambda *a: tuple(np.asarray(x) for x in fn(*a)),
+                None,
+                list(operands),
+                ctx.avals_in,
+                ctx.avals_out,
+                has_side_effect=False,
+                returns_token=False,
+                sharding=sharding,
+            )
+            return out
+
+        mlir.register_lowering(prim, lowering, cacheable=False)
+        _SHARD_CALLBACK = prim
+    from jax._src import core
+
+    avals = tuple(core.ShapedArray(s.shape, s.dtype) for s in out_shapes)
+    return tuple(_SHARD_CALLBACK.bind(*args, fn=fn, result_avals=avals))
+
+
 class MPCBridge:
     """`bridge(key, fire, states, params, policy_actions, episode=None) -> (actions, used_mpc,
     status)`.
@@ -146,7 +189,8 @@ class MPCBridge:
 
         def solve(_):
             samples, valid = self.predict_fired(key, fire, states, params, row0)
-            return jax.pure_callback(
+            call = jax.pure_callback if row0 is None else _shard_callback
+            return call(
                 self._host,
                 out_shapes,
                 fire,
