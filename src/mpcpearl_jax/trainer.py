@@ -65,18 +65,6 @@ def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
     return both[:, 0], both[:, 1:]
 
 
-def _synchronous(fn: Callable) -> Callable:
-    """fn, returning only once its results are computed. Sharded collection with the MPC: the
-    host callback of each device moves its operands onto a device, which waits behind any work
-    queued there meanwhile; work queued after the collection that needs its results would
-    then never start (a deadlock), so nothing is queued until it is done."""
-
-    def call(*args, **kwargs):
-        return jax.block_until_ready(fn(*args, **kwargs))
-
-    return call
-
-
 class Trainer:
     """Builds everything for an experiment; see module docstring."""
 
@@ -127,8 +115,6 @@ class Trainer:
         self.collect_phase = jax.jit(
             self._collect_phase, static_argnums=(2, 3, 4, 5), donate_argnums=0
         )
-        if self.mesh is not None and self.bridge is not None:
-            self.collect_phase = _synchronous(self.collect_phase)
         self.use_mpc_buffer = tc.mpc_buffer_fraction > 0 and tc.uses_mpc
         self.mpc_capacity = tc.mpc_buffer_capacity if self.use_mpc_buffer else 1
         self.update_phase = jax.jit(self._update_phase, donate_argnums=0)
