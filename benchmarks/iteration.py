@@ -59,7 +59,7 @@ def build(sz: dict[str, Any], eps: float = 0.2):
         seeds=1,
         train=dataclasses.replace(cfg.train, **changes),
         env_overrides={**cfg.env_overrides, **sz["env"]},
-        mpc={**cfg.mpc, **sz["mpc"]},
+        mpc=cfg.mpc.replace(**sz["mpc"]),
     )
     return Trainer(cfg)
 

@@ -99,11 +99,11 @@ def mpc_timings(policy, cfg: dict[str, Any]) -> dict[str, Any]:
     import numpy as np
 
     from mpcpearl_jax import make_env
-    from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
+    from mpcpearl_jax.mpc import make_mpc_bridge
 
     env = make_env(policy.config.env)
     tasks = _test_tasks(policy.config.env)
-    bridge = make_mpc_bridge(env, MPCConfig(**policy.config.mpc))
+    bridge = make_mpc_bridge(env, policy.config.mpc)
     call = jax.jit(bridge.__call__)
     act = jax.jit(policy.act)
     step = jax.jit(env.step)
@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "threads": threads,
         "run": args.run or "untrained (temporary)",
         "pearl": policy.config.to_dict()["pearl"],
-        "mpc": policy.config.mpc,
+        "mpc": policy.config.mpc.to_dict(),
     }
     harness.write_record("policy_latency", config, results, args.out)
     return results

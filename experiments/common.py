@@ -145,12 +145,12 @@ def _field_value(item: str, section: str, field: str, text: str):
 def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfig:
     base = preset(args.preset)
     # the family's MPC defaults (its registration), then the caller's, on top of the preset's
-    extra = {**extra, "mpc": {**base.mpc, **mpc_defaults(env), **extra.get("mpc", {})}}
+    extra = {**extra, "mpc": base.mpc.replace(**{**mpc_defaults(env), **extra.get("mpc", {})})}
     cfg = base.replace(env=env, **extra)
     sections: dict[str, dict] = {
         "pearl": {},
         "train": {},
-        "mpc": dict(cfg.mpc),
+        "mpc": {},
         "env_overrides": dict(cfg.env_overrides),
         "": {},
     }
@@ -193,7 +193,7 @@ def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfi
     return cfg.replace(
         pearl=cfg.pearl.replace(**sections["pearl"]),
         train=dataclasses.replace(cfg.train, **sections["train"]),
-        mpc=sections["mpc"],
+        mpc=cfg.mpc.replace(**sections["mpc"]),
         env_overrides=sections["env_overrides"],
         **sections[""],
     )

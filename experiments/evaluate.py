@@ -216,7 +216,7 @@ def setup(args: argparse.Namespace) -> Setup:
             raise UsageError(f"--figures: task(s) {missing} are not evaluated (see --tasks)")
     tasks = jax.tree_util.tree_map(lambda x: x[np.asarray(task_ids)], all_tasks)
 
-    base_mpc = dict(cfg.mpc) if cfg else mpc_defaults(env_name)
+    base_mpc = cfg.mpc.to_dict() if cfg else mpc_defaults(env_name)
     mpc = _mpc_overrides(args.set, base_mpc) if ctrl != "policy" else {}
     policies, seed_ids, label, eps = [], [], "GP-MPC", None
     if ctrl != "gp-mpc":

@@ -217,7 +217,7 @@ def test_paper_presets_have_every_extension_off(name):
     assert cfg.train.mpc_demo_share == 0 and cfg.train.mpc_buffer_fraction == 0
     assert cfg.train.mpc_demo_step_prob == 1.0
     assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
-    assert not cfg.mpc.get("unsafe_recovery", False)
+    assert not cfg.mpc.unsafe_recovery
     for field in ("observe_velocity", "observe_relative", "sensing_radius"):
         assert not cfg.env_overrides.get(field), field
 
@@ -225,7 +225,7 @@ def test_paper_presets_have_every_extension_off(name):
 def test_cpu_presets_differ_only_in_the_extensions():
     ext, paper = preset("cpu"), preset("cpu-paper")
     assert ext.train.mpc_demo_share > 0 and ext.pearl.bc_weight > 0 and ext.pearl.layer_norm
-    assert ext.mpc["unsafe_recovery"]
+    assert ext.mpc.unsafe_recovery
     same = dataclasses.replace(
         ext.train,
         mpc_demo_share=0.0,

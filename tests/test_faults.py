@@ -228,7 +228,7 @@ def test_bridge_forgets_plans_of_an_earlier_episode_batch():
     def host(stamp):  # a call where no row fires: only the memory bookkeeping runs
         bridge._host(
             z(b, bool), z((b, 3)), np.full(b, 6), z((b, 2)), z((b, s, 2)), z((b, s, 2)),
-            z((b, s)), z((b, k, 2, 4, 2)), z((b, 2), bool), z((b, 2)), np.asarray(stamp),
+            z((b, s)), z((b, k, 2, 4, 2)), z((b, 2), bool), np.asarray(stamp), np.asarray(0),
         )  # fmt: skip
 
     host([1, 10, 20])
@@ -477,8 +477,8 @@ def test_boolean_options_are_read_by_field_type():
                         ("true", True), ("1", True)]:  # fmt: skip
         assert cfg(f"pearl.use_context={text}").pearl.use_context is value
         assert cfg(f"train.redraw_behaviours={text}").train.redraw_behaviours is value
-    assert cfg("mpc.unsafe_recovery=False").mpc["unsafe_recovery"] is False
-    assert cfg("train.eps=1").train.eps == 1 and cfg("mpc.r_safe=None").mpc["r_safe"] is None
+    assert cfg("mpc.unsafe_recovery=False").mpc.unsafe_recovery is False
+    assert cfg("train.eps=1").train.eps == 1 and cfg("mpc.r_safe=None").mpc.r_safe is None
     with pytest.raises(ConfigError, match="TrainConfig.eps"):
         cfg("train.eps=false")
 

@@ -191,8 +191,11 @@ def test_callback_runs_only_on_steps_with_a_fire_and_merges_actions():
     assert np.all(status[~fire_tb] == NOT_FIRED) and np.all(status[fire_tb] != NOT_FIRED)
     np.testing.assert_array_equal(used, status == SOLVED)
     assert len(bridge.log) == fire_tb.sum()
-    for t, b, code, mpc_act in bridge.log:
+    for t, b, code, mpc_u in bridge.log:  # the MPC's physical input, or None: the policy acts
         assert fire_tb[t, b] and code == status[t, b]
-        expected = policy_tb[t, b] if mpc_act is None else mpc_act
-        np.testing.assert_array_equal(act[t, b], expected)
+        if mpc_u is None:
+            np.testing.assert_array_equal(act[t, b], policy_tb[t, b])
+        else:  # the env's action mapping of the MPC's (v, delta)
+            want = [2.0 * mpc_u[0] / ENV.config.v_max - 1.0, mpc_u[1] / (np.pi / 2)]
+            np.testing.assert_allclose(act[t, b], want, atol=1e-6)
     assert (status == SOLVED).sum() > 0

@@ -37,6 +37,6 @@ def test_sidewalk_mpc_speed_default_comes_from_its_registration():
     p = argparse.ArgumentParser()
     add_config_options(p, "sidewalk")
     cfg = build_config(p.parse_args(["--preset", "smoke"]), "sidewalk")
-    assert cfg.mpc["v_max"] is None
+    assert cfg.mpc.v_max is None
     cfg = build_config(p.parse_args(["--preset", "smoke", "--set", "mpc.v_max=3"]), "sidewalk")
-    assert cfg.mpc["v_max"] == 3
+    assert cfg.mpc.v_max == 3

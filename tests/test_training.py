@@ -167,6 +167,34 @@ def test_invalid_train_config_is_rejected(make):
         make()
 
 
+def test_experiment_config_is_typed_all_the_way_down():
+    from mpcpearl_jax.mpc import MPCConfig
+    from mpcpearl_jax.pearl.config import PearlConfig as PC
+
+    cfg = ExperimentConfig(mpc={"r_safe": 0.3})  # a dict of MPCConfig fields is converted
+    assert isinstance(cfg.mpc, MPCConfig) and cfg.mpc == MPCConfig(r_safe=0.3)
+    back = ExperimentConfig.from_json(cfg.to_json())
+    assert back == cfg and isinstance(back.mpc, MPCConfig)
+    # an older config.json holds only the MPC fields that were changed
+    old = ExperimentConfig.from_dict({"mpc": {"unsafe_recovery": True}})
+    assert old.mpc == MPCConfig(unsafe_recovery=True)
+    with pytest.raises(ConfigError, match=r"MPCConfig has no field\(s\) \['speed'\]"):
+        ExperimentConfig(mpc={"speed": 1.0})
+    with pytest.raises(ConfigError, match=r"ExperimentConfig.env_overrides: .*\['speed'\]"):
+        ExperimentConfig(env_overrides={"speed": 1.0})
+    # one validation helper: every class names the field, booleans are not numbers
+    for make, field in [
+        (lambda: PC(latent_dim=True), "PearlConfig.latent_dim"),
+        (lambda: PC(max_grad_norm=0.0), "PearlConfig.max_grad_norm"),
+        (lambda: MPCConfig(osqp_polish=1), "MPCConfig.osqp_polish"),
+        (lambda: TrainConfig(redraw_behaviours="yes"), "TrainConfig.redraw_behaviours"),
+        (lambda: ExperimentConfig(online_eval="no"), "ExperimentConfig.online_eval"),
+        (lambda: ExperimentConfig(seed=1.5), "ExperimentConfig.seed"),
+    ]:
+        with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+            make()
+
+
 def test_cli_rejects_bad_values(capsys):
     from experiments.common import main
 

@@ -8,18 +8,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from typing import Any, Self
 
+from mpcpearl_jax import validate as v
+from mpcpearl_jax.envs.types import NavConfig
 from mpcpearl_jax.errors import ConfigError
+from mpcpearl_jax.mpc.config import MPCConfig
 from mpcpearl_jax.pearl.config import PearlConfig
 
-
-def _pos_int(obj: Any, *fields: str) -> None:
-    for f in fields:
-        v = getattr(obj, f)
-        if not (isinstance(v, int) and not isinstance(v, bool) and v > 0):
-            raise ConfigError(f"{type(obj).__name__}.{f}: must be a positive int, got {v!r}")
+NAV_FIELDS = frozenset(f.name for f in dataclasses.fields(NavConfig))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,7 +60,7 @@ class TrainConfig:
     redraw_behaviours: bool = False
 
     def __post_init__(self) -> None:
-        _pos_int(
+        v.ints(
             self,
             "iterations",
             "initial_episodes",
@@ -75,31 +72,13 @@ class TrainConfig:
             "checkpoint_interval",
             "keep_checkpoints",
             "eval_adapt_episodes",
+            "mpc_buffer_capacity",
         )
-        for f in ("posterior_episodes", "eval_interval", "mpc_demo_iterations"):
-            v = getattr(self, f)
-            if not (isinstance(v, int) and v >= 0):
-                raise ConfigError(f"TrainConfig.{f}: must be a non-negative int, got {v!r}")
-        if not (
-            isinstance(self.eps, (int, float))
-            and not isinstance(self.eps, bool)
-            and math.isfinite(self.eps)
-            and 0.0 <= self.eps <= 1.0
-        ):
-            raise ConfigError(f"TrainConfig.eps: must lie in [0, 1], got {self.eps!r}")
-        for f in ("mpc_demo_share", "mpc_buffer_fraction", "mpc_demo_step_prob"):
-            v = getattr(self, f)
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-            if not (ok and 0.0 <= v <= 1.0):
-                raise ConfigError(f"TrainConfig.{f}: must lie in [0, 1], got {v!r}")
-        _pos_int(self, "mpc_buffer_capacity")
-        if not isinstance(self.redraw_behaviours, bool):
-            raise ConfigError(
-                f"TrainConfig.redraw_behaviours: must be true or false, got "
-                f"{self.redraw_behaviours!r}"
-            )
-        if self.mpc_buffer_fraction >= 1.0:
-            raise ConfigError("TrainConfig.mpc_buffer_fraction: must be below 1")
+        v.ints(self, "posterior_episodes", "eval_interval", "mpc_demo_iterations", lo=0)
+        v.interval(self, "eps", "mpc_demo_share", "mpc_demo_step_prob", lo=0.0, hi=1.0)
+        v.interval(self, "mpc_buffer_fraction", lo=0.0, hi=1.0)
+        v.check(self.mpc_buffer_fraction < 1.0, self, "mpc_buffer_fraction", "must be below 1")
+        v.flags(self, "redraw_behaviours")
 
     @property
     def uses_mpc(self) -> bool:
@@ -127,6 +106,10 @@ class SerializableConfig:
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
+    @classmethod
+    def from_json(cls, text: str) -> Self:
+        return cls.from_dict(json.loads(text))  # type: ignore[attr-defined]
+
 
 @dataclasses.dataclass(frozen=True)
 class ExperimentConfig(SerializableConfig):
@@ -138,8 +121,9 @@ class ExperimentConfig(SerializableConfig):
     task_seed: int = 0  # seed of the task sets
     pearl: PearlConfig = PearlConfig()
     train: TrainConfig = TrainConfig()
-    mpc: dict = dataclasses.field(default_factory=dict)  # MPCConfig overrides
-    env_overrides: dict = dataclasses.field(default_factory=dict)  # NavConfig overrides
+    # the MPC's settings; a dict of MPCConfig fields is accepted too (and converted)
+    mpc: MPCConfig = MPCConfig()
+    env_overrides: dict = dataclasses.field(default_factory=dict)  # NavConfig fields to change
     data: str | None = None  # data file for env families that read one (sidewalk)
     # options of the family's task builder, e.g. {"train_behaviours": 60} for the restaurant
     # (extension: more crowd behaviours per table layout in the training split; paper 15)
@@ -150,24 +134,28 @@ class ExperimentConfig(SerializableConfig):
     devices: int = 0
 
     def __post_init__(self) -> None:
-        _pos_int(self, "seeds")
-        d = self.devices
-        if not (isinstance(d, int) and not isinstance(d, bool) and d >= 0):
-            raise ConfigError(f"ExperimentConfig.devices: must be a non-negative int, got {d!r}")
-        if d and self.seeds % d:
-            raise ConfigError(
-                f"ExperimentConfig.devices: {self.seeds} seed(s) do not split evenly over {d} "
-                "devices; give a seed count that is a multiple of it"
+        if isinstance(self.mpc, dict):  # e.g. config.json, or replace(mpc={...})
+            object.__setattr__(self, "mpc", mpc_config(self.mpc))
+        v.ints(self, "seeds")
+        v.ints(self, "devices", lo=0)
+        if self.devices and self.seeds % self.devices:
+            v.fail(
+                self,
+                "devices",
+                f"{self.seeds} seed(s) do not split evenly over {self.devices} devices; give a "
+                "seed count that is a multiple of it",
             )
-        for f in ("seed", "task_seed"):
-            if not isinstance(getattr(self, f), int):
-                raise ConfigError(f"ExperimentConfig.{f}: must be an int")
-        if not isinstance(self.task_options, dict):
-            raise ConfigError("ExperimentConfig.task_options: must be a dict of builder options")
-        if not isinstance(self.pearl, PearlConfig):
-            raise ConfigError("ExperimentConfig.pearl: must be a PearlConfig")
-        if not isinstance(self.train, TrainConfig):
-            raise ConfigError("ExperimentConfig.train: must be a TrainConfig")
+        v.ints(self, "seed", "task_seed", lo=None)
+        v.instance(self, "env", str, "a task family name")
+        v.instance(self, "task_options", dict, "a dict of builder options")
+        v.instance(self, "pearl", PearlConfig, "a PearlConfig")
+        v.instance(self, "train", TrainConfig, "a TrainConfig")
+        v.instance(self, "mpc", MPCConfig, "an MPCConfig")
+        v.instance(self, "env_overrides", dict, "a dict of NavConfig fields")
+        unknown = sorted(set(self.env_overrides) - NAV_FIELDS)
+        v.check(not unknown, self, "env_overrides", f"NavConfig has no field(s) {unknown}")
+        v.instance(self, "data", (str, type(None)), "a file path or None")
+        v.flags(self, "online_eval")
         if self.pearl.bc_weight > 0 and self.train.mpc_buffer_fraction == 0:
             raise ConfigError(
                 "PearlConfig.bc_weight: behaviour cloning needs MPC samples in the batch "
@@ -181,7 +169,22 @@ class ExperimentConfig(SerializableConfig):
         for f in ("hidden", "encoder_hidden"):
             if f in pearl:
                 pearl[f] = tuple(pearl[f])
-        return cls(pearl=PearlConfig(**pearl), train=TrainConfig(**d.pop("train", {})), **d)
+        return cls(
+            pearl=PearlConfig(**pearl),
+            train=TrainConfig(**d.pop("train", {})),
+            mpc=mpc_config(d.pop("mpc", {})),
+            **d,
+        )
+
+
+def mpc_config(fields: dict) -> MPCConfig:
+    """An MPCConfig from a dict of its fields (the defaults for the others); ConfigError naming
+    any unknown field."""
+    known = {f.name for f in dataclasses.fields(MPCConfig)}
+    unknown = sorted(set(fields) - known)
+    if unknown:
+        raise ConfigError(f"MPCConfig has no field(s) {unknown}")
+    return MPCConfig(**fields)
 
 
 def _small_pearl() -> PearlConfig:
@@ -210,7 +213,7 @@ def _extended(cfg: ExperimentConfig, demo_iterations: int) -> ExperimentConfig:
     )
     pearl = cfg.pearl.replace(bc_weight=1.0, bc_q_filter=False, layer_norm=True)
     return cfg.replace(
-        pearl=pearl, train=train, mpc={**cfg.mpc, "unsafe_recovery": True, "n_workers": 2}
+        pearl=pearl, train=train, mpc=cfg.mpc.replace(unsafe_recovery=True, n_workers=2)
     )
 
 

@@ -100,9 +100,9 @@ class Trainer:
         self.enc_capacity = tc.prior_episodes * self.horizon
         self.bridge = None
         if tc.uses_mpc:
-            from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
+            from mpcpearl_jax.mpc import make_mpc_bridge
 
-            self.bridge = make_mpc_bridge(self.env, MPCConfig(**cfg.mpc))
+            self.bridge = make_mpc_bridge(self.env, cfg.mpc)
         self._collector = collect_lib.make_collector(
             self.env,
             self.nets,

@@ -12,7 +12,6 @@ parked car is a box with radius 0. One distance function therefore serves both e
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
 import jax
@@ -20,12 +19,8 @@ import jax.numpy as jnp
 from flax import struct
 from jax import Array
 
-from mpcpearl_jax.errors import ConfigError  # its home is errors.py (re-exported here)
-
-
-def _check(cond: bool, cls_name: str, field: str, msg: str) -> None:
-    if not cond:
-        raise ConfigError(f"{cls_name}.{field}: {msg}")
+from mpcpearl_jax import validate
+from mpcpearl_jax.errors import ConfigError  # noqa: F401  (home: errors.py; re-exported)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,8 +68,8 @@ class NavConfig:
     sensing_radius: float = 0.0
 
     def __post_init__(self) -> None:
-        n = type(self).__name__
-        for f in (
+        validate.positive(
+            self,
             "dt",
             "v_max",
             "wheelbase",
@@ -86,45 +81,23 @@ class NavConfig:
             "collision_event_factor",
             "velocity_scale",
             "relative_scale",
-        ):
-            v = getattr(self, f)
-            _check(
-                isinstance(v, (int, float)) and math.isfinite(v) and v > 0,
-                n,
-                f,
-                f"must be a positive finite number, got {v!r}",
-            )
-        for f in (
-            "r_safe",
-            "q_weight",
-            "r_weight",
-            "w_dynamic",
-            "w_static",
-            "w_goal",
-            "sensing_radius",
-        ):
-            v = getattr(self, f)
-            _check(
-                isinstance(v, (int, float)) and math.isfinite(v) and v >= 0,
-                n,
-                f,
-                f"must be a non-negative finite number, got {v!r}",
-            )
-        _check(
-            isinstance(self.horizon, int) and self.horizon > 0,
-            n,
-            "horizon",
-            f"must be a positive int, got {self.horizon!r}",
         )
+        validate.nonnegative(
+            self, "r_safe", "q_weight", "r_weight", "w_dynamic", "w_static", "w_goal"
+        )
+        validate.nonnegative(self, "sensing_radius")
+        validate.ints(self, "horizon")
+        validate.flags(self, "observe_static", "observe_velocity", "observe_relative")
         for f in ("arena_lo", "arena_hi"):
-            v = getattr(self, f)
-            _check(len(v) == 2, n, f, f"must be a pair (x, y), got {v!r}")
-        _check(
+            p = getattr(self, f)
+            ok = isinstance(p, (tuple, list)) and len(p) == 2 and all(map(validate.is_number, p))
+            validate.check(ok, self, f, f"must be a pair (x, y), got {p!r}")
+        validate.check(
             all(
                 lo + 2 * self.robot_radius < hi
                 for lo, hi in zip(self.arena_lo, self.arena_hi, strict=True)
             ),
-            n,
+            self,
             "arena_hi",
             "must exceed arena_lo by more than the robot diameter",
         )

@@ -9,29 +9,13 @@ value raises `ConfigError` naming the field.
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
+from mpcpearl_jax import validate as v
 from mpcpearl_jax.config import SerializableConfig
 from mpcpearl_jax.errors import ConfigError
 
 ROBOT_MODELS = ("learned", "known")
-
-
-def _check_pos_int(obj: Any, *fields: str) -> None:
-    for f in fields:
-        v = getattr(obj, f)
-        if not (isinstance(v, int) and not isinstance(v, bool) and v > 0):
-            raise ConfigError(f"{type(obj).__name__}.{f}: must be a positive int, got {v!r}")
-
-
-def _check_number(obj: Any, field: str, lo: float, hi: float, open_lo: bool = False) -> None:
-    v = getattr(obj, field)
-    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-    ok = ok and (v > lo if open_lo else v >= lo) and v <= hi
-    if not ok:
-        bound = f"({lo}, {hi}]" if open_lo else f"[{lo}, {hi}]"
-        raise ConfigError(f"{type(obj).__name__}.{field}: must lie in {bound}, got {v!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,14 +59,8 @@ class GrbalConfig:
     keep_checkpoints: int = 3
 
     def __post_init__(self) -> None:
-        n = type(self).__name__
-        if not (
-            isinstance(self.hidden, tuple)
-            and len(self.hidden) > 0
-            and all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in self.hidden)
-        ):
-            raise ConfigError(f"{n}.hidden: must be a non-empty tuple of positive ints")
-        _check_pos_int(
+        v.int_tuples(self, "hidden")
+        v.ints(
             self,
             "meta_batch",
             "windows",
@@ -101,18 +79,20 @@ class GrbalConfig:
             "checkpoint_interval",
             "keep_checkpoints",
         )
-        if not (isinstance(self.eval_interval, int) and self.eval_interval >= 0):
-            raise ConfigError(f"{n}.eval_interval: must be a non-negative int")
-        _check_number(self, "lr", 0.0, 1.0, open_lo=True)
-        _check_number(self, "inner_lr", 0.0, 10.0)
-        _check_number(self, "gamma", 0.0, 1.0)
-        _check_number(self, "temperature", 0.0, 1e6, open_lo=True)
-        _check_number(self, "noise_std", 0.0, 10.0, open_lo=True)
-        _check_number(self, "explore_std", 0.0, 10.0)
-        if self.robot_model not in ROBOT_MODELS:
-            raise ConfigError(f"{n}.robot_model: must be one of {ROBOT_MODELS}")
-        if self.windows < self.meta_batch:
-            raise ConfigError(f"{n}.windows: must be at least meta_batch ({self.meta_batch})")
+        v.ints(self, "eval_interval", lo=0)
+        v.interval(self, "lr", lo=0.0, hi=1.0, open_lo=True)
+        v.interval(self, "inner_lr", lo=0.0, hi=10.0)
+        v.interval(self, "gamma", lo=0.0, hi=1.0)
+        v.interval(self, "temperature", lo=0.0, hi=1e6, open_lo=True)
+        v.interval(self, "noise_std", lo=0.0, hi=10.0, open_lo=True)
+        v.interval(self, "explore_std", lo=0.0, hi=10.0)
+        v.one_of(self, "robot_model", ROBOT_MODELS)
+        v.check(
+            self.windows >= self.meta_batch,
+            self,
+            "windows",
+            f"must be at least meta_batch ({self.meta_batch})",
+        )
 
     def replace(self, **changes: Any) -> GrbalConfig:
         return dataclasses.replace(self, **changes)
@@ -134,17 +114,13 @@ class GrbalExperimentConfig(SerializableConfig):
     method: str = "grbal"  # tells run readers (experiments.compare) what made the run
 
     def __post_init__(self) -> None:
-        _check_pos_int(self, "seeds")
-        for f in ("seed", "task_seed"):
-            if not isinstance(getattr(self, f), int):
-                raise ConfigError(f"GrbalExperimentConfig.{f}: must be an int")
-        if not isinstance(self.grbal, GrbalConfig):
-            raise ConfigError("GrbalExperimentConfig.grbal: must be a GrbalConfig")
-        for f in ("env_overrides", "task_options"):
-            if not isinstance(getattr(self, f), dict):
-                raise ConfigError(f"GrbalExperimentConfig.{f}: must be a dict")
-        if self.method != "grbal":
-            raise ConfigError("GrbalExperimentConfig.method: must be 'grbal'")
+        v.ints(self, "seeds")
+        v.ints(self, "seed", "task_seed", lo=None)
+        v.instance(self, "grbal", GrbalConfig, "a GrbalConfig")
+        v.instance(self, "env_overrides", dict, "a dict")
+        v.instance(self, "task_options", dict, "a dict")
+        v.one_of(self, "method", ("grbal",))
+        v.flags(self, "online_eval")
 
     @classmethod
     def from_dict(cls, d: dict) -> GrbalExperimentConfig:

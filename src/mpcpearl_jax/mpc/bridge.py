@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from mpcpearl_jax.dynamics import to_normalized
 from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import EnvState, TaskParams
 from mpcpearl_jax.mpc.config import MPCConfig
@@ -202,19 +203,24 @@ class MPCBridge:
                 params.static_radius,
                 samples,
                 valid,
-                policy_actions.astype(jnp.float32),
                 stamp,
                 shard,
             )
 
         def skip(_):
             return (
-                policy_actions.astype(jnp.float32),
+                jnp.zeros((batch, 2), jnp.float32),
                 jnp.zeros(batch, bool),
                 jnp.zeros(batch, jnp.int32),
             )
 
-        return jax.lax.cond(jnp.any(fire), solve, skip, None)
+        # the host returns physical inputs (v, delta) of the MPC's rows; the env's action
+        # mapping turns them into normalized actions, the other rows keep the policy's action
+        u, used, status = jax.lax.cond(jnp.any(fire), solve, skip, None)
+        has_mpc = (status == SOLVED) | (status == FALLBACK_PLAN)
+        mpc_actions = to_normalized(u, self.env.config.v_max)
+        actions = jnp.where(has_mpc[:, None], mpc_actions, policy_actions.astype(jnp.float32))
+        return actions, used, status
 
     def predict_fired(
         self, key: Array, fire: Array, states: EnvState, params: TaskParams, row0: Any = None
@@ -274,7 +280,7 @@ class MPCBridge:
             finally:
                 self._shards[shard] = (self._plans, self._plan_t, self._episode)
 
-    def _host_rows(self, fire, pose, t, goal, lo, hi, rad, samples, valid, policy, stamp):
+    def _host_rows(self, fire, pose, t, goal, lo, hi, rad, samples, valid, stamp):
         t_start = time.perf_counter()
         fire, t = np.asarray(fire, bool), np.asarray(t, np.int64)
         self._resize(fire.shape[0])
@@ -282,7 +288,7 @@ class MPCBridge:
         if stamp[0] and stamp != self._episode:  # a new batch of episodes: forget old plans
             self._plan_t[:] = -10  # (of these rows only: another shard keeps its own)
             self._episode = stamp
-        actions = np.array(policy, np.float32)
+        inputs = np.zeros((fire.shape[0], 2), np.float32)  # physical (v, delta) of MPC rows
         status = np.zeros(fire.shape[0], np.int32)
         rows = np.flatnonzero(fire)
         f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
@@ -301,11 +307,11 @@ class MPCBridge:
         inits = [self._warm_plan(b, t[b]) for b in rows]
         results = self._solve_rows(probs, inits, lo.shape[1])
         for b, res in zip(rows, results, strict=True):
-            status[b], act = self._merge_row(b, t[b], res)
-            if act is not None:
-                actions[b] = act
+            status[b], u = self._merge_row(b, t[b], res)
+            if u is not None:
+                inputs[b] = u
         self._record(results, status[rows], time.perf_counter() - t_start)
-        return actions, status == SOLVED, status
+        return inputs, status == SOLVED, status
 
     def _resize(self, batch: int) -> None:
         if self._plans.shape[0] != batch:
@@ -319,22 +325,17 @@ class MPCBridge:
         return np.concatenate([self._plans[b, 1:], self._plans[b, -1:]], axis=0)
 
     def _merge_row(self, b: int, t: int, res: SolveResult) -> tuple[int, np.ndarray | None]:
-        """Update the row's memory; return (status, normalized action or None for the policy)."""
+        """Update the row's memory; return (status, physical first input (v, delta), or None
+        where the policy acts)."""
         if res.ok:
             self._plans[b], self._plan_t[b] = res.u, t
-            return SOLVED, self._normalize(res.u[0])
+            return SOLVED, res.u[0].copy()
         shifted = self._warm_plan(b, t)
         if shifted is not None:  # method §6 fallback: the previous plan shifted by one step
             self._plans[b], self._plan_t[b] = shifted, t
-            return FALLBACK_PLAN, self._normalize(shifted[0])
+            return FALLBACK_PLAN, shifted[0].copy()
         self._plan_t[b] = -10
         return FALLBACK_POLICY, None
-
-    def _normalize(self, u: np.ndarray) -> np.ndarray:
-        """Physical (v, delta) -> normalized action of the env (as dynamics.to_normalized)."""
-        v = np.clip(u[0], 0.0, self.env.config.v_max)
-        d = np.clip(u[1], -np.pi / 2, np.pi / 2)
-        return np.array([2.0 * v / self.env.config.v_max - 1.0, d / (np.pi / 2)], np.float32)
 
     def _solve_rows(self, probs, inits, num_static: int) -> list[SolveResult]:
         params = solver_params(self.cfg, self.env.config, num_static)

@@ -6,13 +6,9 @@ import dataclasses
 import math
 from typing import Any
 
-from mpcpearl_jax.errors import ConfigError
+from mpcpearl_jax import validate as v
 
 GP_MODES = ("fit", "fixed")
-
-
-def _fail(field: str, msg: str) -> None:
-    raise ConfigError(f"MPCConfig.{field}: {msg}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +68,8 @@ class MPCConfig:
     n_workers: int = 1  # >1: solve fired rows in a process pool
 
     def __post_init__(self) -> None:
-        for f in (
+        v.ints(
+            self,
             "horizon",
             "num_samples",
             "n_adapt",
@@ -80,28 +77,31 @@ class MPCConfig:
             "osqp_max_iter",
             "n_gp",
             "qp_tail_samples",
-        ):
-            v = getattr(self, f)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
-                _fail(f, f"must be an int >= 1, got {v!r}")
-        for f in (
+            "n_workers",
+        )
+        v.ints(
+            self,
             "line_search_steps",
             "gp_fit_steps",
             "osqp_check_termination",
             "osqp_adaptive_rho_interval",
-        ):
-            v = getattr(self, f)
-            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 0):
-                _fail(f, f"must be an int >= 0, got {v!r}")
-        if not isinstance(self.unsafe_recovery, bool):
-            _fail("unsafe_recovery", f"must be true or false, got {self.unsafe_recovery!r}")
-        if not (isinstance(self.n_workers, int) and self.n_workers >= 1):
-            _fail("n_workers", f"must be an int >= 1, got {self.n_workers!r}")
-        if not (0.0 < self.alpha < 1.0):
-            _fail("alpha", f"must lie in (0, 1), got {self.alpha!r}")
-        if not (0.0 < self.steer_max < math.pi / 2):
-            _fail("steer_max", f"must lie in (0, pi/2), got {self.steer_max!r}")
-        for f in (
+            lo=0,
+        )
+        v.flags(self, "unsafe_recovery", "osqp_polish")
+        v.check(
+            v.is_number(self.alpha) and 0.0 < self.alpha < 1.0,
+            self,
+            "alpha",
+            f"must lie in (0, 1), got {self.alpha!r}",
+        )
+        v.check(
+            v.is_number(self.steer_max) and 0.0 < self.steer_max < math.pi / 2,
+            self,
+            "steer_max",
+            f"must lie in (0, pi/2), got {self.steer_max!r}",
+        )
+        v.positive(
+            self,
             "trust_v",
             "trust_steer",
             "slack_penalty",
@@ -113,27 +113,19 @@ class MPCConfig:
             "gp_signal_std",
             "gp_noise_std",
             "cold_speed",
-        ):
-            self._positive(f)
-        for f in ("delta_cvar", "terminal_weight", "sqp_step_tol", "unsafe_tol", "gp_static_tol"):
-            self._nonnegative(f)
-        for f in ("r_safe", "v_max"):
-            if getattr(self, f) is not None:
-                (self._nonnegative if f == "r_safe" else self._positive)(f)
-        if self.gp_mode not in GP_MODES:
-            _fail("gp_mode", f"must be one of {GP_MODES}, got {self.gp_mode!r}")
-        if self.num_samples * (1.0 - self.alpha) < 1.0:
-            _fail("num_samples", "num_samples * (1 - alpha) must be >= 1 for an SAA-CVaR")
-
-    def _positive(self, f: str) -> None:
-        v = getattr(self, f)
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-            _fail(f, f"must be a positive finite number, got {v!r}")
-
-    def _nonnegative(self, f: str) -> None:
-        v = getattr(self, f)
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-            _fail(f, f"must be a non-negative finite number, got {v!r}")
+        )
+        v.nonnegative(
+            self, "delta_cvar", "terminal_weight", "sqp_step_tol", "unsafe_tol", "gp_static_tol"
+        )
+        v.nonnegative(self, "r_safe", none_ok=True)
+        v.positive(self, "v_max", none_ok=True)
+        v.one_of(self, "gp_mode", GP_MODES)
+        v.check(
+            self.num_samples * (1.0 - self.alpha) >= 1.0,
+            self,
+            "num_samples",
+            "num_samples * (1 - alpha) must be >= 1 for an SAA-CVaR",
+        )
 
     def replace(self, **changes: Any) -> MPCConfig:
         return dataclasses.replace(self, **changes)

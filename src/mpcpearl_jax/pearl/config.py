@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any
 
-from mpcpearl_jax.errors import ConfigError
+from mpcpearl_jax import validate as v
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,35 +41,21 @@ class PearlConfig:
     layer_norm: bool = False  # LayerNorm after every hidden layer of the Q and V networks
 
     def __post_init__(self) -> None:
-        n = type(self).__name__
-        ints = ("latent_dim", "meta_batch", "batch_size", "context_size")
-        for f in ints:
-            v = getattr(self, f)
-            if not (isinstance(v, int) and v > 0):
-                raise ConfigError(f"{n}.{f}: must be a positive int, got {v!r}")
-        for f in ("hidden", "encoder_hidden"):
-            v = getattr(self, f)
-            if not (len(v) > 0 and all(isinstance(h, int) and h > 0 for h in v)):
-                raise ConfigError(f"{n}.{f}: must be a non-empty tuple of positive ints, got {v!r}")
-        for f in ("lr", "reward_scale", "min_posterior_var"):
-            v = getattr(self, f)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ConfigError(f"{n}.{f}: must be a positive number, got {v!r}")
-        for f in ("gamma", "tau"):
-            v = getattr(self, f)
-            if not (isinstance(v, (int, float)) and 0 <= v <= 1):
-                raise ConfigError(f"{n}.{f}: must lie in [0, 1], got {v!r}")
-        for f in ("kl_weight", "policy_mean_reg", "policy_std_reg", "bc_weight"):
-            v = getattr(self, f)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ConfigError(f"{n}.{f}: must be a non-negative number, got {v!r}")
-        for f in ("use_context", "layer_norm", "bc_q_filter"):
-            if not isinstance(getattr(self, f), bool):
-                raise ConfigError(f"{n}.{f}: must be true or false, got {getattr(self, f)!r}")
-        if not self.log_std_min < self.log_std_max:
-            raise ConfigError(f"{n}.log_std_min: must be below log_std_max")
-        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
-            raise ConfigError(f"{n}.max_grad_norm: must be positive or None")
+        v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size")
+        v.int_tuples(self, "hidden", "encoder_hidden")
+        v.positive(self, "lr", "reward_scale", "min_posterior_var")
+        v.interval(self, "gamma", "tau", lo=0.0, hi=1.0)
+        v.nonnegative(self, "kl_weight", "policy_mean_reg", "policy_std_reg", "bc_weight")
+        v.flags(self, "use_context", "layer_norm", "bc_q_filter")
+        v.check(
+            v.is_number(self.log_std_min)
+            and v.is_number(self.log_std_max)
+            and self.log_std_min < self.log_std_max,
+            self,
+            "log_std_min",
+            "must be below log_std_max",
+        )
+        v.positive(self, "max_grad_norm", none_ok=True)
 
     def replace(self, **changes: Any) -> PearlConfig:
         return dataclasses.replace(self, **changes)

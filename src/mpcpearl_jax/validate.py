@@ -1,0 +1,107 @@
+"""One validation helper for every configuration dataclass (`NavConfig`, `PearlConfig`,
+`MPCConfig`, `TrainConfig`, `ExperimentConfig`, the GrBAL configs).
+
+Each check reads fields of a config object and raises `ConfigError("Class.field: what is wrong,
+got value")`, so every message names the field the user has to change. Booleans are never
+accepted as numbers, and numbers must be finite.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from typing import Any, NoReturn
+
+from mpcpearl_jax.errors import ConfigError
+
+
+def fail(obj: Any, field: str, msg: str) -> NoReturn:
+    raise ConfigError(f"{type(obj).__name__}.{field}: {msg}")
+
+
+def check(ok: bool, obj: Any, field: str, msg: str) -> None:
+    if not ok:
+        fail(obj, field, msg)
+
+
+def is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def ints(obj: Any, *fields: str, lo: int | None = 1) -> None:
+    """Each field is an int >= lo (1: a positive int, 0: a non-negative int, None: any int)."""
+    what = {1: "a positive int", 0: "a non-negative int", None: "an int"}.get(lo, f"an int >= {lo}")
+    for f in fields:
+        v = getattr(obj, f)
+        check(is_int(v) and (lo is None or v >= lo), obj, f, f"must be {what}, got {v!r}")
+
+
+def positive(obj: Any, *fields: str, none_ok: bool = False) -> None:
+    """Each field is a positive finite number (or None when none_ok)."""
+    for f in fields:
+        v = getattr(obj, f)
+        if not (none_ok and v is None):
+            check(is_number(v) and v > 0, obj, f, f"must be a positive finite number, got {v!r}")
+
+
+def nonnegative(obj: Any, *fields: str, none_ok: bool = False) -> None:
+    """Each field is a non-negative finite number (or None when none_ok)."""
+    for f in fields:
+        v = getattr(obj, f)
+        if not (none_ok and v is None):
+            ok = is_number(v) and v >= 0
+            check(ok, obj, f, f"must be a non-negative finite number, got {v!r}")
+
+
+def interval(obj: Any, *fields: str, lo: float, hi: float, open_lo: bool = False) -> None:
+    """Each field is a finite number in [lo, hi] ((lo, hi] when open_lo)."""
+    bound = f"({lo:g}, {hi:g}]" if open_lo else f"[{lo:g}, {hi:g}]"
+    for f in fields:
+        v = getattr(obj, f)
+        ok = is_number(v) and (v > lo if open_lo else v >= lo) and v <= hi
+        check(ok, obj, f, f"must lie in {bound}, got {v!r}")
+
+
+def flags(obj: Any, *fields: str) -> None:
+    """Each field is a bool."""
+    for f in fields:
+        v = getattr(obj, f)
+        check(isinstance(v, bool), obj, f, f"must be true or false, got {v!r}")
+
+
+def int_tuples(obj: Any, *fields: str) -> None:
+    """Each field is a non-empty tuple of positive ints (layer sizes)."""
+    for f in fields:
+        v = getattr(obj, f)
+        ok = isinstance(v, tuple) and len(v) > 0 and all(is_int(h) and h > 0 for h in v)
+        check(ok, obj, f, f"must be a non-empty tuple of positive ints, got {v!r}")
+
+
+def one_of(obj: Any, field: str, options: Iterable[Any]) -> None:
+    v, options = getattr(obj, field), tuple(options)
+    check(v in options, obj, field, f"must be one of {options}, got {v!r}")
+
+
+def instance(obj: Any, field: str, cls: type | tuple[type, ...], what: str) -> None:
+    v = getattr(obj, field)
+    check(isinstance(v, cls), obj, field, f"must be {what}, got {type(v).__name__}")
+
+
+__all__ = [
+    "check",
+    "fail",
+    "flags",
+    "instance",
+    "int_tuples",
+    "interval",
+    "ints",
+    "is_int",
+    "is_number",
+    "nonnegative",
+    "one_of",
+    "positive",
+]
