@@ -124,14 +124,16 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _two_processes(tmp: Path, name: str, iterations: int, *extra: str) -> tuple[dict, dict]:
+def _two_processes(
+    tmp: Path, name: str, iterations: int, *extra: str, eps: float = 0.0, timeout: int = 600
+) -> tuple[dict, dict]:
     """2 processes x 2 devices on 127.0.0.1 (gloo collectives); process 0's result."""
     result = tmp / f"{name}.npz"
     port = _free_port()
     procs = []
     for pid in (1, 0):
         dist = ("--coordinator", f"127.0.0.1:{port}", "--num-processes", "2")
-        cmd = _cmd(result, tmp / name, iterations, 0.0, *dist, "--process-id", str(pid), *extra)
+        cmd = _cmd(result, tmp / name, iterations, eps, *dist, "--process-id", str(pid), *extra)
         procs.append(
             subprocess.Popen(
                 cmd, env=_env(2), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE
@@ -140,7 +142,7 @@ def _two_processes(tmp: Path, name: str, iterations: int, *extra: str) -> tuple[
     errors = []
     for p in procs:
         try:
-            _, err = p.communicate(timeout=600)
+            _, err = p.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
             p.kill()
             _, err = p.communicate()
@@ -176,6 +178,19 @@ def test_sharded_mpc_collection_solves_on_every_shard(tmp_path):
     np.testing.assert_allclose(
         four[1]["eval"]["return_per_seed"], one[1]["eval"]["return_per_seed"], rtol=0.05
     )
+
+
+@pytest.mark.slow
+def test_two_processes_with_the_mpc_on_finish_and_log(tmp_path):
+    """eps = 0.2 over 2 processes x 2 devices: each process solves its own shards' rows, the
+    MPC counters are summed over the processes and the log is written (a float32 from the
+    cross-process sum once broke the JSON log of process 0, and process 1 then waited forever)."""
+    run = _two_processes(tmp_path, "multi_mpc", 1, eps=0.2, timeout=300)
+    assert run[1]["processes"] == 2 and run[1]["iteration"] == 1
+    assert min(run[1]["mpc_rows"]) > 0
+    log = (tmp_path / "multi_mpc" / "metrics.jsonl").read_text().splitlines()
+    rows = [json.loads(x) for x in log]
+    assert rows and rows[-1]["mpc_rows"] > 0 and isinstance(rows[-1]["mpc_fallback_rate"], float)
 
 
 # ----------------------------------------------------------- options (in process, 1 device)

@@ -169,5 +169,5 @@ def sum_over_processes(values: list[float]) -> list[float]:
         return values
     from jax.experimental import multihost_utils
 
-    arr = np.asarray(values, np.float64)
-    return list(np.sum(multihost_utils.process_allgather(arr), axis=0))
+    arr = np.asarray(values, np.float64)  # (gathered as float32 unless x64 is on)
+    return [float(x) for x in np.sum(multihost_utils.process_allgather(arr), axis=0)]

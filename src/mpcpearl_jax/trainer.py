@@ -382,7 +382,7 @@ class Trainer:
             log["mpc_calls"] = int(calls)
             log["mpc_rows"] = int(rows)
             log["mpc_fallbacks"] = int(fallbacks)
-            log["mpc_fallback_rate"] = fallbacks / max(rows, 1)
+            log["mpc_fallback_rate"] = float(fallbacks) / max(int(rows), 1)
             log["mpc_reasons"] = st["reasons"]
             log["mpc_solve_s"] = float(solve_s)
             log["mpc_host_s"] = float(host_s)
