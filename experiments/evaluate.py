@@ -142,6 +142,7 @@ class Setup:
 
 
 def _mpc_overrides(items: list[str], base: dict) -> dict:
+    from mpcpearl_jax.config import mpc_config
     from mpcpearl_jax.mpc import MPCConfig
 
     out = dict(base)
@@ -154,8 +155,8 @@ def _mpc_overrides(items: list[str], base: dict) -> dict:
         except json.JSONDecodeError:
             out[key] = raw
     try:
-        MPCConfig(**out)
-    except (TypeError, ValueError) as e:
+        mpc_config(out)  # the one check of MPCConfig fields and values
+    except ValueError as e:
         raise UsageError(f"--set: {e}") from e
     return out
 

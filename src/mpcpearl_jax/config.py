@@ -75,8 +75,8 @@ class TrainConfig:
             "mpc_buffer_capacity",
         )
         v.ints(self, "posterior_episodes", "eval_interval", "mpc_demo_iterations", lo=0)
-        v.interval(self, "eps", "mpc_demo_share", "mpc_demo_step_prob", lo=0.0, hi=1.0)
-        v.interval(self, "mpc_buffer_fraction", lo=0.0, hi=1.0)
+        unit = ("eps", "mpc_demo_share", "mpc_demo_step_prob", "mpc_buffer_fraction")
+        v.interval(self, *unit, lo=0.0, hi=1.0)
         v.check(self.mpc_buffer_fraction < 1.0, self, "mpc_buffer_fraction", "must be below 1")
         v.flags(self, "redraw_behaviours")
 
