@@ -218,7 +218,7 @@ def test_paper_presets_have_every_extension_off(name):
     assert cfg.train.mpc_demo_step_prob == 1.0
     assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
     assert not cfg.mpc.unsafe_recovery
-    for field in ("observe_velocity", "observe_relative", "sensing_radius"):
+    for field in ("observe_velocity", "observe_relative", "sensing_radius", "observe_time"):
         assert not cfg.env_overrides.get(field), field
 
 
@@ -474,3 +474,39 @@ def test_sensing_radius_hides_far_people_everywhere_in_the_observation():
     assert hidden_seen > 0  # the case under test occurred
     with pytest.raises(ConfigError, match="sensing_radius"):
         make_env("restaurant", sensing_radius=-1.0)
+
+
+def test_observe_time_appends_the_elapsed_fraction_and_changes_nothing_else():
+    from mpcpearl_jax.envs import make_env, make_tasks
+
+    plain = make_env("restaurant", observe_velocity=True)
+    env = make_env("restaurant", observe_velocity=True, observe_time=True)
+    tasks = make_tasks("restaurant", "val", 0, config=env.config)
+    task = jax.tree_util.tree_map(lambda x: x[2], tasks)
+    assert env.obs_dim(tasks) == plain.obs_dim(tasks) + 1
+    horizon = env.config.horizon
+    actions = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (horizon, 2)), jnp.float32)
+    key = jax.random.PRNGKey(0)
+    (o, s), (p, q) = env.reset(key, task), plain.reset(key, task)
+    for t in range(horizon):
+        assert o.shape == (env.obs_dim(tasks),)
+        np.testing.assert_allclose(o[-1], 2.0 * t / horizon - 1.0, atol=1e-6)
+        np.testing.assert_array_equal(o[:-1], p)
+        o, s, r, done, _ = env.step(key, s, actions[t], task)
+        p, q, r_ref, _, _ = plain.step(key, q, actions[t], task)
+        assert float(r) == float(r_ref)
+    assert bool(done) and float(o[-1]) == 1.0
+
+
+def test_grbal_refuses_observations_its_model_cannot_predict():
+    from mpcpearl_jax.envs import make_env, make_tasks
+    from mpcpearl_jax.grbal.model import layout_of
+
+    tasks = make_tasks("restaurant", "val", 0)
+    for field, value in (
+        ("observe_relative", True),
+        ("sensing_radius", 2.0),
+        ("observe_time", True),
+    ):
+        with pytest.raises(ConfigError, match=f"env.{field}"):
+            layout_of(make_env("restaurant", **{field: value}), tasks)

@@ -38,7 +38,8 @@ class NavEnv:
         num_s = params.static_lo.shape[-2] if self.config.observe_static else 0
         num_v = num_h if self.config.observe_velocity else 0
         num_r = num_h + params.static_lo.shape[-2] + 1 if self.config.observe_relative else 0
-        return 3 + 2 * num_h + 2 * num_v + 2 * num_s + 2 * num_r
+        num_t = 1 if self.config.observe_time else 0
+        return 3 + 2 * num_h + 2 * num_v + 2 * num_s + 2 * num_r + num_t
 
     # ------------------------------------------------------------------ API
     def reset(self, key: Array, params: TaskParams) -> tuple[Array, EnvState]:
@@ -108,7 +109,8 @@ class NavEnv:
         """Observation in [-1, 1]: pose, people (absent ones at (-1, -1)), [people's last-step
         displacement (extension `observe_velocity`)], [static centres], [people, nearest static
         points and goal in the robot's frame (extension `observe_relative`)]. With the extension
-        `sensing_radius` a person farther than it from the robot counts as absent throughout."""
+        `sensing_radius` a person farther than it from the robot counts as absent throughout; [the
+        elapsed time 2 t / T - 1 (extension `observe_time`)]."""
         humans, mask = self.humans_at(params, state.t)
         if self.config.sensing_radius > 0:  # extension: people out of range look absent
             dist = jnp.linalg.norm(humans - state.pose[:2], axis=-1)
@@ -135,6 +137,8 @@ class NavEnv:
             parts.append(jnp.where(mask[:, None], ego(humans), 1.0).reshape(-1))
             parts.append(ego(nearest).reshape(-1))
             parts.append(ego(params.goal[None]).reshape(-1))
+        if self.config.observe_time:  # extension: elapsed fraction of the episode
+            parts.append((2.0 * state.t / self.config.horizon - 1.0).reshape(1))
         return jnp.concatenate(parts).astype(jnp.float32)
 
     def _check_action(self, action: Array) -> None:

@@ -66,6 +66,10 @@ class NavConfig:
     # metres from the robot is reported as absent in every part of the observation (0 = the
     # paper's unlimited range). The MPC and the reward still see everybody.
     sensing_radius: float = 0.0
+    # extension (off in the paper): the elapsed fraction of the episode, 2 t / T - 1, is the last
+    # entry of the observation. Without it a state's value depends on the remaining time (the goal
+    # bonus is paid on every step left) while nothing in the observation shows it.
+    observe_time: bool = False
 
     def __post_init__(self) -> None:
         validate.positive(
@@ -87,7 +91,9 @@ class NavConfig:
         )
         validate.nonnegative(self, "sensing_radius")
         validate.ints(self, "horizon")
-        validate.flags(self, "observe_static", "observe_velocity", "observe_relative")
+        validate.flags(
+            self, "observe_static", "observe_velocity", "observe_relative", "observe_time"
+        )
         for f in ("arena_lo", "arena_hi"):
             p = getattr(self, f)
             ok = isinstance(p, (tuple, list)) and len(p) == 2 and all(map(validate.is_number, p))

@@ -64,14 +64,16 @@ class ObsLayout(NamedTuple):
 def layout_of(env, tasks) -> ObsLayout:
     """The observation layout of `env` (a NavEnv) on its tasks (stacked or single)."""
     cfg = env.config
-    if cfg.observe_relative:
-        from mpcpearl_jax.errors import ConfigError
+    unsupported = {
+        "observe_relative": cfg.observe_relative,
+        "sensing_radius": cfg.sensing_radius > 0,
+        "observe_time": cfg.observe_time,
+    }
+    for field, on in unsupported.items():
+        if on:
+            from mpcpearl_jax.errors import ConfigError
 
-        raise ConfigError("env.observe_relative: not supported by GrBAL's learned model")
-    if cfg.sensing_radius > 0:
-        from mpcpearl_jax.errors import ConfigError
-
-        raise ConfigError("env.sensing_radius: not supported by GrBAL's learned model")
+            raise ConfigError(f"env.{field}: not supported by GrBAL's learned model")
     h = int(tasks.human_pos.shape[-2])
     s = int(tasks.static_lo.shape[-2]) if cfg.observe_static else 0
     return ObsLayout(h, h if cfg.observe_velocity else 0, s)
