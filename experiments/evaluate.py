@@ -5,6 +5,7 @@
     python -m experiments.evaluate --controller gp-mpc --env restaurant --split val --tasks 0-3
     python -m experiments.evaluate runs/<run> --controller gp-mpc      # the baseline, same tasks
     python -m experiments.evaluate runs/<run> --controller policy+mpc --animate   # as in training
+    python -m experiments.evaluate runs/<run> --split val --task-seeds 1-8  # 8 fresh task sets
 
 Controllers:
   policy      the run's policy with the meta-test protocol (MPC off): --episodes adaptation
@@ -14,6 +15,10 @@ Controllers:
               on that run's tasks with its MPC settings; without, on --env with the defaults.
   policy+mpc  one training-style episode per task: z from the prior, stochastic policy, the MPC
               acting on an event with probability --eps (default: the run's eps).
+
+With --task-seeds the split is drawn once per task-set seed (fresh layouts and crowds for every
+seed) and the metrics are pooled over all those tasks, with the standard error over tasks and the
+per-task-seed means; one results.json, no figures (default out: ...-seeds<A-B>).
 
 Prints SR / TT / CFR / SPL / MGD (mean and per seed, then per task) and writes results.json,
 trajectory figures and, with --animate, one GIF per figure task into --out (default
@@ -67,6 +72,11 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--env", help="task family when there is no RUN_DIR (default restaurant)")
     p.add_argument("--split", choices=SPLITS, default="test", help="task set (default test)")
     p.add_argument("--task-seed", type=int, help="task-set seed (default: the run's, or 0)")
+    p.add_argument(
+        "--task-seeds",
+        help="several task-set seeds, e.g. 1-8 or 1,5: the split drawn with each, pooled into "
+        "one mean with its standard error over tasks (a lower-variance estimate; no figures)",
+    )
     p.add_argument("--data", type=Path, help="ETH/UCY file for the sidewalk (default: the run's)")
     p.add_argument("--online", action="store_true", help="online adaptation (one episode)")
     p.add_argument(
@@ -97,6 +107,18 @@ def make_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _parse_ranges(text: str, what: str) -> set[int]:
+    """'0,3,5' | '0-3' (inclusive) | a mix -> the set of integers."""
+    out: set[int] = set()
+    try:
+        for part in text.split(","):
+            a, dash, b = part.partition("-")
+            out.update(range(int(a), (int(b) if dash else int(a)) + 1))
+    except ValueError:
+        raise UsageError(f"{what} {text!r}: expected numbers like 0,3,5 or 0-3") from None
+    return out
+
+
 def parse_indices(text: str, n: int, what: str) -> list[int]:
     """'all' | 'none' | '0,3,5' | '0-3' (inclusive) | a mix -> sorted unique indices < n."""
     text = text.strip().lower()
@@ -104,14 +126,7 @@ def parse_indices(text: str, n: int, what: str) -> list[int]:
         return list(range(n))
     if text in ("none", ""):
         return []
-    out: set[int] = set()
-    try:
-        for part in text.split(","):
-            a, dash, b = part.partition("-")
-            lo, hi = int(a), int(b) if dash else int(a)
-            out.update(range(lo, hi + 1))
-    except ValueError:
-        raise UsageError(f"{what} {text!r}: expected indices like 0,3,5 or 0-3") from None
+    out = _parse_ranges(text, what)
     bad = sorted(i for i in out if not 0 <= i < n)
     if bad:
         raise UsageError(f"{what}: task(s) {bad} out of range; the split has {n} tasks (0-{n - 1})")
@@ -467,10 +482,87 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
     return record, result
 
 
+def pooled(records: list[dict]) -> dict:
+    """Pool per-task metrics of several task sets: mean, standard error over tasks (each task's
+    value averaged over the policy seeds) and the mean of each task set."""
+    out: dict[str, Any] = {}
+    for k in (*METRIC_NAMES, "return"):
+        per_set = [np.asarray(r["per_task"][k], float).mean(axis=0) for r in records]
+        allv = np.concatenate(per_set)
+        se = float(allv.std(ddof=1) / np.sqrt(allv.size)) if allv.size > 1 else float("nan")
+        out[k] = {
+            "mean": float(allv.mean()),
+            "se": se,
+            "per_task_seed": [float(v.mean()) for v in per_set],
+        }
+    return out
+
+
+def main_task_seeds(args: argparse.Namespace) -> int:
+    """--task-seeds: the controller on the split of each task-set seed, pooled."""
+    import copy
+
+    from mpcpearl_jax.errors import CheckpointError
+
+    if args.task_seed is not None:
+        print("error: give --task-seed or --task-seeds, not both", file=sys.stderr)
+        return 2
+    if args.figures not in (None, "none") or args.animate:
+        print("error: --task-seeds makes no figures (drop --figures/--animate)", file=sys.stderr)
+        return 2
+    records, s = [], None
+    try:
+        seeds = sorted(_parse_ranges(args.task_seeds.strip(), "--task-seeds"))
+        for ts in seeds:
+            a = copy.copy(args)
+            a.task_seed, a.figures = ts, "none"
+            s = setup(a)
+            record, _ = evaluate(a, s)
+            records.append(record)
+            print(
+                f"[evaluate] task seed {ts}: {len(s.task_ids)} task(s), "
+                f"SR {record['metrics']['SR']:.2f} CFR {record['metrics']['CFR']:.2f}",
+                flush=True,
+            )
+    except (UsageError, CheckpointError, ConfigError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    n_tasks = sum(len(r["tasks"]) for r in records)
+    pool = pooled(records)
+    span = (
+        f"{seeds[0]}-{seeds[-1]}"
+        if seeds == list(range(seeds[0], seeds[-1] + 1))
+        else ",".join(map(str, seeds))
+    )
+    protocol = records[0]["protocol"]
+    print(f"{s.label}: {s.env_name}/{s.split}, task seeds {span} ({n_tasks} tasks), {protocol}")
+    print("| metric | mean | s.e. | per task seed |\n|---|---|---|---|")
+    for k, v in pool.items():
+        per = " ".join(f"{x:.2f}" for x in v["per_task_seed"])
+        print(f"| {k} | {v['mean']:.2f} | {v['se']:.2f} | {per} |")
+    out = args.out
+    if out is None:
+        out = s.out.parent / f"{s.out.name}-seeds{span.replace(',', '_')}"
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {
+        "label": s.label,
+        "split": s.split,
+        "task_seeds": seeds,
+        "num_tasks": n_tasks,
+        "pooled": pool,
+        "records": records,
+    }
+    (out / "results.json").write_text(json.dumps(summary, indent=2))
+    print(f"wrote {out / 'results.json'}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = make_parser().parse_args(argv)
     from mpcpearl_jax.errors import CheckpointError
 
+    if args.task_seeds is not None:
+        return main_task_seeds(args)
     try:
         s = setup(args)
     except (UsageError, CheckpointError, ConfigError) as e:

@@ -50,6 +50,34 @@ def test_policy_on_each_split(tmp_path, split):
     assert (tmp_path / f"trajectory_{split}5.png").is_file()
 
 
+def test_task_seeds_pool_the_splits_of_several_task_set_seeds(tmp_path, capsys):
+    singles = []
+    for ts in (1, 2):
+        out = tmp_path / f"seed{ts}"
+        argv = [str(RESTAURANT_RUN), "--split", "val", "--task-seed", str(ts), "--tasks", "0-5"]
+        assert main([*argv, "--figures", "none", "--out", str(out)]) == 0
+        singles.append(_record(out))
+    assert singles[0]["per_task"]["return"] != singles[1]["per_task"]["return"]  # fresh tasks
+    argv = [str(RESTAURANT_RUN), "--split", "val", "--task-seeds", "1-2", "--tasks", "0-5"]
+    assert main([*argv, "--out", str(tmp_path / "pool")]) == 0
+    rec = _record(tmp_path / "pool")
+    assert rec["task_seeds"] == [1, 2] and rec["num_tasks"] == 12
+    for k in METRICS:
+        values = [v for r in singles for v in r["per_task"][k][0]]
+        assert rec["pooled"][k]["mean"] == pytest.approx(sum(values) / 12, rel=1e-6, abs=1e-6)
+        assert rec["pooled"][k]["per_task_seed"] == pytest.approx(
+            [r["metrics"][k] for r in singles], rel=1e-5, abs=1e-5
+        )
+    ret = [v for r in singles for v in r["per_task"]["return"][0]]
+    mean = sum(ret) / 12
+    se = (sum((v - mean) ** 2 for v in ret) / 11) ** 0.5 / 12**0.5
+    assert rec["pooled"]["return"]["se"] == pytest.approx(se, rel=1e-6)
+    assert "task seeds 1-2 (12 tasks)" in capsys.readouterr().out
+    assert main([str(RESTAURANT_RUN), "--task-seeds", "1-2", "--task-seed", "3"]) == 2
+    assert main([str(RESTAURANT_RUN), "--task-seeds", "x"]) == 2
+    assert "--task-seeds 'x'" in capsys.readouterr().err
+
+
 def test_online_with_animation(tmp_path):
     argv = [str(RESTAURANT_RUN), "--online", "--tasks", "3", "--animate", "--out", str(tmp_path)]
     assert main(argv) == 0
@@ -149,5 +177,5 @@ def test_parse_indices():
     assert parse_indices("all", 3, "--tasks") == [0, 1, 2]
     assert parse_indices("none", 3, "--tasks") == []
     assert parse_indices("4,0-2,2", 5, "--tasks") == [0, 1, 2, 4]
-    with pytest.raises(UsageError, match="expected indices"):
+    with pytest.raises(UsageError, match="expected numbers"):
         parse_indices("a-b", 5, "--tasks")
