@@ -59,6 +59,7 @@ OUTPUTS = (
     "metrics.jsonl",
     "config.json",
     "policy.msgpack",
+    "policy-trained.msgpack",  # with pearl.policy_ema: the trained parameters
     "results.json",
     "learning_curves.png",
     "episode_test0.gif",
@@ -212,10 +213,15 @@ def _loadavg() -> list[float] | None:
 
 # -------------------------------------------------------------------------- running
 def _evaluate(trainer, state, val_tasks, online: bool) -> dict[str, float]:
+    """test_* and val_* metrics of the deployed parameters; with a Polyak average kept
+    (`pearl.policy_ema`) also trained_test_* and trained_val_*, the trained parameters side by
+    side on the same tasks."""
     row: dict[str, float] = {}
-    for split, tasks in (("test", None), ("val", val_tasks)):
-        ev = trainer.evaluate(state, tasks=tasks, online=online)
-        row.update({f"{split}_{k}": ev[k] for k in METRICS})
+    averaged = state.learner.average is not None
+    for trained, prefix in ((False, ""), (True, "trained_"))[: 1 + averaged]:
+        for split, tasks in (("test", None), ("val", val_tasks)):
+            ev = trainer.evaluate(state, tasks=tasks, online=online, trained=trained)
+            row.update({f"{prefix}{split}_{k}": ev[k] for k in METRICS})
     return row
 
 
@@ -242,13 +248,16 @@ def plot_curve(points: Sequence[dict[str, Any]], path: Path, title: str) -> Path
         for ax, metric in zip(axes[row], ("SR", "CFR", "return"), strict=True):
             for split, style in (("test", "-o"), ("val", "--s")):
                 ax.plot(x, [p[f"{split}_{metric}"] for p in points], style, ms=3, label=split)
+                if f"trained_{split}_{metric}" in points[-1]:  # pearl.policy_ema: both
+                    y = [p.get(f"trained_{split}_{metric}", math.nan) for p in points]
+                    ax.plot(x, y, style, ms=3, alpha=0.35, label=f"{split}, trained params")
             ax.set_title(metric)
             ax.set_xlabel(xlabel)
             ax.grid(alpha=0.3)
             if metric in ("SR", "CFR"):
                 ax.set_ylim(-0.05, 1.05)
             ax.legend(fontsize=8)
-    sub = "test: the unseen test tasks; val: the first training tasks"
+    sub = "test: the unseen test tasks; val: the validation tasks"
     fig.suptitle(f"{title}\n{sub}", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -416,7 +425,15 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
     import jax
 
     from benchmarks.harness import available_cores, machine_info, print_table
-    from mpcpearl_jax.checkpoint import POLICY_FILE, Checkpointer, save_config, save_network
+    from mpcpearl_jax.checkpoint import (
+        POLICY_FILE,
+        TRAINED_POLICY_FILE,
+        Checkpointer,
+        atomic_write,
+        save_config,
+        save_network,
+    )
+    from mpcpearl_jax.distributed import to_host
     from mpcpearl_jax.envs import make_tasks
     from mpcpearl_jax.run import LOG_FILE, _policy_params, final_evaluation
     from mpcpearl_jax.trainer import Trainer
@@ -548,6 +565,12 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
             ckpt = Checkpointer(out, keep=tc.keep_checkpoints)
             ckpt.save(done, state, _policy_params(state))
             ckpt.close()
+        if state.learner.average is not None:  # pearl.policy_ema: the trained ones beside it
+            from flax import serialization
+
+            p = to_host(state.learner.params)
+            trained = {"policy": p["policy"], "encoder": p["encoder"]}
+            atomic_write(out / TRAINED_POLICY_FILE, serialization.to_bytes(trained))
     record["timing"]["save_s"] = time.perf_counter() - t
     t = time.perf_counter()
     if stopped == "budget":

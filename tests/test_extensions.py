@@ -217,6 +217,7 @@ def test_paper_presets_have_every_extension_off(name):
     assert cfg.train.mpc_demo_share == 0 and cfg.train.mpc_buffer_fraction == 0
     assert cfg.train.mpc_demo_step_prob == 1.0
     assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
+    assert cfg.pearl.policy_ema == 0
     assert not cfg.mpc.unsafe_recovery
     for field in ("observe_velocity", "observe_relative", "sensing_radius", "observe_time"):
         assert not cfg.env_overrides.get(field), field

@@ -38,6 +38,8 @@ from mpcpearl_jax.pearl.networks import Networks
 
 CONFIG_FILE = "config.json"
 POLICY_FILE = "policy.msgpack"
+# benchmarks.learning with pearl.policy_ema: the trained parameters beside the averaged ones
+TRAINED_POLICY_FILE = "policy-trained.msgpack"
 NETWORK_FILE = "network.json"
 
 

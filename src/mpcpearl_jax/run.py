@@ -35,6 +35,7 @@ from mpcpearl_jax.checkpoint import (
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, ConfigError
+from mpcpearl_jax.pearl.learner import deployed_params
 from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState
 
@@ -299,8 +300,7 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
 
 
 def _policy_params(state: TrainState) -> dict:
-    p = state.learner.params
-    return to_host({"policy": p["policy"], "encoder": p["encoder"]})
+    return to_host(deployed_params(state.learner))
 
 
 def final_evaluation(

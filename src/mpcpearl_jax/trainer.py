@@ -31,7 +31,7 @@ from mpcpearl_jax.envs import can_redraw, make_env, make_tasks, redraw_tasks
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.errors import ConfigError, TrainingDiverged
 from mpcpearl_jax.pearl import buffers
-from mpcpearl_jax.pearl.learner import LearnerState, init_learner, make_update
+from mpcpearl_jax.pearl.learner import LearnerState, deployed_params, init_learner, make_update
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import context_from
 
@@ -396,15 +396,19 @@ class Trainer:
         tasks: TaskParams | None = None,
         online: bool = False,
         key: Array | None = None,
+        trained: bool = False,
     ) -> dict:
-        """method §8 metrics on `tasks` (default: test tasks), mean and per seed."""
+        """method §8 metrics on `tasks` (default: test tasks), mean and per seed, of the deployed
+        parameters (`deployed_params`), or of the trained ones when `trained`."""
         tasks = self.test_tasks if tasks is None else tasks
         key = jax.random.PRNGKey(12345) if key is None else key
         fn = self.evaluate_online if online else self.evaluate_adapt
-        params = {
-            "policy": state.learner.params["policy"],
-            "encoder": state.learner.params["encoder"],
-        }
+        p = state.learner.params
+        params = (
+            {"policy": p["policy"], "encoder": p["encoder"]}
+            if trained
+            else deployed_params(state.learner)
+        )
         result = to_host(fn(key, params, tasks))
         return eval_lib.summarize(result, tasks, self.env.config.robot_radius) | {"_raw": result}
 

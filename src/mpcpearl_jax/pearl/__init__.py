@@ -1,7 +1,7 @@
 """PEARL (SAC + probabilistic context encoder) in JAX: networks, losses, buffers, learner."""
 
 from mpcpearl_jax.pearl.config import PearlConfig
-from mpcpearl_jax.pearl.learner import LearnerState, init_learner, make_update
+from mpcpearl_jax.pearl.learner import LearnerState, deployed_params, init_learner, make_update
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import Transitions, context_from
 
@@ -11,6 +11,7 @@ __all__ = [
     "PearlConfig",
     "Transitions",
     "context_from",
+    "deployed_params",
     "init_learner",
     "make_update",
 ]

@@ -39,6 +39,12 @@ class PearlConfig:
     bc_weight: float = 0.0
     bc_q_filter: bool = True  # False: clone every MPC sample (no Q filter)
     layer_norm: bool = False  # LayerNorm after every hidden layer of the Q and V networks
+    # Polyak average of the policy and encoder parameters, deployed for evaluation and export
+    # (collection keeps acting with the trained parameters): after each gradient step
+    # avg += max(policy_ema, 1 / n) (theta - avg), n the steps taken, i.e. a running mean for the
+    # first 1 / policy_ema steps, then an exponential average over about 1 / policy_ema steps.
+    # 0 = off: the trained parameters are deployed.
+    policy_ema: float = 0.0
 
     def __post_init__(self) -> None:
         v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size")
@@ -47,6 +53,7 @@ class PearlConfig:
         v.interval(self, "gamma", "tau", lo=0.0, hi=1.0)
         v.nonnegative(self, "kl_weight", "policy_mean_reg", "policy_std_reg", "bc_weight")
         v.flags(self, "use_context", "layer_norm", "bc_q_filter")
+        v.interval(self, "policy_ema", lo=0.0, hi=1.0)
         v.check(
             v.is_number(self.log_std_min)
             and v.is_number(self.log_std_max)

@@ -17,7 +17,14 @@ from mpcpearl_jax.pearl.config import PearlConfig
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import Transitions, context_from
 
-__all__ = ["LearnerState", "Transitions", "context_from", "init_learner", "make_update"]
+__all__ = [
+    "LearnerState",
+    "Transitions",
+    "context_from",
+    "deployed_params",
+    "init_learner",
+    "make_update",
+]
 
 
 @struct.dataclass
@@ -28,6 +35,25 @@ class LearnerState:
     target_v: dict
     opt_state: dict  # {q_enc, policy, v}
     steps: Array  # int32 gradient steps taken
+    # {policy, encoder} Polyak average (extension `PearlConfig.policy_ema`); None when off
+    average: dict | None = None
+
+
+def deployed_params(state: LearnerState) -> dict:
+    """The {policy, encoder} parameters to evaluate and export: the Polyak average when the
+    `policy_ema` extension keeps one, else the trained parameters."""
+    if state.average is not None:
+        return state.average
+    return {"policy": state.params["policy"], "encoder": state.params["encoder"]}
+
+
+def _averaged(state: LearnerState, params: dict, rate: float) -> dict | None:
+    """The average after one more step: avg + max(rate, 1 / n) (theta - avg), n steps taken."""
+    if state.average is None:
+        return None
+    w = jnp.maximum(rate, 1.0 / (state.steps + 1).astype(jnp.float32))
+    new = {"policy": params["policy"], "encoder": params["encoder"]}
+    return jax.tree_util.tree_map(lambda a, p: a + w * (p - a), state.average, new)
 
 
 def _optimizer(cfg: PearlConfig) -> optax.GradientTransformation:
@@ -46,7 +72,10 @@ def init_learner(key: Array, nets: Networks) -> LearnerState:
         "policy": opt.init(params["policy"]),
         "v": opt.init(params["v"]),
     }
-    return LearnerState(params, params["v"], opt_state, jnp.zeros((), jnp.int32))
+    average = None
+    if nets.cfg.policy_ema > 0:
+        average = {"policy": params["policy"], "encoder": params["encoder"]}
+    return LearnerState(params, params["v"], opt_state, jnp.zeros((), jnp.int32), average)
 
 
 def _update(
@@ -102,7 +131,11 @@ def _update(
 
     params = {"policy": policy, "q": q_enc["q"], "v": v, "encoder": q_enc["encoder"]}
     new_state = LearnerState(
-        params, target_v, {"q_enc": os_qe, "policy": os_pi, "v": os_v}, state.steps + 1
+        params,
+        target_v,
+        {"q_enc": os_qe, "policy": os_pi, "v": os_v},
+        state.steps + 1,
+        _averaged(state, params, cfg.policy_ema),
     )
     metrics = {
         "q_loss": aux["q_loss"],
