@@ -217,10 +217,10 @@ def _evaluate(trainer, state, val_tasks, online: bool) -> dict[str, float]:
     (`pearl.policy_ema`) also trained_test_* and trained_val_*, the trained parameters side by
     side on the same tasks."""
     row: dict[str, float] = {}
-    averaged = state.learner.average is not None
-    for trained, prefix in ((False, ""), (True, "trained_"))[: 1 + averaged]:
+    averaged = trainer.cfg.pearl.policy_ema > 0
+    for prefix, kw in (("", {}), ("trained_", {"trained": True}))[: 1 + averaged]:
         for split, tasks in (("test", None), ("val", val_tasks)):
-            ev = trainer.evaluate(state, tasks=tasks, online=online, trained=trained)
+            ev = trainer.evaluate(state, tasks=tasks, online=online, **kw)
             row.update({f"{prefix}{split}_{k}": ev[k] for k in METRICS})
     return row
 
@@ -407,7 +407,9 @@ def train_for(
         last = info["train_s"] >= budget_s
         if last or info["train_s"] >= next_eval_s:
             point = evaluate()
-            row.update({k: v for k, v in point.items() if k.startswith(("test_", "val_"))})
+            row.update(
+                {k: v for k, v in point.items() if k.startswith(("test_", "val_", "trained_"))}
+            )
             row["eval_s"] = point["eval_s"]
             next_eval_s = (math.floor(info["train_s"] / every_s) + 1) * every_s
         with log_path.open("a") as f:
@@ -435,6 +437,7 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
     )
     from mpcpearl_jax.distributed import to_host
     from mpcpearl_jax.envs import make_tasks
+    from mpcpearl_jax.pearl.learner import acting_params
     from mpcpearl_jax.run import LOG_FILE, _policy_params, final_evaluation
     from mpcpearl_jax.trainer import Trainer
 
@@ -565,11 +568,10 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
             ckpt = Checkpointer(out, keep=tc.keep_checkpoints)
             ckpt.save(done, state, _policy_params(state))
             ckpt.close()
-        if state.learner.average is not None:  # pearl.policy_ema: the trained ones beside it
+        if cfg.pearl.policy_ema > 0:  # the trained parameters beside the averaged ones
             from flax import serialization
 
-            p = to_host(state.learner.params)
-            trained = {"policy": p["policy"], "encoder": p["encoder"]}
+            trained = to_host(acting_params(state.learner.params))
             atomic_write(out / TRAINED_POLICY_FILE, serialization.to_bytes(trained))
     record["timing"]["save_s"] = time.perf_counter() - t
     t = time.perf_counter()

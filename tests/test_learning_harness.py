@@ -214,6 +214,7 @@ def test_smoke_run_writes_curve_policy_and_results(tmp_path, fast_compile, capsy
     assert {"train_success", "train_mpc_share", "env_steps"} <= set(points[-1])
     rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == rec["iterations"] and "test_SR" in rows[-1] and "val_SR" in rows[-1]
+    assert rows[-1]["trained_val_SR"] == points[-1]["trained_val_SR"]
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["train"]["iterations"] == rec["iterations"] and cfg["train"]["eps"] == 0
     for name in ("curve.png", "results.json", "policy.msgpack", "trajectory_test0.png"):

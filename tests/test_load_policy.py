@@ -14,7 +14,7 @@ import mpcpearl_jax.checkpoint as checkpoint
 from mpcpearl_jax.checkpoint import NETWORK_FILE, CheckpointError, load_policy, save_network
 
 ROOT = Path(__file__).resolve().parents[1]
-SIDEWALK_RUN = ROOT / "results" / "sidewalk" / "mpc-pearl-eps0.2"
+SIDEWALK_RUN = ROOT / "results" / "sidewalk" / "ablation" / "cpu-10min"  # no network.json
 RESTAURANT_RUN = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"
 
 

@@ -31,7 +31,13 @@ from mpcpearl_jax.envs import can_redraw, make_env, make_tasks, redraw_tasks
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.errors import ConfigError, TrainingDiverged
 from mpcpearl_jax.pearl import buffers
-from mpcpearl_jax.pearl.learner import LearnerState, deployed_params, init_learner, make_update
+from mpcpearl_jax.pearl.learner import (
+    LearnerState,
+    acting_params,
+    deployed_params,
+    init_learner,
+    make_update,
+)
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import context_from
 
@@ -403,12 +409,8 @@ class Trainer:
         tasks = self.test_tasks if tasks is None else tasks
         key = jax.random.PRNGKey(12345) if key is None else key
         fn = self.evaluate_online if online else self.evaluate_adapt
-        p = state.learner.params
-        params = (
-            {"policy": p["policy"], "encoder": p["encoder"]}
-            if trained
-            else deployed_params(state.learner)
-        )
+        learner = state.learner
+        params = acting_params(learner.params) if trained else deployed_params(learner)
         result = to_host(fn(key, params, tasks))
         return eval_lib.summarize(result, tasks, self.env.config.robot_radius) | {"_raw": result}
 

@@ -19,6 +19,7 @@ from mpcpearl_jax.pearl.types import Transitions, context_from
 
 __all__ = [
     "LearnerState",
+    "acting_params",
     "Transitions",
     "context_from",
     "deployed_params",
@@ -39,12 +40,15 @@ class LearnerState:
     average: dict | None = None
 
 
+def acting_params(params: dict) -> dict:
+    """The {policy, encoder} part of the parameters: what acting and adaptation need."""
+    return {"policy": params["policy"], "encoder": params["encoder"]}
+
+
 def deployed_params(state: LearnerState) -> dict:
     """The {policy, encoder} parameters to evaluate and export: the Polyak average when the
     `policy_ema` extension keeps one, else the trained parameters."""
-    if state.average is not None:
-        return state.average
-    return {"policy": state.params["policy"], "encoder": state.params["encoder"]}
+    return acting_params(state.params) if state.average is None else state.average
 
 
 def _averaged(state: LearnerState, params: dict, rate: float) -> dict | None:
@@ -52,8 +56,9 @@ def _averaged(state: LearnerState, params: dict, rate: float) -> dict | None:
     if state.average is None:
         return None
     w = jnp.maximum(rate, 1.0 / (state.steps + 1).astype(jnp.float32))
-    new = {"policy": params["policy"], "encoder": params["encoder"]}
-    return jax.tree_util.tree_map(lambda a, p: a + w * (p - a), state.average, new)
+    return jax.tree_util.tree_map(
+        lambda a, p: a + w * (p - a), state.average, acting_params(params)
+    )
 
 
 def _optimizer(cfg: PearlConfig) -> optax.GradientTransformation:
@@ -72,9 +77,7 @@ def init_learner(key: Array, nets: Networks) -> LearnerState:
         "policy": opt.init(params["policy"]),
         "v": opt.init(params["v"]),
     }
-    average = None
-    if nets.cfg.policy_ema > 0:
-        average = {"policy": params["policy"], "encoder": params["encoder"]}
+    average = acting_params(params) if nets.cfg.policy_ema > 0 else None
     return LearnerState(params, params["v"], opt_state, jnp.zeros((), jnp.int32), average)
 
 
