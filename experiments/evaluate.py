@@ -283,16 +283,31 @@ def _stacked_params(policies: list) -> dict:
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[p.params for p in policies])
 
 
-def run_policy(s: Setup, key: jax.Array, episodes: int, online: bool) -> dict:
-    """The meta-test protocol through `mpcpearl_jax.evaluate.make_evaluator`; arrays [S, N, ...]."""
+# jitted evaluators by everything that shapes their program, so that --task-seeds compiles the
+# protocol once and runs it on every seed's tasks (same shapes, new values)
+_EVALUATORS: dict[tuple, Any] = {}
+
+
+def policy_evaluator(s: Setup, episodes: int, online: bool):
+    """The jitted `mpcpearl_jax.evaluate.make_evaluator` program for `s`, built once per
+    (environment config, networks, protocol) and reused across task sets."""
     from mpcpearl_jax import evaluate as eval_lib
     from mpcpearl_jax.envs.navigation import NavEnv
 
     nets = s.policies[0].nets
-    env = NavEnv(s.env_config)
-    fn = eval_lib.make_evaluator(
-        env, nets, episodes, online=online, t_update=s.run_config.train.t_update
-    )
+    t_update = s.run_config.train.t_update
+    key = (s.env_config, nets.cfg, nets.obs_dim, nets.action_dim, episodes, online, t_update)
+    if key not in _EVALUATORS:
+        env = NavEnv(s.env_config)
+        _EVALUATORS[key] = eval_lib.make_evaluator(
+            env, nets, episodes, online=online, t_update=t_update
+        )
+    return _EVALUATORS[key]
+
+
+def run_policy(s: Setup, key: jax.Array, episodes: int, online: bool) -> dict:
+    """The meta-test protocol through `mpcpearl_jax.evaluate.make_evaluator`; arrays [S, N, ...]."""
+    fn = policy_evaluator(s, episodes, online)
     return jax.device_get(fn(key, _stacked_params(s.policies), s.tasks))
 
 

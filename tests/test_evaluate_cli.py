@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
+import experiments.evaluate as evaluate_cli
 from experiments.evaluate import UsageError, main, parse_indices
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,7 +51,9 @@ def test_policy_on_each_split(tmp_path, split):
     assert (tmp_path / f"trajectory_{split}5.png").is_file()
 
 
-def test_task_seeds_pool_the_splits_of_several_task_set_seeds(tmp_path, capsys):
+def test_task_seeds_pool_the_splits_of_several_task_set_seeds(tmp_path, capsys, monkeypatch):
+    evaluators: dict = {}
+    monkeypatch.setattr(evaluate_cli, "_EVALUATORS", evaluators)
     singles = []
     for ts in (1, 2):
         out = tmp_path / f"seed{ts}"
@@ -73,6 +76,9 @@ def test_task_seeds_pool_the_splits_of_several_task_set_seeds(tmp_path, capsys):
     se = (sum((v - mean) ** 2 for v in ret) / 11) ** 0.5 / 12**0.5
     assert rec["pooled"]["return"]["se"] == pytest.approx(se, rel=1e-6)
     assert "task seeds 1-2 (12 tasks)" in capsys.readouterr().out
+    # four task sets, one program: the protocol was traced and compiled once
+    assert len(evaluators) == 1
+    assert next(iter(evaluators.values()))._cache_size() == 1
     assert main([str(RESTAURANT_RUN), "--task-seeds", "1-2", "--task-seed", "3"]) == 2
     assert main([str(RESTAURANT_RUN), "--task-seeds", "x"]) == 2
     assert "--task-seeds 'x'" in capsys.readouterr().err
