@@ -66,3 +66,20 @@ def test_all_lists_every_script() -> None:
     assert set(SCRIPTS) <= set(bench_all.SCRIPTS)
     for name in SCRIPTS:
         assert (root / f"{name}.py").is_file()
+
+
+def test_imitation_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
+    """`benchmarks.imitation` (a diagnostic, not part of the speed suite) on the committed
+    headline run: errors on the MPC's states, the BC curve and its closed-loop metrics."""
+    from benchmarks import imitation
+
+    res = imitation.main(["--tiny", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "imitation.json").read_text())
+    assert record["config"]["size"] == "tiny" and record["results"]["bc_selected_steps"] in (5, 10)
+    assert [row["steps"] for row in res["bc_curve"]] == [5, 10]
+    errors = [res["label_variance"], *res["policy_error"].values()]
+    errors += [row["val_error"] for row in res["bc_curve"]]
+    assert all(0.0 <= e <= 8.0 for e in errors)  # two normalized dims: |a - b|^2 <= 8
+    assert 0 < res["samples"]["val"] <= 2 * 80 and 0 < res["samples"]["train"] <= 2 * 80
+    seeds = res["bc_closed_loop"]["per_task_seed"]
+    assert list(seeds) == [1] and 0.0 <= seeds[1]["SR"] <= seeds[1]["CFR"] <= 1.0
