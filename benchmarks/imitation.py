@@ -3,9 +3,9 @@
 A diagnostic for the behaviour-cloning extension (`pearl.bc_weight`, docs/extensions.md). The
 GP-MPC of the run (its own `mpc` settings, acting at every step) drives closed-loop episodes on
 the first `train_tasks` training tasks and on the `val` split of task seed `--select-seed`. On
-the MPC's own states of the validation episodes (steps before a collision or the goal) it
-measures the squared action error |a - a_mpc|^2 (summed over the two normalized action
-dimensions) of
+the MPC's own states of the validation episodes, and of the training episodes (steps before a
+collision or the goal), it measures the squared action error |a - a_mpc|^2 (summed over the two
+normalized action dimensions) of
 
 * the run's deterministic policy tanh(mu(s, z)), with the prior z = 0 and with z inferred from
   the MPC episode itself as context;
@@ -117,6 +117,10 @@ def closed_loop(env, net, params, tasks) -> dict:
     return metrics.compute(pos, col, goal, tasks.goal, env.config.robot_radius)
 
 
+def _split(errors: dict, which: str) -> dict[str, float]:
+    return {"train_error": errors["train"][which], "val_error": errors["val"][which]}
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     p = harness.common_parser(__doc__.splitlines()[0])
     p.add_argument("--run", type=Path, default=DEFAULT_RUN, help="run directory (load_policy)")
@@ -150,21 +154,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     xs_va, ys_va = jnp.asarray(np.asarray(x_va)[m_va]), jnp.asarray(va["action"][m_va])
     sq = lambda a, b: float(jnp.mean(jnp.sum((a - b) ** 2, -1)))  # noqa: E731
 
-    # the run's policy on the MPC's validation states
-    z0 = jnp.zeros(x_va.shape[:-1] + (pol.latent_dim,))
-    a_prior = pol.nets.act(pol.params["policy"], x_va, z0, None)
-    ctx = jnp.concatenate(
-        [x_va[:, :-1], va["action"][:, :-1], va["reward"][:, :-1, None], x_va[:, 1:]], -1
-    )
-    z_post = jax.vmap(lambda c: pol.nets.sample_z(pol.params["encoder"], c, None, None))(ctx)
-    a_post = pol.nets.act(
-        pol.params["policy"], x_va, jnp.broadcast_to(z_post[:, None], z0.shape), None
-    )
-    policy_err = {
-        "prior_z": sq(np.asarray(a_prior)[m_va], ys_va),
-        "posterior_z": sq(np.asarray(a_post)[m_va], ys_va),
-    }
-    label_var = sq(ys_va, jnp.mean(ys_va, 0))
+    # the run's policy on the MPC's states
+    def policy_error(x, traj, mask) -> dict[str, float]:
+        labels = traj["action"][mask]
+        z0 = jnp.zeros(x.shape[:-1] + (pol.latent_dim,))
+        ctx = jnp.concatenate(
+            [x[:, :-1], traj["action"][:, :-1], traj["reward"][:, :-1, None], x[:, 1:]], -1
+        )
+        z = jax.vmap(lambda c: pol.nets.sample_z(pol.params["encoder"], c, None, None))(ctx)
+        z = jnp.broadcast_to(z[:, None], z0.shape)
+        act = lambda z: np.asarray(pol.nets.act(pol.params["policy"], x, z, None))[mask]  # noqa: E731
+        return {"prior_z": sq(act(z0), labels), "posterior_z": sq(act(z), labels)}
+
+    policy_err = {"val": policy_error(x_va, va, m_va), "train": policy_error(x_tr, tr, m_tr)}
+    label_var, train_var = sq(ys_va, jnp.mean(ys_va, 0)), sq(ys_tr, jnp.mean(ys_tr, 0))
 
     # supervised behaviour cloning on the training episodes
     net = bc_mlp(tuple(cfg.pearl.hidden))
@@ -204,12 +207,24 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     mpc_sr = lambda t: float(np.mean(t["in_goal"].any(1) & ~t["collision"].any(1)))  # noqa: E731
 
     rows = [
-        {"model": "mean MPC action (label variance)", "val_error": label_var},
-        {"model": "run policy, prior z", "val_error": policy_err["prior_z"]},
-        {"model": "run policy, z from the MPC episode", "val_error": policy_err["posterior_z"]},
-        *({"model": f"BC MLP, {r['steps']} steps", "val_error": r["val_error"]} for r in curve),
+        {
+            "model": "mean MPC action (label variance)",
+            "train_error": train_var,
+            "val_error": label_var,
+        },
+        {"model": "run policy, prior z", **_split(policy_err, "prior_z")},
+        {"model": "run policy, z from the MPC episode", **_split(policy_err, "posterior_z")},
+        *(
+            {
+                "model": f"BC MLP, {r['steps']} steps",
+                "train_error": r["train_error"],
+                "val_error": r["val_error"],
+            }
+            for r in curve
+        ),
     ]
-    harness.print_table(rows, ["model", "val_error"], f"imitation error on MPC states ({size})")
+    title = f"imitation error |a - a_mpc|^2 on the MPC's states ({size})"
+    harness.print_table(rows, ["model", "train_error", "val_error"], title)
     print(
         f"BC MLP ({best} steps) alone on val task seeds {list(per_seed)}: SR {pooled['SR']:.2f} "
         f"CFR {pooled['CFR']:.2f}; GP-MPC SR on its episodes: train {mpc_sr(tr):.2f}, "
@@ -219,6 +234,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     results = {
         "run": str(args.run),
         "label_variance": label_var,
+        "train_label_variance": train_var,
         "policy_error": policy_err,
         "bc_curve": curve,
         "bc_selected_steps": best,

@@ -77,7 +77,8 @@ def test_imitation_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     record = json.loads((tmp_path / "imitation.json").read_text())
     assert record["config"]["size"] == "tiny" and record["results"]["bc_selected_steps"] in (5, 10)
     assert [row["steps"] for row in res["bc_curve"]] == [5, 10]
-    errors = [res["label_variance"], *res["policy_error"].values()]
+    errors = [res["label_variance"], res["train_label_variance"]]
+    errors += [e for split in res["policy_error"].values() for e in split.values()]
     errors += [row["val_error"] for row in res["bc_curve"]]
     assert all(0.0 <= e <= 8.0 for e in errors)  # two normalized dims: |a - b|^2 <= 8
     assert 0 < res["samples"]["val"] <= 2 * 80 and 0 < res["samples"]["train"] <= 2 * 80
