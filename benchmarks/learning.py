@@ -242,9 +242,13 @@ def plot_curve(points: Sequence[dict[str, Any]], path: Path, title: str) -> Path
 
     fig, axes = plt.subplots(2, 3, figsize=(14, 7), squeeze=False)
     for row, (xkey, xlabel) in enumerate(
-        (("minutes", "training minutes (compile included)"), ("grad_steps", "gradient steps"))
+        (
+            ("minutes", "training minutes (compile included)"),
+            ("grad_steps", "gradient steps (thousands)"),
+        )
     ):
-        x = [p[xkey] for p in points]
+        scale = 1e-3 if xkey == "grad_steps" else 1.0
+        x = [p[xkey] * scale for p in points]
         for ax, metric in zip(axes[row], ("SR", "CFR", "return"), strict=True):
             for split, style in (("test", "-o"), ("val", "--s")):
                 ax.plot(x, [p[f"{split}_{metric}"] for p in points], style, ms=3, label=split)
