@@ -28,7 +28,8 @@ from typing import Any
 
 from benchmarks import harness
 
-DEFAULT_RUN = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "mpc-pearl-eps0.2"
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_RUN = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"
 SIZES: dict[str, dict[str, Any]] = {
     "tiny": dict(train_tasks=2, val_tasks=2, fit_steps=(5, 10), task_seeds=(1,)),
     "default": dict(
@@ -232,7 +233,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         flush=True,
     )
     results = {
-        "run": str(args.run),
+        "run": str(args.run.relative_to(ROOT) if args.run.is_relative_to(ROOT) else args.run),
         "label_variance": label_var,
         "train_label_variance": train_var,
         "policy_error": policy_err,
