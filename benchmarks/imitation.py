@@ -44,19 +44,15 @@ SIZES: dict[str, dict[str, Any]] = {
 }
 
 
-def mpc_episodes(env, mpc_cfg, tasks, seed: int) -> dict:
-    """GP-MPC closed loop on `tasks`; arrays [N, T(+1), ...] as numpy."""
+def mpc_episodes(env, bridge, tasks, seed: int) -> dict:
+    """GP-MPC closed loop on `tasks` through `bridge`; arrays [N, T(+1), ...] as numpy."""
     import jax
     import numpy as np
 
-    from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
+    from mpcpearl_jax.mpc import make_gp_mpc_rollout
 
-    bridge = make_mpc_bridge(env, MPCConfig(**mpc_cfg.to_dict()))
-    try:
-        traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(seed), tasks)
-        return jax.tree_util.tree_map(np.asarray, jax.block_until_ready(traj))
-    finally:
-        bridge.close()
+    traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(seed), tasks)
+    return jax.tree_util.tree_map(np.asarray, jax.block_until_ready(traj))
 
 
 def observations(env, traj: dict, tasks):
@@ -142,8 +138,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import numpy as np
     import optax
 
-    from mpcpearl_jax import load_policy
+    from mpcpearl_jax import load_policy, metrics
     from mpcpearl_jax.envs import make_env, make_tasks
+    from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
 
     pol = load_policy(args.run)
     cfg = pol.config
@@ -151,10 +148,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     first = lambda tasks, n: jax.tree_util.tree_map(lambda a: a[:n], tasks)  # noqa: E731
     train_tasks = first(make_tasks(cfg.env, "train", cfg.task_seed), sz["train_tasks"])
     val_tasks = first(make_tasks(cfg.env, "val", args.select_seed), sz["val_tasks"])
-    (tr, mpc_train_s), (va, mpc_val_s) = (
-        harness.timed(lambda t=t: mpc_episodes(env, cfg.mpc, t, cfg.seed))
-        for t in (train_tasks, val_tasks)
-    )
+    bridge = make_mpc_bridge(env, MPCConfig(**cfg.mpc.to_dict()))
+    try:
+        (tr, mpc_train_s), (va, mpc_val_s) = (
+            harness.timed(lambda t=t: mpc_episodes(env, bridge, t, cfg.seed))
+            for t in (train_tasks, val_tasks)
+        )
+    finally:
+        bridge.close()
     x_tr, x_va = observations(env, tr, train_tasks), observations(env, va, val_tasks)
     m_tr, m_va = labelled(tr), labelled(va)
     xs_tr, ys_tr = jnp.asarray(np.asarray(x_tr)[m_tr]), jnp.asarray(tr["action"][m_tr])
@@ -211,7 +212,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         for ts in sz["task_seeds"]
     }
     pooled = {k: float(np.mean([m[k] for m in per_seed.values()])) for k in ("SR", "CFR")}
-    mpc_sr = lambda t: float(np.mean(t["in_goal"].any(1) & ~t["collision"].any(1)))  # noqa: E731
+
+    def mpc_sr(traj: dict, tasks) -> float:
+        pos, col, goal = traj["position"], traj["collision"], traj["in_goal"]
+        return metrics.compute(pos, col, goal, tasks.goal, env.config.robot_radius)["SR"]
 
     rows = [
         {
@@ -234,8 +238,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     harness.print_table(rows, ["model", "train_error", "val_error"], title)
     print(
         f"BC MLP ({best} steps) alone on val task seeds {list(per_seed)}: SR {pooled['SR']:.2f} "
-        f"CFR {pooled['CFR']:.2f}; GP-MPC SR on its episodes: train {mpc_sr(tr):.2f}, "
-        f"val {mpc_sr(va):.2f}",
+        f"CFR {pooled['CFR']:.2f}; GP-MPC SR on its episodes: train {mpc_sr(tr, train_tasks):.2f}, "
+        f"val {mpc_sr(va, val_tasks):.2f}",
         flush=True,
     )
     results = {
@@ -247,7 +251,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "bc_selected_steps": best,
         "bc_closed_loop": {"per_task_seed": per_seed, "mean": pooled},
         "samples": {"train": int(xs_tr.shape[0]), "val": int(xs_va.shape[0])},
-        "gp_mpc_sr": {"train": mpc_sr(tr), "val": mpc_sr(va)},
+        "gp_mpc_sr": {"train": mpc_sr(tr, train_tasks), "val": mpc_sr(va, val_tasks)},
         "mpc_seconds": {"train": mpc_train_s, "val": mpc_val_s},
     }
     config = {
