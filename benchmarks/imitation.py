@@ -120,6 +120,11 @@ def closed_loop(env, net):
     return run
 
 
+def run_name(run: Path) -> str:
+    """The run folder as recorded: repository-relative where it lies inside the repository."""
+    return str(run.relative_to(ROOT) if run.is_relative_to(ROOT) else run)
+
+
 def _split(errors: dict, which: str) -> dict[str, float]:
     return {"train_error": errors["train"][which], "val_error": errors["val"][which]}
 
@@ -243,7 +248,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         flush=True,
     )
     results = {
-        "run": str(args.run.relative_to(ROOT) if args.run.is_relative_to(ROOT) else args.run),
+        "run": run_name(args.run),
         "label_variance": label_var,
         "train_label_variance": train_var,
         "policy_error": policy_err,

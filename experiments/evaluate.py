@@ -16,9 +16,10 @@ Controllers:
   policy+mpc  one training-style episode per task: z from the prior, stochastic policy, the MPC
               acting on an event with probability --eps (default: the run's eps).
 
-With --task-seeds the split is drawn once per task-set seed (fresh layouts and crowds for every
-seed) and the metrics are pooled over all those tasks, with the standard error over tasks and the
-per-task-seed means; one results.json, no figures (default out: ...-seeds<A-B>).
+With --task-seeds the split is drawn once per task-set seed (fresh crowds for every seed; the
+restaurant keeps its eight table layouts) and the metrics are pooled over all those tasks, with
+the standard error over tasks and the per-task-seed means; one results.json, no figures
+(default out: ...-seeds<A-B>).
 
 Prints SR / TT / CFR / SPL / MGD (mean and per seed, then per task) and writes results.json,
 trajectory figures and, with --animate, one GIF per figure task into --out (default

@@ -84,3 +84,21 @@ def test_imitation_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     assert 0 < res["samples"]["val"] <= 2 * 80 and 0 < res["samples"]["train"] <= 2 * 80
     seeds = res["bc_closed_loop"]["per_task_seed"]
     assert list(seeds) == [1] and 0.0 <= seeds[1]["SR"] <= seeds[1]["CFR"] <= 1.0
+
+
+def test_dagger_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
+    """`benchmarks.dagger` (a diagnostic) with the egocentric, sorted observation: labelled
+    states accumulate over the rounds (round 0 is the MPC alone, every later round executes the
+    clone on most steps), and the record names the observation options it used."""
+    from benchmarks import dagger
+
+    res = dagger.main(["--tiny", "--relative", "--sorted", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "dagger-relative-sorted.json").read_text())
+    assert record["config"]["size"] == "tiny" and record["config"]["sorted"]
+    assert res["observation"]["observe_relative"] and res["observation"]["observe_sorted"]
+    curve = res["curve"]
+    assert [row["round"] for row in curve] == [0, 1] and [row["beta"] for row in curve] == [1, 0.5]
+    assert 0 < curve[0]["samples"] < curve[1]["samples"] <= 2 * 2 * 80  # two tasks, two rounds
+    assert all(0.0 <= row["fit_error"] <= 8.0 for row in curve)
+    final = res["final"]["mean"]
+    assert list(res["final"]["per_task_seed"]) == [1] and 0.0 <= final["SR"] <= final["CFR"] <= 1

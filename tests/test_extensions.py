@@ -202,6 +202,25 @@ def test_demo_share_schedule():
         ),
         (lambda: TrainConfig(mpc_demo_step_prob=-0.1), "mpc_demo_step_prob"),
         (lambda: PearlConfig(bc_q_filter=1), "bc_q_filter"),
+        (lambda: TrainConfig(mpc_dagger_labels=True), "mpc_dagger_labels"),
+        (
+            lambda: TrainConfig(
+                mpc_dagger_labels=True, mpc_demo_share=1.0, mpc_demo_iterations=5
+            ),  # step prob 1: the MPC drives every warm-start step, no policy step to label
+            "mpc_dagger_labels",
+        ),
+        (
+            lambda: ExperimentConfig(
+                train=TrainConfig(
+                    mpc_dagger_labels=True,
+                    mpc_demo_share=1.0,
+                    mpc_demo_iterations=5,
+                    mpc_demo_step_prob=0.5,
+                    mpc_buffer_fraction=0.5,
+                )
+            ),
+            "mpc_dagger_labels",
+        ),
     ],
 )
 def test_invalid_extension_settings_name_the_field(make, field):
@@ -217,10 +236,19 @@ def test_paper_presets_have_every_extension_off(name):
     assert cfg.train.mpc_demo_share == 0 and cfg.train.mpc_buffer_fraction == 0
     assert cfg.train.mpc_demo_step_prob == 1.0
     assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
-    assert cfg.pearl.policy_ema == 0
+    assert cfg.pearl.policy_ema == 0 and not cfg.train.mpc_dagger_labels
     assert not cfg.mpc.unsafe_recovery
-    for field in ("observe_velocity", "observe_relative", "sensing_radius", "observe_time"):
+    for field in (
+        "observe_velocity",
+        "observe_relative",
+        "sensing_radius",
+        "observe_time",
+        "observe_sorted",
+    ):
         assert not cfg.env_overrides.get(field), field
+    from mpcpearl_jax.envs import make_env
+
+    assert not make_env(cfg.env, **cfg.env_overrides).config.observe_sorted
 
 
 def test_cpu_presets_differ_only_in_the_extensions():
@@ -299,6 +327,106 @@ def test_warm_start_rows_fill_the_mpc_buffer_with_exactly_the_mpc_transitions():
     state, losses = tr.update_phase(state)
     # only the MPC rows of tasks 0 and 1 are cloned: kept share > 0, finite error
     assert 0 < float(losses["bc_kept"][0]) < 1 and np.isfinite(float(losses["bc_error"][0]))
+
+
+def test_dagger_labels_are_the_mpc_actions_on_exactly_the_policy_steps_of_warm_start_rows():
+    """`train.mpc_dagger_labels`: in warm-start rows the MPC is solved on every step; where the
+    policy acts, the MPC's action is stored with the observation in the label buffer (not in the
+    MPC buffer, whose rows stay exactly the MPC-driven transitions), and the update clones it."""
+    from mpcpearl_jax.trainer import Trainer
+    from tests.test_training import TINY
+
+    tc = dataclasses.replace(
+        TINY.train,
+        eps=0.2,
+        tasks_per_iteration=2,
+        initial_episodes=1,
+        posterior_episodes=0,
+        mpc_demo_share=1.0,
+        mpc_demo_iterations=2,
+        mpc_demo_step_prob=0.5,
+        mpc_buffer_fraction=0.5,
+        mpc_buffer_capacity=200,
+        updates_per_iteration=200,
+        mpc_dagger_labels=True,
+    )
+    pearl = TINY.pearl.replace(bc_weight=1.0, bc_q_filter=False)
+    cfg = TINY.replace(seeds=1, train=tc, pearl=pearl, mpc={"unsafe_recovery": True})
+    tr = Trainer(cfg)
+    assert tr.use_labels and tr.label_capacity == 200
+    state = tr.init_state()
+    ids = jnp.array([[0, 1]])
+    ep_state, stats = tr.collect_phase(state, ids, 1, False, True, True, jnp.float32(1.0))
+    share, labelled = float(stats["mpc_share"][0]), float(stats["labelled"][0])
+    # about half of the steps each, and together (nearly) all: every step was solved
+    assert 0.3 < share < 0.7 and 0.3 < labelled < 0.7 and share + labelled > 0.9
+    n_lab = int(jnp.sum(ep_state.labels.size[0]))
+    assert n_lab == round(labelled * 2 * tr.horizon)
+    assert int(jnp.sum(ep_state.mpc.size[0])) == round(share * 2 * tr.horizon)
+    # a label row is a policy step: its observation is in the RL buffer, its action is not the
+    # executed one (the MPC's answer differs from the sampled policy action)
+    rl = np.asarray(ep_state.rl.data.obs[0, 0, : tr.horizon])
+    rl_act = np.asarray(ep_state.rl.data.action[0, 0, : tr.horizon])
+    size0 = int(ep_state.labels.size[0, 0])
+    for o, a in zip(
+        np.asarray(ep_state.labels.data.obs[0, 0, :size0]),
+        np.asarray(ep_state.labels.data.action[0, 0, :size0]),
+        strict=True,
+    ):
+        j = int(np.argmin(np.abs(rl - o).sum(-1)))
+        assert np.abs(rl[j] - o).sum() < 1e-6 and np.abs(rl_act[j] - a).sum() > 1e-6
+    new_state, losses_ = tr.update_phase(ep_state)
+    assert np.isfinite(float(losses_["bc_label_error"][0]))
+    # without the extension the same collection stores no label and behaves as before
+    plain = Trainer(cfg.replace(train=dataclasses.replace(tc, mpc_dagger_labels=False)))
+    assert not plain.use_labels and plain.label_capacity == 1
+    _, stats0 = plain.collect_phase(plain.init_state(), ids, 1, False, True, True, 1.0)
+    assert float(stats0["labelled"][0]) == 0.0
+
+
+def test_dagger_label_rows_enter_the_bc_term_as_hand_computed():
+    cfg, nets, params, obs, z, demo = _bc_setup(0.5)
+    cfg = dataclasses.replace(cfg, bc_q_filter=False)
+    mask = jnp.zeros((2, 8)).at[:, :3].set(1.0)
+    d_obs = obs[:, ::-1] * 0.5 + 0.1  # [2, 8, O] other states
+    d_label = -demo
+    d_mask = jnp.zeros((2, 8)).at[:, 5:].set(1.0)
+    zb = jnp.broadcast_to(z[:, :1], z.shape)  # one z per task, as in the update
+
+    def loss_with(dagger):
+        return losses.policy_loss(
+            params["policy"],
+            nets,
+            params["q"],
+            obs,
+            zb,
+            jax.random.PRNGKey(3),
+            cfg.policy_mean_reg,
+            cfg.policy_std_reg,
+            demo,
+            mask,
+            cfg.bc_weight,
+            False,
+            dagger,
+        )
+
+    base, aux0 = loss_with(None)
+    loss, aux = loss_with((d_obs, d_label, d_mask))
+    mean, log_std = nets.policy_out(params["policy"], obs, zb)
+    from mpcpearl_jax.pearl.networks import tanh_gaussian
+
+    a, _ = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=jax.random.PRNGKey(3))
+    q_scale = jnp.mean(jnp.abs(jnp.minimum(*nets.q_values(params["q"], obs, a, zb))))
+    err = jnp.sum((jnp.tanh(mean) - demo) ** 2, -1)
+    d_err = jnp.sum((jnp.tanh(nets.policy_out(params["policy"], d_obs, zb)[0]) - d_label) ** 2, -1)
+    n = jnp.sum(mask) + jnp.sum(d_mask)
+    bc_plain = 0.5 * q_scale * jnp.sum(mask * err) / jnp.sum(mask)
+    want = 0.5 * q_scale * (jnp.sum(mask * err) + jnp.sum(d_mask * d_err)) / n
+    np.testing.assert_allclose(float(loss - base), float(want - bc_plain), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(
+        float(aux["bc_label_error"]), float(jnp.sum(d_mask * d_err) / jnp.sum(d_mask)), rtol=1e-5
+    )
+    assert float(aux["bc_error"]) == float(aux0["bc_error"]) and float(aux["bc_kept"]) == 1.0
 
 
 def test_pearl_baseline_never_builds_the_mpc_even_with_extensions_set():
@@ -477,6 +605,44 @@ def test_sensing_radius_hides_far_people_everywhere_in_the_observation():
         make_env("restaurant", sensing_radius=-1.0)
 
 
+def test_sorted_observation_lists_people_nearest_first_in_every_part():
+    """`observe_sorted` permutes the people of every part of the observation (positions,
+    velocities, egocentric positions) by their distance to the robot, people out of sensing range
+    last; a NumPy reference builds the same vector from the unsorted observation."""
+    from mpcpearl_jax.envs import make_env, make_tasks
+    from mpcpearl_jax.envs.types import EnvState
+
+    opts = dict(observe_velocity=True, observe_relative=True, sensing_radius=3.0, observe_time=True)
+    plain, env = make_env("restaurant", **opts), make_env("restaurant", observe_sorted=True, **opts)
+    tasks = make_tasks("restaurant", "val", 0, config=env.config)
+    task = jax.tree_util.tree_map(lambda x: x[5], tasks)
+    nh, ns = task.human_pos.shape[1], task.static_lo.shape[0]
+    assert env.obs_dim(tasks) == plain.obs_dim(tasks)
+    rng = np.random.default_rng(3)
+    permuted = 0
+    for t in (0, 3, 12, 20, 33, 50, 79):
+        pose = np.array([*rng.uniform(-3.0, 3.0, 2), rng.uniform(-np.pi, np.pi)])
+        state = EnvState(pose=jnp.asarray(pose, jnp.float32), t=jnp.asarray(t, jnp.int32))
+        got, ref = np.asarray(env.observe(state, task)), np.asarray(plain.observe(state, task))
+        h, m = np.asarray(task.human_pos[t], np.float64), np.asarray(task.human_mask[t])
+        d = np.linalg.norm(h - pose[:2], axis=-1)
+        seen = m & (d <= 3.0)
+        order = np.argsort(np.where(seen, d, np.inf), kind="stable")
+        permuted += int(np.any(order != np.arange(nh)))
+        off_v, off_e = 3 + 2 * nh, 3 + 4 * nh + 2 * ns
+        want = ref.copy()
+        for lo in (3, off_v, off_e):  # the three per-person blocks
+            want[lo : lo + 2 * nh] = ref[lo : lo + 2 * nh].reshape(nh, 2)[order].reshape(-1)
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        ds = np.where(seen, d, np.inf)[order]
+        k = int(seen.sum())
+        assert np.all(np.isfinite(ds[:k])) and np.all(np.diff(ds[:k]) >= 0)  # nearest first
+        assert np.all(np.isinf(ds[k:]))  # the unseen last
+    assert permuted >= 3  # the reordering under test occurred
+    with pytest.raises(ConfigError, match="observe_sorted"):
+        make_env("restaurant", observe_sorted=1)
+
+
 def test_observe_time_appends_the_elapsed_fraction_and_changes_nothing_else():
     from mpcpearl_jax.envs import make_env, make_tasks
 
@@ -508,6 +674,7 @@ def test_grbal_refuses_observations_its_model_cannot_predict():
         ("observe_relative", True),
         ("sensing_radius", 2.0),
         ("observe_time", True),
+        ("observe_sorted", True),
     ):
         with pytest.raises(ConfigError, match=f"env.{field}"):
             layout_of(make_env("restaurant", **{field: value}), tasks)

@@ -30,6 +30,10 @@ class Episodes(NamedTuple):
     in_goal: Array
     event: Array
     used_mpc: Array
+    # extension `TrainConfig.mpc_dagger_labels`: the MPC's action on steps where it was solved
+    # but the policy acted [S, R, T, A], and where that is so [S, R, T] (all False without it)
+    label: Array
+    labelled: Array
 
 
 def rows_of(tasks: TaskParams, task_ids: Array) -> TaskParams:
@@ -45,6 +49,7 @@ def make_collector(
     deterministic: bool = False,
     demo_prob: float = 1.0,
     mesh=None,
+    dagger_labels: bool = False,
 ) -> Callable:
     """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R], demo=None) -> Episodes`.
 
@@ -54,7 +59,11 @@ def make_collector(
     start extension, `TrainConfig.mpc_demo_share`) makes the MPC act on those rows at every step
     with probability `demo_prob` (1 = every step). `mesh` (`mpcpearl_jax.distributed`): the
     seed axis, hence the flat rows, is split over its devices; the bridge then runs per shard
-    (`MPCBridge.on_mesh`).
+    (`MPCBridge.on_mesh`). `dagger_labels` (extension `TrainConfig.mpc_dagger_labels`): on the
+    `demo` rows the MPC is solved on every step, its action executed with probability
+    `demo_prob` as before, and on the other steps (the policy acts) kept as a label
+    (`Episodes.label` / `labelled`) for behaviour cloning on the policy's own states (DAgger,
+    Ross et al. 2011).
     """
     horizon = env.config.horizon
     use_mpc = bridge is not None
@@ -88,10 +97,16 @@ def make_collector(
                     fire = fire & (jax.random.uniform(k_eps, (s * r,)) <= eps)
                 else:
                     fire = jnp.zeros_like(fire)
-                fire = fire | (demo_flat & (jax.random.uniform(k_demo, (s * r,)) < demo_prob))
-                action, used, _ = bridge(k_mpc, fire, state, flat, a_pi, stamp)
+                act_demo = demo_flat & (jax.random.uniform(k_demo, (s * r,)) < demo_prob)
+                execute = fire | act_demo
+                solve = execute | demo_flat if dagger_labels else execute
+                a_mpc, used, _ = bridge(k_mpc, solve, state, flat, a_pi, stamp)
+                action = jnp.where(execute[:, None], a_mpc, a_pi)
+                labelled = used & ~execute  # solved where the policy acts: a DAgger label
+                used = used & execute
             else:
-                action, used = a_pi, jnp.zeros((s * r,), bool)
+                a_mpc, action = a_pi, a_pi
+                used = labelled = jnp.zeros((s * r,), bool)
             nobs, nstate, rew, _, info = jax.vmap(env.step)(
                 jax.random.split(k, s * r), state, action, flat
             )
@@ -102,10 +117,12 @@ def make_collector(
                 info.in_goal,
                 info.event,
                 used,
+                a_mpc,
+                labelled,
             )
             return (nobs, nstate), out
 
-        _, (tr, pos, col, goal, ev, used) = jax.lax.scan(
+        _, (tr, pos, col, goal, ev, used, label, labelled) = jax.lax.scan(
             body, (obs0, state0), jax.random.split(key, horizon)
         )
         pos = jnp.concatenate([state0.pose[None, :, :2], pos], axis=0)
@@ -117,6 +134,8 @@ def make_collector(
             to_rows(goal),
             to_rows(ev),
             to_rows(used),
+            to_rows(label),
+            to_rows(labelled),
         )
 
     return collect

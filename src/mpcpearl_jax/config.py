@@ -48,6 +48,12 @@ class TrainConfig:
     # policy on the others (DAgger-style mixing: the MPC also acts from states the policy leads
     # to, so its transitions cover the policy's mistakes); 1 = the MPC drives the whole episode
     mpc_demo_step_prob: float = 1.0
+    # DAgger labels: in a warm-start row the MPC is solved on every step, also where the policy
+    # acts (probability 1 - mpc_demo_step_prob); there its action is kept as a label, stored with
+    # the observation in a per-task label buffer (mpc_buffer_capacity), and behaviour cloning
+    # (pearl.bc_weight) clones as many label rows per task as the batch has MPC rows: the MPC's
+    # action on the policy's own states (Ross et al. 2011), not only where the MPC drove
+    mpc_dagger_labels: bool = False
     # MPC transitions kept apart: every transition the MPC produced (solved, not a fallback) is
     # also stored in a per-task MPC buffer of mpc_buffer_capacity, and this fraction of every
     # RL batch is drawn from it (symmetric sampling as in RLPD when 0.5).
@@ -78,7 +84,22 @@ class TrainConfig:
         unit = ("eps", "mpc_demo_share", "mpc_demo_step_prob", "mpc_buffer_fraction")
         v.interval(self, *unit, lo=0.0, hi=1.0)
         v.check(self.mpc_buffer_fraction < 1.0, self, "mpc_buffer_fraction", "must be below 1")
-        v.flags(self, "redraw_behaviours")
+        v.flags(self, "redraw_behaviours", "mpc_dagger_labels")
+        if self.mpc_dagger_labels:
+            v.check(
+                self.mpc_demo_share > 0 and self.mpc_demo_iterations > 0,
+                self,
+                "mpc_dagger_labels",
+                "labels come from the MPC warm-start rows: set mpc_demo_share > 0 and "
+                "mpc_demo_iterations > 0",
+            )
+            v.check(
+                self.mpc_demo_step_prob < 1.0,
+                self,
+                "mpc_dagger_labels",
+                "with mpc_demo_step_prob = 1 the MPC acts on every warm-start step and no "
+                "policy step is left to label: set it below 1",
+            )
 
     @property
     def uses_mpc(self) -> bool:
@@ -160,6 +181,11 @@ class ExperimentConfig(SerializableConfig):
             raise ConfigError(
                 "PearlConfig.bc_weight: behaviour cloning needs MPC samples in the batch "
                 "(set train.mpc_buffer_fraction > 0)"
+            )
+        if self.train.mpc_dagger_labels and self.pearl.bc_weight == 0:
+            raise ConfigError(
+                "TrainConfig.mpc_dagger_labels: the labels are used only by behaviour cloning "
+                "(set pearl.bc_weight > 0)"
             )
 
     @classmethod

@@ -110,15 +110,19 @@ class NavEnv:
         displacement (extension `observe_velocity`)], [static centres], [people, nearest static
         points and goal in the robot's frame (extension `observe_relative`)]. With the extension
         `sensing_radius` a person farther than it from the robot counts as absent throughout; [the
-        elapsed time 2 t / T - 1 (extension `observe_time`)]."""
+        elapsed time 2 t / T - 1 (extension `observe_time`)]. With `observe_sorted` the people are
+        listed nearest first in every part."""
         humans, mask = self.humans_at(params, state.t)
+        prev, prev_mask = self.humans_at(params, jnp.maximum(state.t - 1, 0))
+        dist = jnp.linalg.norm(humans - state.pose[:2], axis=-1)
         if self.config.sensing_radius > 0:  # extension: people out of range look absent
-            dist = jnp.linalg.norm(humans - state.pose[:2], axis=-1)
             mask = mask & (dist <= self.config.sensing_radius)
+        if self.config.observe_sorted:  # extension: nearest person first
+            order = jnp.argsort(jnp.where(mask, dist, jnp.inf), stable=True)
+            humans, mask, prev, prev_mask = (x[order] for x in (humans, mask, prev, prev_mask))
         h = jnp.where(mask[:, None], self.normalize_xy(humans), -1.0)
         parts = [self.normalize_xy(state.pose[:2]), state.pose[2:3] / jnp.pi, h.reshape(-1)]
         if self.config.observe_velocity:  # extension: people's last-step displacement
-            prev, prev_mask = self.humans_at(params, jnp.maximum(state.t - 1, 0))
             scale = self.config.velocity_scale * self.config.dt
             vel = jnp.clip((humans - prev) / scale, -1.0, 1.0)
             parts.append(jnp.where((mask & prev_mask)[:, None], vel, 0.0).reshape(-1))

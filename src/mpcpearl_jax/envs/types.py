@@ -70,6 +70,12 @@ class NavConfig:
     # entry of the observation. Without it a state's value depends on the remaining time (the goal
     # bonus is paid on every step left) while nothing in the observation shows it.
     observe_time: bool = False
+    # extension (off in the paper): the people are listed nearest first (by distance to the
+    # robot, people out of sensing range and absent ones last, ties in index order) in every part
+    # of the observation, instead of in the fixed order of their identities, so that an input
+    # slot means "the k-th nearest person" whoever it is (as in crowd-navigation policies such as
+    # CADRL); the MPC, the reward and the events are unchanged
+    observe_sorted: bool = False
 
     def __post_init__(self) -> None:
         validate.positive(
@@ -92,7 +98,12 @@ class NavConfig:
         validate.nonnegative(self, "sensing_radius")
         validate.ints(self, "horizon")
         validate.flags(
-            self, "observe_static", "observe_velocity", "observe_relative", "observe_time"
+            self,
+            "observe_static",
+            "observe_velocity",
+            "observe_relative",
+            "observe_time",
+            "observe_sorted",
         )
         for f in ("arena_lo", "arena_hi"):
             p = getattr(self, f)

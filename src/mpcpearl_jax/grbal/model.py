@@ -68,6 +68,7 @@ def layout_of(env, tasks) -> ObsLayout:
         "observe_relative": cfg.observe_relative,
         "sensing_radius": cfg.sensing_radius > 0,
         "observe_time": cfg.observe_time,
+        "observe_sorted": cfg.observe_sorted,
     }
     for field, on in unsupported.items():
         if on:

@@ -90,11 +90,14 @@ def _update(
     context: Array,
     key: Array,
     demo_mask: Array | None = None,
+    dagger: tuple[Array, Array, Array] | None = None,
 ) -> tuple[LearnerState, dict]:
     """One PEARL gradient step (order as in the authors' code: Q+encoder, then V, policy).
 
     demo_mask [MB, B] marks the batch rows drawn from the MPC buffer (only used by the
-    behaviour-cloning extension, `PearlConfig.bc_weight`).
+    behaviour-cloning extension, `PearlConfig.bc_weight`). dagger = (obs [MB, D, O], MPC label
+    [MB, D, A], mask [MB, D]): further rows for that cloning, the MPC's action on the policy's
+    own states (extension `TrainConfig.mpc_dagger_labels`).
     """
     k_z, k_pi = jax.random.split(key)
     p = state.params
@@ -121,6 +124,7 @@ def _update(
         demo_mask,
         cfg.bc_weight,
         cfg.bc_q_filter,
+        dagger,
     )
     upd, os_pi = opt.update(g_pi, state.opt_state["policy"], p["policy"])
     policy = optax.apply_updates(p["policy"], upd)
@@ -149,16 +153,16 @@ def _update(
         "q_mean": aux["q1_mean"],
         "loss_total": qe_loss,
     }
-    for k in ("bc_kept", "bc_error"):
+    for k in ("bc_kept", "bc_error", "bc_label_error"):
         if k in pi_aux:
             metrics[k] = pi_aux[k]
     return new_state, metrics
 
 
 def make_update(nets: Networks, jit: bool = True):
-    """`update(state, batch [MB, B], context [MB, C, D], key, demo_mask=None) -> (state,
-    metrics)`: one gradient step of the agent `nets`; jit=False gives the plain function, for
-    composing into scans (see `trainer`)."""
+    """`update(state, batch [MB, B], context [MB, C, D], key, demo_mask=None, dagger=None) ->
+    (state, metrics)`: one gradient step of the agent `nets`; jit=False gives the plain
+    function, for composing into scans (see `trainer`)."""
     cfg, opt = nets.cfg, _optimizer(nets.cfg)
 
     def update(
@@ -167,7 +171,8 @@ def make_update(nets: Networks, jit: bool = True):
         context: Array,
         key: Array,
         demo_mask: Array | None = None,
+        dagger: tuple[Array, Array, Array] | None = None,
     ):
-        return _update(nets, cfg, opt, state, batch, context, key, demo_mask)
+        return _update(nets, cfg, opt, state, batch, context, key, demo_mask, dagger)
 
     return jax.jit(update) if jit else update

@@ -62,6 +62,7 @@ def policy_loss(
     demo_mask=None,
     bc_weight: float = 0.0,
     bc_q_filter: bool = True,
+    dagger=None,
 ):
     """Paper's actor loss L_theta = KL(pi || exp(Q)/Z) = E[log pi - min_i Q_i] + regularisers.
 
@@ -70,7 +71,10 @@ def policy_loss(
     (demo_mask [MB, B] = 1 where the stored action came from the MPC, demo_action [MB, B, A]):
     bc_weight * mean|Q| * sum_demo 1[min Q(s, a_mpc) > min Q(s, tanh mu(s))] |tanh mu(s) - a_mpc|^2
     / n_demo, with mean|Q| detached so that bc_weight is free of the reward scale (as TD3+BC's
-    lambda = alpha / mean|Q|; bc_weight 0.4 matches its alpha = 2.5). Returns (loss, aux).
+    lambda = alpha / mean|Q|; bc_weight 0.4 matches its alpha = 2.5). Extension
+    `TrainConfig.mpc_dagger_labels`: dagger = (obs [MB, D, O], label [MB, D, A], mask [MB, D])
+    adds the MPC's labels on the policy's own states to the same sums (Q-filtered alike, the
+    filter comparing Q(s, label) with Q(s, tanh mu(s))), n counting both. Returns (loss, aux).
     """
     mean, log_std = nets.policy_out(policy_params, obs, z)
     action, log_pi = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=key)
@@ -80,17 +84,28 @@ def policy_loss(
     loss += mean_reg * jnp.mean(mean**2) + std_reg * jnp.mean(log_std**2)
     aux = {"log_pi": jnp.mean(log_pi), "v_target": min_q - log_pi}
     if bc_weight > 0 and demo_action is not None and demo_mask is not None:
-        det = jnp.tanh(mean)
-        if bc_q_filter:
-            q_det = jnp.minimum(*nets.q_values(q_params, obs, jax.lax.stop_gradient(det), z))
-            q_demo = jnp.minimum(*nets.q_values(q_params, obs, demo_action, z))
-            keep = jax.lax.stop_gradient(demo_mask * (q_demo > q_det))
-        else:
-            keep = demo_mask
-        err = jnp.sum((det - demo_action) ** 2, axis=-1)
-        n = jnp.maximum(jnp.sum(demo_mask), 1.0)
+
+        def clone(det, o, label, mask, zz):  # -> (kept rows, squared errors)
+            if bc_q_filter:
+                q_det = jnp.minimum(*nets.q_values(q_params, o, jax.lax.stop_gradient(det), zz))
+                q_demo = jnp.minimum(*nets.q_values(q_params, o, label, zz))
+                return jax.lax.stop_gradient(mask * (q_demo > q_det)), err_of(det, label)
+            return mask, err_of(det, label)
+
+        err_of = lambda det, label: jnp.sum((det - label) ** 2, axis=-1)  # noqa: E731
+        keep, err = clone(jnp.tanh(mean), obs, demo_action, demo_mask, z)
+        kept, total, n = jnp.sum(keep * err), jnp.sum(keep), jnp.sum(demo_mask)
+        aux["bc_error"] = jnp.sum(demo_mask * err) / jnp.maximum(n, 1.0)
+        if dagger is not None:
+            d_obs, d_label, d_mask = dagger
+            z_d = jnp.broadcast_to(z[:, :1], d_obs.shape[:2] + z.shape[-1:])
+            d_mean, _ = nets.policy_out(policy_params, d_obs, z_d)
+            keep_d, err_d = clone(jnp.tanh(d_mean), d_obs, d_label, d_mask, z_d)
+            n_d = jnp.sum(d_mask)
+            aux["bc_label_error"] = jnp.sum(d_mask * err_d) / jnp.maximum(n_d, 1.0)
+            kept, total, n = kept + jnp.sum(keep_d * err_d), total + jnp.sum(keep_d), n + n_d
+        n = jnp.maximum(n, 1.0)
         q_scale = jax.lax.stop_gradient(jnp.mean(jnp.abs(min_q)))
-        loss += bc_weight * q_scale * jnp.sum(keep * err) / n
-        aux["bc_kept"] = jnp.sum(keep) / n
-        aux["bc_error"] = jnp.sum(demo_mask * err) / n
+        loss += bc_weight * q_scale * kept / n
+        aux["bc_kept"] = total / n
     return loss, aux

@@ -1,0 +1,208 @@
+"""Can a policy learn the MPC by imitation on its own states (DAgger), and with which inputs?
+
+A diagnostic beside `benchmarks.imitation`, which found that cloning the MPC's own episodes does
+not transfer (the clone leaves the MPC's states and collides). Here the clone is trained by
+DAgger (Ross et al., 2011): in round r every training task (its table layout, with a crowd
+behaviour re-drawn for the round, as `train.redraw_behaviours` does) is driven by a mixture that
+executes the MPC's action with probability beta_r = 0.5^r (1 in round 0) and otherwise the
+clone's action plus Gaussian noise (std 0.1); the MPC (the run's `mpc` settings) is solved on
+every step either way, and each step before the first collision or the goal whose solve was safe
+adds (observation, MPC action) to the data set. After each round the clone (an MLP of
+`--hidden` sizes, tanh output, Adam 1e-3, batches of 256) takes `fit_steps` more gradient steps
+on all data so far, and drives alone (no MPC) on the `val` split of task seeds 1-2 (48 tasks);
+after the last round on the `val` split of task seeds 1-8 (192 tasks, as `experiments.evaluate
+RUN --split val --task-seeds 1-8` for a trained run).
+
+The observation is the run's (its `env` overrides), plus the egocentric entries with
+`--relative` (`env.observe_relative`) and people listed nearest first with `--sorted`
+(`env.observe_sorted`): the comparison of inputs under the same data-collection scheme.
+
+    python -m benchmarks.dagger [--tiny] [--relative] [--sorted] [--rounds N] [--out DIR]
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from benchmarks import harness
+from benchmarks.imitation import DEFAULT_RUN, bc_mlp, closed_loop, run_name
+
+SIZES: dict[str, dict[str, Any]] = {
+    "tiny": dict(train_tasks=2, rounds=2, fit_steps=5, round_seeds=(1,), final_seeds=(1,)),
+    "default": dict(
+        train_tasks=120, rounds=12, fit_steps=2000, round_seeds=(1, 2), final_seeds=range(1, 9)
+    ),
+}
+SIZES["full"] = SIZES["default"]
+NOISE = 0.1  # std of the Gaussian noise on the clone's executed actions
+BATCH = 256
+
+
+def make_rollout(env, bridge, net):
+    """`rollout(key, params, tasks [B], beta) -> (obs [T, B, O], mpc action [T, B, 2], label
+    mask [T, B], collision [T, B], in_goal [T, B])`: the DAgger mixture, MPC solved every step."""
+    import jax
+    import jax.numpy as jnp
+
+    from mpcpearl_jax.mpc.bridge import SOLVED
+
+    horizon = env.config.horizon
+
+    def rollout(key, params, tasks, beta):
+        b = tasks.start.shape[0]
+        obs0, state0 = jax.vmap(env.reset)(jax.random.split(key, b), tasks)
+        fire = jnp.ones(b, bool)
+
+        def body(carry, k):
+            obs, state, dead = carry
+            k_mpc, k_mix, k_noise = jax.random.split(k, 3)
+            a_pi = net.apply(params, obs)
+            a_pi = jnp.clip(a_pi + NOISE * jax.random.normal(k_noise, a_pi.shape), -1, 1)
+            a_mpc, _, status = bridge(k_mpc, fire, state, tasks, a_pi)
+            use = jax.random.uniform(k_mix, (b,)) < beta
+            act = jnp.where(use[:, None], a_mpc, a_pi)
+            nobs, nstate, _, _, info = jax.vmap(env.step)(jax.random.split(k, b), state, act, tasks)
+            label = (status == SOLVED) & ~dead
+            dead = dead | info.collision | info.in_goal
+            return (nobs, nstate, dead), (obs, a_mpc, label, info.collision, info.in_goal)
+
+        carry = (obs0, state0, jnp.zeros(b, bool))
+        _, out = jax.lax.scan(body, carry, jax.random.split(key, horizon))
+        return out
+
+    return jax.jit(rollout)
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    p = harness.common_parser(__doc__.splitlines()[0])
+    p.add_argument("--run", type=Path, default=DEFAULT_RUN, help="run directory (load_policy)")
+    p.add_argument("--relative", action="store_true", help="add env.observe_relative")
+    p.add_argument("--sorted", action="store_true", help="add env.observe_sorted")
+    p.add_argument("--rounds", type=int, default=None, help="DAgger rounds (default by size)")
+    p.add_argument("--hidden", default="128,128,128", help="the clone's hidden sizes")
+    args = p.parse_args(argv)
+    threads = harness.configure_threads(args.threads)
+    size = harness.size_of(args)
+    sz = dict(SIZES[size])
+    if args.rounds is not None:
+        if args.rounds < 1:
+            p.error("--rounds: must be at least 1")
+        sz["rounds"] = args.rounds
+    try:
+        hidden = tuple(int(h) for h in args.hidden.split(","))
+    except ValueError:
+        p.error(f"--hidden: comma-separated ints expected, got {args.hidden!r}")
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    import optax
+
+    from mpcpearl_jax import load_policy
+    from mpcpearl_jax.envs import make_env, make_tasks, redraw_tasks
+    from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
+
+    cfg = load_policy(args.run).config
+    overrides = dict(cfg.env_overrides)
+    if args.relative:
+        overrides["observe_relative"] = True
+    if args.sorted:
+        overrides["observe_sorted"] = True
+    env = make_env(cfg.env, **overrides)
+    net = bc_mlp(hidden)
+    ids = np.arange(sz["train_tasks"])
+    val = {ts: make_tasks(cfg.env, "val", ts, config=env.config) for ts in sz["final_seeds"]}
+    drive = closed_loop(env, net)
+    opt = optax.adam(1e-3)
+    loss = lambda prm, x, y: jnp.mean(jnp.sum((net.apply(prm, x) - y) ** 2, -1))  # noqa: E731
+
+    @jax.jit
+    def step(prm, st, key, xs, ys, n):
+        idx = jax.random.randint(key, (BATCH,), 0, n)
+        upd, st = opt.update(jax.grad(loss)(prm, xs[idx], ys[idx]), st)
+        return optax.apply_updates(prm, upd), st
+
+    bridge = make_mpc_bridge(env, MPCConfig(**cfg.mpc.to_dict()))
+    try:
+        rollout = make_rollout(env, bridge, net)
+        xs_all, ys_all, curve, prm, st = [], [], [], None, None
+        key = jax.random.PRNGKey(0)
+        for r in range(sz["rounds"]):
+            tasks = redraw_tasks(cfg.env, cfg.task_seed, ids, (1000, r), config=env.config)
+            beta = 1.0 if r == 0 else 0.5**r
+            if prm is None:
+                first = jax.tree_util.tree_map(lambda a: a[:1], tasks)
+                obs0, _ = jax.vmap(env.reset)(jax.random.split(key, 1), first)
+                prm = net.init(jax.random.PRNGKey(1), obs0)
+                st = opt.init(prm)
+            key, k = jax.random.split(key)
+            (obs, lab, mask, col, goal), roll_s = harness.timed(
+                lambda k=k, prm=prm, tasks=tasks, beta=beta: jax.block_until_ready(
+                    rollout(k, prm, tasks, beta)
+                )
+            )
+            m = np.asarray(mask)
+            xs_all.append(np.asarray(obs)[m])
+            ys_all.append(np.asarray(lab)[m])
+            xs, ys = jnp.asarray(np.concatenate(xs_all)), jnp.asarray(np.concatenate(ys_all))
+            n = xs.shape[0]
+            success = np.asarray(goal).any(0) & ~np.asarray(col).any(0)
+            for _ in range(sz["fit_steps"]):
+                key, sub = jax.random.split(key)
+                prm, st = step(prm, st, sub, xs, ys, n)
+            res = [drive(prm, val[ts]) for ts in sz["round_seeds"]]
+            row = {
+                "round": r,
+                "beta": beta,
+                "samples": int(n),
+                "rollout_SR": float(np.mean(success)),
+                "fit_error": float(loss(prm, xs[:20000], ys[:20000])),
+                "val_SR": float(np.mean([x["SR"] for x in res])),
+                "val_CFR": float(np.mean([x["CFR"] for x in res])),
+                "rollout_s": roll_s,
+            }
+            curve.append(row)
+            print(
+                f"round {r}: beta {beta:.4f}, {n} labelled states, rollout SR "
+                f"{row['rollout_SR']:.2f}, fit error {row['fit_error']:.3f}, val SR "
+                f"{row['val_SR']:.2f} (task seeds {list(sz['round_seeds'])})",
+                flush=True,
+            )
+    finally:
+        bridge.close()
+    per_seed = {int(ts): drive(prm, val[ts]) for ts in sz["final_seeds"]}
+    pooled = {k: float(np.mean([x[k] for x in per_seed.values()])) for k in ("SR", "CFR")}
+    n_tasks = sum(int(val[ts].start.shape[0]) for ts in per_seed)
+    pooled["SR_stderr"] = float(np.sqrt(pooled["SR"] * (1 - pooled["SR"]) / n_tasks))
+    harness.print_table(
+        curve, ["round", "beta", "samples", "rollout_SR", "fit_error", "val_SR"], "DAgger"
+    )
+    print(
+        f"clone alone on val task seeds {list(per_seed)}: SR {pooled['SR']:.2f} +- "
+        f"{pooled['SR_stderr']:.2f}, CFR {pooled['CFR']:.2f}",
+        flush=True,
+    )
+    results = {
+        "run": run_name(args.run),
+        "observation": overrides,
+        "curve": curve,
+        "final": {"per_task_seed": per_seed, "mean": pooled},
+    }
+    config = {
+        "size": size,
+        **{k: list(v) if isinstance(v, range | tuple) else v for k, v in sz.items()},
+        "hidden": list(hidden),
+        "relative": args.relative,
+        "sorted": args.sorted,
+        "noise": NOISE,
+        "batch": BATCH,
+        "threads": threads,
+    }
+    name = "dagger" + ("-relative" if args.relative else "") + ("-sorted" if args.sorted else "")
+    harness.write_record(name, config, results, args.out)
+    return results
+
+
+if __name__ == "__main__":
+    main()
