@@ -288,8 +288,8 @@ def test_unsafe_recovery_uses_the_least_violating_move_instead_of_falling_back()
     assert after >= before - 1e-6
 
 
-def test_warm_start_rows_fill_the_mpc_buffer_with_exactly_the_mpc_transitions():
-    from mpcpearl_jax.trainer import Trainer
+def _warm_start_config(**train_changes) -> ExperimentConfig:
+    """One seed of the tiny config with MPC warm start, MPC buffer and cloning (no Q filter)."""
     from tests.test_training import TINY
 
     tc = dataclasses.replace(
@@ -303,10 +303,16 @@ def test_warm_start_rows_fill_the_mpc_buffer_with_exactly_the_mpc_transitions():
         mpc_buffer_fraction=0.5,
         mpc_buffer_capacity=200,
         updates_per_iteration=200,  # meta-batches of 3 of 120 tasks: some hit tasks 0 and 1
+        **train_changes,
     )
     pearl = TINY.pearl.replace(bc_weight=1.0, bc_q_filter=False)
-    cfg = TINY.replace(seeds=1, train=tc, pearl=pearl, mpc={"unsafe_recovery": True})
-    tr = Trainer(cfg)
+    return TINY.replace(seeds=1, train=tc, pearl=pearl, mpc={"unsafe_recovery": True})
+
+
+def test_warm_start_rows_fill_the_mpc_buffer_with_exactly_the_mpc_transitions():
+    from mpcpearl_jax.trainer import Trainer
+
+    tr = Trainer(_warm_start_config())
     state = tr.init_state()
     ids = jnp.array([[0, 1]])
     state, stats = tr.collect_phase(state, ids, 1, False, True, True, jnp.float32(1.0))
@@ -334,24 +340,9 @@ def test_dagger_labels_are_the_mpc_actions_on_exactly_the_policy_steps_of_warm_s
     policy acts, the MPC's action is stored with the observation in the label buffer (not in the
     MPC buffer, whose rows stay exactly the MPC-driven transitions), and the update clones it."""
     from mpcpearl_jax.trainer import Trainer
-    from tests.test_training import TINY
 
-    tc = dataclasses.replace(
-        TINY.train,
-        eps=0.2,
-        tasks_per_iteration=2,
-        initial_episodes=1,
-        posterior_episodes=0,
-        mpc_demo_share=1.0,
-        mpc_demo_iterations=2,
-        mpc_demo_step_prob=0.5,
-        mpc_buffer_fraction=0.5,
-        mpc_buffer_capacity=200,
-        updates_per_iteration=200,
-        mpc_dagger_labels=True,
-    )
-    pearl = TINY.pearl.replace(bc_weight=1.0, bc_q_filter=False)
-    cfg = TINY.replace(seeds=1, train=tc, pearl=pearl, mpc={"unsafe_recovery": True})
+    cfg = _warm_start_config(mpc_demo_step_prob=0.5, mpc_dagger_labels=True)
+    tc = cfg.train
     tr = Trainer(cfg)
     assert tr.use_labels and tr.label_capacity == 200
     state = tr.init_state()
