@@ -289,9 +289,11 @@ def summary_rows(record: dict[str, Any]) -> list[dict[str, Any]]:
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     from mpcpearl_jax.errors import ConfigError
+    from mpcpearl_jax.run import check_config
 
     try:
         cfg = build_config(args, args.env, **ENV_EXTRAS[args.env])
+        check_config(cfg)
     except (ConfigError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -266,6 +266,29 @@ def test_cpu_presets_differ_only_in_the_extensions():
     assert ext.pearl.replace(bc_weight=0.0, bc_q_filter=True, layer_norm=False) == paper.pearl
 
 
+def test_cpu_tuned_preset_is_the_committed_restaurant_headline(tmp_path, capsys):
+    """`--preset cpu-tuned --eps 0.2` builds exactly the headline's config.json (the run wrote
+    the iterations it finished), so one short command reproduces it; the sidewalk, which cannot
+    re-draw its crowds, is refused before anything is written."""
+    import json
+    from pathlib import Path
+
+    from benchmarks import learning
+    from experiments.common import ENV_EXTRAS, build_config
+
+    args = learning.parse_args(["--preset", "cpu-tuned", "--eps", "0.2", "--minutes", "60"])
+    cfg = build_config(args, "restaurant", **ENV_EXTRAS["restaurant"])
+    head = Path(__file__).parents[1] / "results/restaurant/mpc-pearl-eps0.2/config.json"
+    ref = ExperimentConfig.from_dict(json.loads(head.read_text()))
+    assert cfg == ref.replace(train=dataclasses.replace(ref.train, iterations=cfg.train.iterations))
+    tuned, cpu = preset("cpu-tuned"), preset("cpu")
+    assert tuned.mpc == cpu.mpc and tuned.pearl.replace(bc_weight=cpu.pearl.bc_weight) == cpu.pearl
+    argv = ["--env", "sidewalk", "--preset", "cpu-tuned", "--eps", "0.2", "--minutes", "1"]
+    out = tmp_path / "run"
+    assert learning.main([*argv, "--out", str(out)]) == 2
+    assert "train.redraw_behaviours" in capsys.readouterr().err and not out.exists()
+
+
 def test_unsafe_recovery_uses_the_least_violating_move_instead_of_falling_back():
     from mpcpearl_jax.envs.types import EnvState, stack_params
     from mpcpearl_jax.mpc import SOLVED, MPCConfig, make_mpc_bridge

@@ -37,7 +37,7 @@ from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, ConfigError
 from mpcpearl_jax.pearl.learner import deployed_params
 from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
-from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState
+from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState, check_redraw
 
 LOG_FILE = "metrics.jsonl"
 
@@ -116,7 +116,8 @@ def check_writable(run_dir: Path) -> None:
 
 def check_config(cfg: ExperimentConfig) -> None:
     """Validate what needs the task family: the env overrides' values on the family's own
-    NavConfig (their names, and every other field, were checked when the config was built).
+    NavConfig (their names, and every other field, were checked when the config was built), and
+    whether it can re-draw its crowds when `train.redraw_behaviours` asks for it.
     ConfigError naming the field."""
     from mpcpearl_jax.envs import make_env
 
@@ -125,6 +126,7 @@ def check_config(cfg: ExperimentConfig) -> None:
     except ValueError as e:
         msg = str(e) if isinstance(e, ConfigError) else f"ExperimentConfig.env: {e}"
         raise ConfigError(msg) from e
+    check_redraw(cfg)
 
 
 def _eval_row(trainer: Trainer, state: TrainState) -> dict[str, Any]:

@@ -74,6 +74,15 @@ def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
     return both[:, 0], both[:, 1:]
 
 
+def check_redraw(cfg: ExperimentConfig) -> None:
+    """Extension `redraw_behaviours` needs a family that can re-draw its training crowds."""
+    if cfg.train.redraw_behaviours and not can_redraw(cfg.env):
+        raise ConfigError(
+            f"TrainConfig.redraw_behaviours: env {cfg.env!r} cannot redraw its training "
+            "behaviours (add --set train.redraw_behaviours=false)"
+        )
+
+
 class Trainer:
     """Builds everything for an experiment; see module docstring."""
 
@@ -95,11 +104,7 @@ class Trainer:
             raise ConfigError(f"ExperimentConfig.task_options: {e}") from e
         self.num_train = int(self.train_tasks.start.shape[0])
         self._task_kw = dict(cfg.task_options)
-        if cfg.train.redraw_behaviours and not can_redraw(cfg.env):
-            raise ConfigError(
-                f"TrainConfig.redraw_behaviours: env {cfg.env!r} cannot redraw its training "
-                "behaviours"
-            )
+        check_redraw(cfg)
         self.mesh = make_mesh(cfg.seeds, cfg.devices)  # None: one device, no sharding
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         self.action_dim = self.env.action_dim
