@@ -21,7 +21,9 @@ restaurant keeps its eight table layouts) and the metrics are pooled over all th
 the standard error over tasks and the per-task-seed means; one results.json, no figures
 (default out: ...-seeds<A-B>).
 
-Prints SR / TT / CFR / SPL / MGD (mean and per seed, then per task) and writes results.json,
+Prints SR / TT / CFR / SPL / MGD (mean and per seed, then per task) and how the episodes ended
+(`failures`: no contact and goal reached; first contact with a person or with a static obstacle,
+goal reached after it or not; out of time; `metrics.first_contact`), and writes results.json,
 trajectory figures and, with --animate, one GIF per figure task into --out (default
 RUN_DIR/eval/<controller>-<split>[-online], or runs/eval/gp-mpc-<env>-<split>). With every task of
 the split and the default --eval-seed, the policy numbers are those of the run's results.json.
@@ -30,6 +32,7 @@ the split and the default --eval-seed, the policy numbers are those of the run's
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
@@ -384,11 +387,19 @@ def run_policy_mpc(s: Setup, key: jax.Array, eps: float) -> tuple[dict, dict]:
 
 
 # ---------------------------------------------------------------------------------- output
-def per_task_metrics(result: dict, tasks: TaskParams, robot_radius: float) -> dict[str, list]:
-    """Per seed and task [S][N]: success, collision_free, TT, SPL, MGD, return."""
+def per_task_metrics(result: dict, tasks: TaskParams, cfg: NavConfig) -> dict[str, list]:
+    """Per seed and task [S][N]: success, collision_free, TT, SPL, MGD, return, and the first
+    contact of each episode (`metrics.first_contact`): its step (-1: none), whether the nearer
+    obstacle was a person, the steps in contact, whether the goal was reached after it."""
     from mpcpearl_jax import evaluate as eval_lib
+    from mpcpearl_jax import metrics
 
-    m = eval_lib.episode_metrics(result, tasks, robot_radius)
+    m = eval_lib.episode_metrics(result, tasks, cfg.robot_radius)
+    contact = functools.partial(
+        metrics.first_contact, robot_radius=cfg.robot_radius, human_radius=cfg.human_radius
+    )
+    per_seed = jax.vmap(jax.vmap(contact), in_axes=(0, 0, 0, None))  # [S, N]
+    c = jax.jit(per_seed)(result["position"], result["collision"], result["in_goal"], tasks)
     out = {
         "SR": np.asarray(m.success, float),
         "TT": np.asarray(m.travel_time, float),
@@ -396,8 +407,41 @@ def per_task_metrics(result: dict, tasks: TaskParams, robot_radius: float) -> di
         "SPL": np.asarray(m.spl, float),
         "MGD": np.asarray(m.mgd, float),
         "return": np.asarray(result["return"], float),
+        "contact_step": np.asarray(c.step, int),
+        "contact_person": np.asarray(c.with_person, float),
+        "contact_steps": np.asarray(c.steps_in_contact, int),
+        "reached_after_contact": np.asarray(c.reached_after, float),
     }
     return {k: v.tolist() for k, v in out.items()}
+
+
+def failures(per_task: list[dict]) -> dict[str, Any]:
+    """How the episodes of one or more `per_task` records ended: reached the goal without
+    contact, contact (first with a person / a static obstacle; goal reached after it anyway),
+    neither (time ran out), and the median step of the first contact."""
+    col = lambda k: np.concatenate([np.asarray(p[k], float).ravel() for p in per_task])
+    step, person, success = col("contact_step"), col("contact_person"), col("SR")
+    hit = step >= 0
+    return {
+        "episodes": int(step.size),
+        "success": int(success.sum()),
+        "contact": int(hit.sum()),
+        "contact_person": int((hit & (person > 0)).sum()),
+        "contact_static": int((hit & (person == 0)).sum()),
+        "reached_goal_after_contact": int(col("reached_after_contact").sum()),
+        "timeout": int((~hit & (success == 0)).sum()),
+        "median_first_contact_step": float(np.median(step[hit])) if hit.any() else None,
+    }
+
+
+def failure_line(f: dict) -> str:
+    return (
+        f"episodes {f['episodes']}: {f['success']} reached the goal without contact, "
+        f"{f['contact']} with a contact (first with a person {f['contact_person']}, with a "
+        f"static obstacle {f['contact_static']}; goal reached after it "
+        f"{f['reached_goal_after_contact']}; "
+        f"median first-contact step {f['median_first_contact_step']}), {f['timeout']} out of time"
+    )
 
 
 def tables(record: dict) -> str:
@@ -483,7 +527,7 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
         "per_seed": {
             k[: -len("_per_seed")]: v for k, v in summary.items() if k.endswith("_per_seed")
         },
-        "per_task": per_task_metrics(result, s.tasks, s.env_config.robot_radius),
+        "per_task": per_task_metrics(result, s.tasks, s.env_config),
         "wall_s": wall,
     }
     if s.controller != "policy":
@@ -495,6 +539,7 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
         record["mpc_reasons"] = dict(stats["reasons"])
     if s.controller == "policy":
         record["episodes"] = 1 if args.online else episodes + 1
+    record["failures"] = failures([record["per_task"]])
     return record, result
 
 
@@ -556,6 +601,8 @@ def main_task_seeds(args: argparse.Namespace) -> int:
     for k, v in pool.items():
         per = " ".join(f"{x:.2f}" for x in v["per_task_seed"])
         print(f"| {k} | {v['mean']:.2f} | {v['se']:.2f} | {per} |")
+    fails = failures([r["per_task"] for r in records])
+    print(failure_line(fails))
     out = args.out
     if out is None:
         out = s.out.parent / f"{s.out.name}-seeds{span.replace(',', '_')}"
@@ -566,6 +613,7 @@ def main_task_seeds(args: argparse.Namespace) -> int:
         "task_seeds": seeds,
         "num_tasks": n_tasks,
         "pooled": pool,
+        "failures": fails,
         "records": records,
     }
     (out / "results.json").write_text(json.dumps(summary, indent=2))
@@ -593,6 +641,7 @@ def main(argv: list[str] | None = None) -> int:
     record, result = evaluate(args, s)
     print(f"{record['protocol']}; {record['wall_s']:.1f} s", flush=True)
     print(tables(record))
+    print(failure_line(record["failures"]))
     s.out.mkdir(parents=True, exist_ok=True)
     (s.out / "results.json").write_text(json.dumps(record, indent=2))
     written = write_figures(s, result, args.animate)

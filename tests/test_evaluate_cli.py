@@ -37,6 +37,14 @@ def test_policy_on_the_whole_test_split_matches_the_runs_results(tmp_path, capsy
     assert len(rec["per_task"]["SR"]) == 1 and len(rec["per_task"]["SR"][0]) == 24
     table = capsys.readouterr().out
     assert "| SR |" in table and "| 23 |" in table
+    # every episode ends one way: success, a contact (first with a person or a static obstacle),
+    # or out of time; contacts agree with CFR
+    f = rec["failures"]
+    assert f["episodes"] == 24 and f["success"] == round(24 * rec["metrics"]["SR"])
+    assert f["success"] + f["contact"] + f["timeout"] == 24
+    assert f["contact_person"] + f["contact_static"] == f["contact"]
+    assert f["contact"] == round(24 * (1 - rec["metrics"]["CFR"]))
+    assert f"{f['success']} reached the goal without contact" in table
 
 
 @pytest.mark.parametrize("split", ["val", "ood", "train"])
@@ -75,7 +83,10 @@ def test_task_seeds_pool_the_splits_of_several_task_set_seeds(tmp_path, capsys, 
     mean = sum(ret) / 12
     se = (sum((v - mean) ** 2 for v in ret) / 11) ** 0.5 / 12**0.5
     assert rec["pooled"]["return"]["se"] == pytest.approx(se, rel=1e-6)
-    assert "task seeds 1-2 (12 tasks)" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "task seeds 1-2 (12 tasks)" in printed and "episodes 12:" in printed
+    for k in ("success", "contact", "contact_person", "reached_goal_after_contact", "timeout"):
+        assert rec["failures"][k] == sum(r["failures"][k] for r in singles), k
     # four task sets, one program: the protocol was traced and compiled once
     assert len(evaluators) == 1
     assert next(iter(evaluators.values()))._cache_size() == 1

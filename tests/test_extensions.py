@@ -244,6 +244,7 @@ def test_paper_presets_have_every_extension_off(name):
         "sensing_radius",
         "observe_time",
         "observe_sorted",
+        "w_collision",
     ):
         assert not cfg.env_overrides.get(field), field
     from mpcpearl_jax.envs import make_env
@@ -679,7 +680,7 @@ def test_observe_time_appends_the_elapsed_fraction_and_changes_nothing_else():
     assert bool(done) and float(o[-1]) == 1.0
 
 
-def test_grbal_refuses_observations_its_model_cannot_predict():
+def test_grbal_refuses_env_options_its_model_or_planner_cannot_handle():
     from mpcpearl_jax.envs import make_env, make_tasks
     from mpcpearl_jax.grbal.model import layout_of
 
@@ -689,6 +690,42 @@ def test_grbal_refuses_observations_its_model_cannot_predict():
         ("sensing_radius", 2.0),
         ("observe_time", True),
         ("observe_sorted", True),
+        ("w_collision", 10.0),
     ):
         with pytest.raises(ConfigError, match=f"env.{field}"):
             layout_of(make_env("restaurant", **{field: value}), tasks)
+
+
+def test_collision_penalty_is_paid_exactly_on_blocked_steps():
+    """`env.w_collision` subtracts w on every step whose attempted move is a real collision and
+    changes nothing else (pose, info, observation); the MPC never sees it (env reward only)."""
+    from mpcpearl_jax.envs import make_env, make_tasks
+    from mpcpearl_jax.envs.types import EnvState
+
+    plain, pen = make_env("restaurant"), make_env("restaurant", w_collision=30.0)
+    task = jax.tree_util.tree_map(lambda x: x[0], make_tasks("restaurant", "train", 0))
+    centre = np.asarray(task.static_center[0])
+    rng = np.random.default_rng(0)
+    hits = 0
+    for i in range(40):
+        # half the poses 0.55-0.9 m from a table centre facing it (full speed: contact), half
+        # anywhere in the arena
+        if i % 2 == 0:
+            ang = rng.uniform(-np.pi, np.pi)
+            xy = centre + rng.uniform(0.55, 0.9) * np.array([np.cos(ang), np.sin(ang)])
+            pose = np.array([*xy, ang + np.pi])
+        else:
+            pose = np.array([*rng.uniform(-4.5, 4.5, 2), rng.uniform(-np.pi, np.pi)])
+        state = EnvState(pose=jnp.asarray(pose, jnp.float32), t=jnp.asarray(int(i), jnp.int32))
+        action = jnp.asarray([1.0, rng.uniform(-0.2, 0.2)], jnp.float32)
+        key = jax.random.PRNGKey(i)
+        o1, s1, r1, _, info1 = plain.step(key, state, action, task)
+        o2, s2, r2, _, info2 = pen.step(key, state, action, task)
+        np.testing.assert_array_equal(np.asarray(o1), np.asarray(o2))
+        np.testing.assert_array_equal(np.asarray(s1.pose), np.asarray(s2.pose))
+        assert bool(info1.collision) == bool(info2.collision)
+        hits += int(info1.collision)
+        np.testing.assert_allclose(float(r2), float(r1) - 30.0 * float(info1.collision), atol=1e-4)
+    assert 5 <= hits <= 35  # both kinds of step were exercised
+    with pytest.raises(ConfigError, match="w_collision"):
+        make_env("restaurant", w_collision=-1.0)

@@ -78,3 +78,67 @@ def test_all_failures_and_all_successes():
     assert bad["SR"] == 0.0 and bad["CFR"] == 0.0 and bad["SPL"] == 0.0
     never = metrics.compute(pos, col, np.zeros_like(goal_in), goal)
     assert never["SR"] == 0.0 and never["TT"] == 4.0
+
+
+def _first_contact_numpy(pos, col, goal_in, task, r_r, r_d):
+    """Loop reference of `metrics.first_contact` for one episode."""
+    hits = [t for t in range(col.shape[0]) if col[t]]
+    if not hits:
+        return -1, False, 0, False
+    t = hits[0]
+    p = pos[t]
+    person = min(
+        (
+            float(np.hypot(*(task.human_pos[t + 1, h] - p))) - (r_r + r_d)
+            for h in range(task.human_pos.shape[1])
+            if task.human_mask[t + 1, h]
+        ),
+        default=np.inf,
+    )
+    static = np.inf
+    for lo, hi, rad in zip(task.static_lo, task.static_hi, task.static_radius, strict=True):
+        gap = np.maximum(np.maximum(lo - p, p - hi), 0.0)
+        static = min(static, float(np.hypot(*gap)) - rad - r_r)
+    reached_after = any(goal_in[s] for s in range(t + 1, col.shape[0]))
+    return t, person < static, len(hits), reached_after
+
+
+def test_first_contact_against_a_numpy_loop():
+    """Random positions near the people and tables of real restaurant tasks, random contact and
+    goal flags (some episodes without contact): step, obstacle kind, contact count and 'goal
+    reached after' match a loop reference; both obstacle kinds occur."""
+    import jax
+
+    from mpcpearl_jax.envs import make_tasks
+
+    tasks = make_tasks("restaurant", "train", 0)
+    rng = np.random.default_rng(3)
+    n, horizon = 60, 80
+    idx = rng.integers(0, 120, n)
+    batch = jax.tree_util.tree_map(lambda x: np.asarray(x)[idx], tasks)
+    pos = rng.uniform(-4.5, 4.5, (n, horizon + 1, 2)).astype(np.float32)
+    for i in range(n):  # put the robot next to a person or a table centre at some steps
+        for t in rng.integers(0, horizon, 10):
+            if rng.random() < 0.5:
+                near = batch.human_pos[i, t + 1, rng.integers(6)]
+            else:
+                s = rng.integers(batch.static_lo.shape[1])
+                near = 0.5 * (batch.static_lo[i, s] + batch.static_hi[i, s])
+            pos[i, t] = near + rng.normal(0.0, 0.4, 2)
+    col = rng.random((n, horizon)) < 0.03
+    col[: n // 5] = False
+    goal_in = rng.random((n, horizon)) < 0.05
+    contact = jax.vmap(lambda p, c, g, k: metrics.first_contact(p, c, g, k, 0.25, 0.25))
+    got = contact(jnp.asarray(pos), jnp.asarray(col), jnp.asarray(goal_in), batch)
+    kinds = set()
+    for i in range(n):
+        task = jax.tree_util.tree_map(lambda x, i=i: np.asarray(x)[i], batch)
+        want = _first_contact_numpy(pos[i], col[i], goal_in[i], task, 0.25, 0.25)
+        assert int(got.step[i]) == want[0]
+        assert bool(got.with_person[i]) == want[1]
+        assert int(got.steps_in_contact[i]) == want[2]
+        assert bool(got.reached_after[i]) == want[3]
+        if want[0] >= 0:
+            kinds.add(want[1])
+    assert kinds == {True, False}
+    assert int(jnp.sum(got.step < 0)) >= n // 5

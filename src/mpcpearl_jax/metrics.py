@@ -14,6 +14,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jax import Array
 
+from mpcpearl_jax import physics
+
 METRIC_NAMES = ("SR", "TT", "CFR", "SPL", "MGD")
 
 
@@ -61,3 +63,46 @@ def compute(
 ) -> dict[str, float]:
     """method §8 metrics averaged over a batch of episodes (one per test task)."""
     return summarize(episode_metrics(position, collision, in_goal, goal, robot_radius))
+
+
+class FirstContact(NamedTuple):
+    """Where an episode's first real collision happened, per episode (batch shape kept)."""
+
+    step: Array  # int, the step of the first collision; -1 for a collision-free episode
+    with_person: Array  # bool, the nearer obstacle at that step was a person (else static)
+    steps_in_contact: Array  # int, steps with a collision in the whole episode
+    reached_after: Array  # bool, the goal radius was reached after the first collision
+
+
+def first_contact(
+    position: Array,
+    collision: Array,
+    in_goal: Array,
+    params,
+    robot_radius: float,
+    human_radius: float,
+) -> FirstContact:
+    """Failure analysis of one episode (vmap for a batch); not a metric of the paper.
+
+    position [T + 1, 2], collision / in_goal [T], params: the episode's TaskParams (people and
+    static geometry). A blocked move leaves no attempted
+    position behind, so the obstacle hit on step t is the one with the smallest contact margin
+    from the position before the step, p_t, against the obstacles at t + 1 (where the collision
+    test reads them, method §2): |p_t - c| - (r_r + r_d) for a present person, the clearance to a
+    table's surface minus r_r for a static obstacle.
+    """
+    horizon = collision.shape[-1]
+    hit = jnp.any(collision)
+    step = jnp.where(hit, jnp.argmax(collision), -1)
+    t = jnp.maximum(step, 0)
+    p = position[t]
+    person = physics.human_distance(p, params.human_pos[t + 1]) - (robot_radius + human_radius)
+    person = jnp.min(jnp.where(params.human_mask[t + 1], person, jnp.inf))
+    static = jnp.min(physics.static_clearance(p, params), initial=jnp.inf) - robot_radius
+    after = in_goal & (jnp.arange(horizon) > step)
+    return FirstContact(
+        step=step,
+        with_person=hit & (person < static),
+        steps_in_contact=jnp.sum(collision),
+        reached_after=hit & jnp.any(after),
+    )

@@ -69,12 +69,16 @@ def layout_of(env, tasks) -> ObsLayout:
         "sensing_radius": cfg.sensing_radius > 0,
         "observe_time": cfg.observe_time,
         "observe_sorted": cfg.observe_sorted,
+        "w_collision": cfg.w_collision > 0,  # its planner scores eq. (2) only
     }
     for field, on in unsupported.items():
         if on:
             from mpcpearl_jax.errors import ConfigError
 
-            raise ConfigError(f"env.{field}: not supported by GrBAL's learned model")
+            raise ConfigError(
+                f"env.{field}: not supported by GrBAL (its learned model and planner use the "
+                "paper's observation and reward)"
+            )
     h = int(tasks.human_pos.shape[-2])
     s = int(tasks.static_lo.shape[-2]) if cfg.observe_static else 0
     return ObsLayout(h, h if cfg.observe_velocity else 0, s)
