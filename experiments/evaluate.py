@@ -387,19 +387,30 @@ def run_policy_mpc(s: Setup, key: jax.Array, eps: float) -> tuple[dict, dict]:
 
 
 # ---------------------------------------------------------------------------------- output
+@functools.partial(jax.jit, static_argnums=(4, 5))
+def _first_contacts(position, collision, in_goal, tasks, robot_radius, human_radius):
+    """`metrics.first_contact` of every episode [S, N] (compiled once per shape and radii)."""
+    from mpcpearl_jax import metrics
+
+    one = lambda p, c, g, k: metrics.first_contact(p, c, g, k, robot_radius, human_radius)
+    return jax.vmap(jax.vmap(one), in_axes=(0, 0, 0, None))(position, collision, in_goal, tasks)
+
+
 def per_task_metrics(result: dict, tasks: TaskParams, cfg: NavConfig) -> dict[str, list]:
     """Per seed and task [S][N]: success, collision_free, TT, SPL, MGD, return, and the first
     contact of each episode (`metrics.first_contact`): its step (-1: none), whether the nearer
     obstacle was a person, the steps in contact, whether the goal was reached after it."""
     from mpcpearl_jax import evaluate as eval_lib
-    from mpcpearl_jax import metrics
 
     m = eval_lib.episode_metrics(result, tasks, cfg.robot_radius)
-    contact = functools.partial(
-        metrics.first_contact, robot_radius=cfg.robot_radius, human_radius=cfg.human_radius
+    c = _first_contacts(
+        result["position"],
+        result["collision"],
+        result["in_goal"],
+        tasks,
+        cfg.robot_radius,
+        cfg.human_radius,
     )
-    per_seed = jax.vmap(jax.vmap(contact), in_axes=(0, 0, 0, None))  # [S, N]
-    c = jax.jit(per_seed)(result["position"], result["collision"], result["in_goal"], tasks)
     out = {
         "SR": np.asarray(m.success, float),
         "TT": np.asarray(m.travel_time, float),
