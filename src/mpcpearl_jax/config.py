@@ -275,6 +275,9 @@ _CPU_TRAIN = TrainConfig(
     checkpoint_interval=25,
 )
 
+# the CPU schedule with the extensions, shared by the `cpu` and `cpu-tuned` presets
+_CPU_EXTENDED = _extended(ExperimentConfig(pearl=_small_pearl(), train=_CPU_TRAIN), 400)
+
 PRESETS: dict[str, ExperimentConfig] = {
     # a couple of minutes on a laptop CPU: proves the whole pipeline end to end
     "smoke": ExperimentConfig(
@@ -308,11 +311,11 @@ PRESETS: dict[str, ExperimentConfig] = {
         demo_iterations=400,
     ),
     # the CPU schedule with the extensions (docs/extensions.md); stop it any time (--iterations)
-    "cpu": _extended(ExperimentConfig(pearl=_small_pearl(), train=_CPU_TRAIN), 400),
+    "cpu": _CPU_EXTENDED,
     # the restaurant headline (results/README.md): `cpu` plus the options chosen on the validation
     # split; restaurant only (the sidewalk cannot re-draw its crowds: add
     # --set train.redraw_behaviours=false there)
-    "cpu-tuned": _tuned(_extended(ExperimentConfig(pearl=_small_pearl(), train=_CPU_TRAIN), 400)),
+    "cpu-tuned": _tuned(_CPU_EXTENDED),
     # the same CPU schedule and networks with the paper's algorithm (no extension)
     "cpu-paper": ExperimentConfig(pearl=_small_pearl(), train=_CPU_TRAIN),
     # method §7 exactly

@@ -85,11 +85,11 @@ def first_contact(
     """Failure analysis of one episode (vmap for a batch); not a metric of the paper.
 
     position [T + 1, 2], collision / in_goal [T], params: the episode's TaskParams (people and
-    static geometry). A blocked move leaves no attempted
-    position behind, so the obstacle hit on step t is the one with the smallest contact margin
-    from the position before the step, p_t, against the obstacles at t + 1 (where the collision
-    test reads them, method §2): |p_t - c| - (r_r + r_d) for a present person, the clearance to a
-    table's surface minus r_r for a static obstacle.
+    static geometry). A blocked move leaves no attempted position behind, so the obstacle hit on
+    step t is the one with the smallest contact margin from the position before the step, p_t,
+    against the obstacles at t + 1 (where the collision test reads them, method §2):
+    |p_t - c| - (r_r + r_d) for a present person, the clearance to a table's surface minus r_r
+    for a static obstacle.
     """
     horizon = collision.shape[-1]
     hit = jnp.any(collision)
