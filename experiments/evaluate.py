@@ -36,7 +36,7 @@ import functools
 import json
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -48,6 +48,7 @@ from mpcpearl_jax.envs import SPLITS, make_env, make_tasks
 from mpcpearl_jax.envs.types import NavConfig, TaskParams
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.metrics import METRIC_NAMES
+from mpcpearl_jax.shield import ShieldConfig
 
 CONTROLLERS = ("policy", "gp-mpc", "policy+mpc")
 EVAL_SEED = 12345  # the trainer's evaluation key: same numbers as the run's results.json
@@ -106,6 +107,25 @@ def make_parser() -> argparse.ArgumentParser:
         metavar="FIELD=VALUE",
         help="MPC controllers: override an MPCConfig field (repeatable)",
     )
+    p.add_argument(
+        "--shield",
+        action="store_true",
+        help="policy: execute the actions through the test-time safety shield (extension, "
+        "mpcpearl_jax.shield; docs/extensions.md)",
+    )
+    p.add_argument(
+        "--shield-margin",
+        type=float,
+        default=ShieldConfig.margin,
+        help=f"--shield: clearance in metres beyond contact (default {ShieldConfig.margin:g})",
+    )
+    p.add_argument(
+        "--shield-lookahead",
+        type=int,
+        default=ShieldConfig.lookahead,
+        help=f"--shield: steps each candidate is held for the check "
+        f"(default {ShieldConfig.lookahead})",
+    )
     p.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="PRNG seed of the evaluation")
     p.add_argument("--out", type=Path, help="output folder")
     return p
@@ -158,6 +178,7 @@ class Setup:
     seed_ids: list[int] = field(default_factory=list)
     mpc: dict = field(default_factory=dict)  # MPCConfig overrides
     eps: float | None = None  # policy+mpc: MPC probability on an event
+    shield: ShieldConfig | None = None  # policy: test-time safety shield (extension)
 
 
 def _mpc_overrides(items: list[str], base: dict) -> dict:
@@ -202,6 +223,18 @@ def setup(args: argparse.Namespace) -> Setup:
         raise UsageError("--eps applies to --controller policy+mpc (GP-MPC acts on every step)")
     if ctrl == "policy" and (args.set or args.eps is not None):
         raise UsageError("--set and --eps apply to the MPC controllers (gp-mpc, policy+mpc)")
+    shield = None
+    shield_given = args.shield_margin != ShieldConfig.margin
+    shield_given |= args.shield_lookahead != ShieldConfig.lookahead
+    if shield_given and not args.shield:
+        raise UsageError("--shield-margin and --shield-lookahead need --shield")
+    if args.shield:
+        if ctrl != "policy":
+            raise UsageError(f"--shield applies to --controller policy, not {ctrl}")
+        try:
+            shield = ShieldConfig(margin=args.shield_margin, lookahead=args.shield_lookahead)
+        except ValueError as e:
+            raise UsageError(str(e).replace("shield.", "--shield-", 1)) from e
     if args.episodes is not None and args.episodes < 0:
         raise UsageError(f"--episodes {args.episodes}: must be >= 0")
     env_name = cfg.env if cfg else (args.env or "restaurant")
@@ -254,11 +287,14 @@ def setup(args: argparse.Namespace) -> Setup:
             if not 0.0 <= eps <= 1.0:
                 raise UsageError(f"--eps {eps}: must be in [0, 1]")
             label = f"{label} + MPC (eps {eps:g})"
+        if shield is not None:
+            label = f"{label} + shield (margin {shield.margin:g} m, lookahead {shield.lookahead})"
     elif args.seed_index is not None:
         raise UsageError("--seed-index applies to a run's policy, not to gp-mpc")
     out = args.out
     if out is None and args.run is not None:
-        out = args.run / "eval" / (f"{ctrl}-{args.split}" + ("-online" if args.online else ""))
+        name = f"{ctrl}-shield" if shield is not None else ctrl
+        out = args.run / "eval" / (f"{name}-{args.split}" + ("-online" if args.online else ""))
     elif out is None:
         out = Path("runs") / "eval" / f"gp-mpc-{env_name}-{args.split}"
     return Setup(
@@ -279,6 +315,7 @@ def setup(args: argparse.Namespace) -> Setup:
         seed_ids=seed_ids,
         mpc=mpc,
         eps=eps,
+        shield=shield,
     )
 
 
@@ -301,10 +338,11 @@ def policy_evaluator(s: Setup, episodes: int, online: bool):
     nets = s.policies[0].nets
     t_update = s.run_config.train.t_update
     key = (s.env_config, nets.cfg, nets.obs_dim, nets.action_dim, episodes, online, t_update)
+    key += (s.shield,)
     if key not in _EVALUATORS:
         env = NavEnv(s.env_config)
         _EVALUATORS[key] = eval_lib.make_evaluator(
-            env, nets, episodes, online=online, t_update=t_update
+            env, nets, episodes, online=online, t_update=t_update, shield=s.shield
         )
     return _EVALUATORS[key]
 
@@ -550,6 +588,9 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
         record["mpc_reasons"] = dict(stats["reasons"])
     if s.controller == "policy":
         record["episodes"] = 1 if args.online else episodes + 1
+        if s.shield is not None:
+            record["shield"] = asdict(s.shield)
+            record["shield_rate"] = float(np.mean(result["shielded"]))
     record["failures"] = failures([record["per_task"]])
     return record, result
 

@@ -102,3 +102,31 @@ def test_dagger_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     assert all(0.0 <= row["fit_error"] <= 8.0 for row in curve)
     final = res["final"]["mean"]
     assert list(res["final"]["per_task_seed"]) == [1] and 0.0 <= final["SR"] <= final["CFR"] <= 1
+
+
+def test_shield_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
+    """`benchmarks.shield` (a diagnostic) on the committed headline run: one row per
+    (controller, shield setting), the unshielded rows with no replaced step, rates in range."""
+    from benchmarks import shield
+
+    run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "mpc-pearl-eps0.2"
+    res = shield.main(["--tiny", "--runs", str(run), "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "shield.json").read_text())
+    assert record["config"]["size"] == "tiny"
+    assert record["config"]["runs"] == ["results/restaurant/mpc-pearl-eps0.2"]
+    rows = res["rows"]
+    assert [(r["controller"], r["shield"] is None) for r in rows] == [
+        ("goal-seeking", True),
+        ("goal-seeking", False),
+        ("mpc-pearl-eps0.2", True),
+        ("mpc-pearl-eps0.2", False),
+    ]
+    for r in rows:
+        p = r["pooled"]
+        free = p["collision_free"]["mean"]
+        assert 0.0 <= p["success"]["mean"] <= free and p["timeout"]["mean"] <= free
+        assert 0.0 <= p["shield_rate"]["mean"] <= 1.0
+        if r["shield"] is None:
+            assert p["shield_rate"]["mean"] == 0.0
+    # the goal-seeking control alone drives into the first table
+    assert rows[0]["pooled"]["collision_free"]["mean"] == 0.0

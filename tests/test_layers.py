@@ -14,7 +14,7 @@ LAYERS = [
     ["errors", "validate", "dynamics"],
     ["physics", "metrics", "pearl.types", "pearl.config", "mpc.config"],
     ["envs", "pearl.networks", "pearl.losses", "pearl.learner", "pearl.buffers", "pearl"],
-    ["mpc"],
+    ["mpc", "shield"],
     ["collect", "evaluate", "config", "grbal.config", "grbal.model", "grbal.planner"],
     ["trainer", "checkpoint", "grbal.trainer"],
     ["run", "report", "livelog", "animate", "viz", "grbal.run", "grbal"],

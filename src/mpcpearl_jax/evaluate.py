@@ -17,6 +17,7 @@ from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import Transitions, context_from
+from mpcpearl_jax.shield import ShieldConfig, shield_step
 
 
 def _episode(
@@ -29,6 +30,7 @@ def _episode(
     mask: Array,
     offset: Array,
     t_update: int | None,
+    shield: ShieldConfig | None = None,
 ):
     """One deterministic episode. Context rows [offset, offset + T) are filled as it runs.
 
@@ -48,19 +50,22 @@ def _episode(
             z_new = nets.sample_z(params["encoder"], ctx, k, mask)
             z = jnp.where((t % t_update == 0) & (t > 0), z_new, z)
         a = nets.act(params["policy"], obs, z, None)
+        shielded = jnp.zeros((), bool)
+        if shield is not None:  # extension: test-time safety shield (mpcpearl_jax.shield)
+            a, shielded = shield_step(env, state, a, task, shield)
         nobs, nstate, r, _, info = env.step(k, state, a, task)
         row = context_from(Transitions(obs, a, r, nobs, jnp.zeros(())))
         ctx = ctx.at[offset + t].set(row)
         mask = mask.at[offset + t].set(1.0)
-        out = (info.position, nstate.pose[2], info.collision, info.in_goal, r)
+        out = (info.position, nstate.pose[2], info.collision, info.in_goal, r, shielded)
         return (nobs, nstate, z, ctx, mask), out
 
-    (_, _, _, ctx, mask), (pos, head, col, goal, rew) = jax.lax.scan(
+    (_, _, _, ctx, mask), (pos, head, col, goal, rew, shielded) = jax.lax.scan(
         body, (obs0, state0, z0, ctx, mask), (jnp.arange(horizon), jax.random.split(k_run, horizon))
     )
     pos = jnp.concatenate([state0.pose[None, :2], pos], axis=0)
     head = jnp.concatenate([state0.pose[None, 2], head], axis=0)
-    return (pos, head, col, goal, rew), ctx, mask
+    return (pos, head, col, goal, rew, shielded), ctx, mask
 
 
 def make_evaluator(
@@ -69,13 +74,17 @@ def make_evaluator(
     num_adapt_episodes: int = 2,
     online: bool = False,
     t_update: int = 5,
+    shield: ShieldConfig | None = None,
 ):
     """`evaluate(key, params [S], tasks [N]) -> dict` of arrays [S, N, ...]: position [T + 1, 2],
-    heading [T + 1], collision [T], in_goal [T] and return of the evaluated episode.
+    heading [T + 1], collision [T], in_goal [T], shielded [T] (steps whose action the shield
+    replaced; all False without one) and return of the evaluated episode.
 
     Adaptation mode (paper Table II "X"): z from the prior for episode 1, then from the posterior
     of all transitions so far; the returned episode is number num_adapt_episodes + 1.
     Online mode ("O"): a single episode with z re-inferred every t_update steps.
+    With `shield` (extension, `mpcpearl_jax.shield`) every episode, adaptation ones included,
+    executes the shielded action, and the context holds what was executed.
     """
     horizon = env.config.horizon
     n_eps = 1 if online else num_adapt_episodes + 1
@@ -97,13 +106,15 @@ def make_evaluator(
                 mask,
                 jnp.asarray(e * horizon),
                 t_update if online else None,
+                shield,
             )
-        pos, head, col, goal, rew = out
+        pos, head, col, goal, rew, shielded = out
         return {
             "position": pos,
             "heading": head,
             "collision": col,
             "in_goal": goal,
+            "shielded": shielded,
             "return": jnp.sum(rew),
         }
 
