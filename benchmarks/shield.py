@@ -28,7 +28,6 @@ from typing import Any
 from benchmarks import harness
 
 ROOT = Path(__file__).resolve().parents[1]
-EVAL_SEED = 12345  # experiments.evaluate's key: the unshielded rows reproduce its numbers
 DEFAULT_RUNS = [
     ROOT / "results" / "restaurant" / name for name in ("mpc-pearl-eps0.2", "mpc-sac", "pearl")
 ]
@@ -138,11 +137,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     import jax
 
+    from experiments.evaluate import EVAL_SEED  # the unshielded rows reproduce its numbers
     from mpcpearl_jax import evaluate as eval_lib
     from mpcpearl_jax import load_policy
     from mpcpearl_jax.checkpoint import load_config
     from mpcpearl_jax.envs import make_env, make_tasks
-    from mpcpearl_jax.envs.navigation import NavEnv
     from mpcpearl_jax.shield import ShieldConfig
 
     policies = [load_policy(r) for r in args.runs]
@@ -191,11 +190,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     # the goal-seeking control, in the environment of --env-from (its sensing radius bounds what
     # the shield sees)
     env0 = make_env("restaurant", **dict(load_config(args.env_from).env_overrides))
+    task_sets = {s: tasks_for(env0, None, s) for s in seeds}
     for shield in shields:
         fn = goal_seeking_evaluator(env0, shield)
         per_seed, wall = [], 0.0
-        for s in seeds:
-            tasks = tasks_for(env0, None, s)
+        for tasks in task_sets.values():
             res, dt = harness.timed(lambda f=fn, t=tasks: jax.device_get(f(t)))
             wall += dt
             per_seed.append(episode_outcomes(res, tasks, env0.config.robot_radius))
@@ -205,17 +204,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         cfg = pol.config
         env = make_env(cfg.env, **cfg.env_overrides)
         params = jax.tree_util.tree_map(lambda x: x[None], pol.params)
+        task_sets = {s: tasks_for(env, cfg, s) for s in seeds}
         for shield in shields:
             fn = eval_lib.make_evaluator(
-                NavEnv(env.config),
+                env,
                 pol.nets,
                 cfg.train.eval_adapt_episodes,
                 t_update=cfg.train.t_update,
                 shield=shield,
             )
             per_seed, wall = [], 0.0
-            for s in seeds:
-                tasks = tasks_for(env, cfg, s)
+            for tasks in task_sets.values():
                 res, dt = harness.timed(
                     lambda f=fn, p=params, t=tasks: jax.device_get(
                         f(jax.random.PRNGKey(EVAL_SEED), p, t)
