@@ -116,13 +116,13 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--shield-margin",
         type=float,
-        default=ShieldConfig.margin,
+        default=None,
         help=f"--shield: clearance in metres beyond contact (default {ShieldConfig.margin:g})",
     )
     p.add_argument(
         "--shield-lookahead",
         type=int,
-        default=ShieldConfig.lookahead,
+        default=None,
         help=f"--shield: steps each candidate is held for the check "
         f"(default {ShieldConfig.lookahead})",
     )
@@ -224,15 +224,15 @@ def setup(args: argparse.Namespace) -> Setup:
     if ctrl == "policy" and (args.set or args.eps is not None):
         raise UsageError("--set and --eps apply to the MPC controllers (gp-mpc, policy+mpc)")
     shield = None
-    shield_given = args.shield_margin != ShieldConfig.margin
-    shield_given |= args.shield_lookahead != ShieldConfig.lookahead
+    shield_given = args.shield_margin is not None or args.shield_lookahead is not None
     if shield_given and not args.shield:
         raise UsageError("--shield-margin and --shield-lookahead need --shield")
     if args.shield:
         if ctrl != "policy":
             raise UsageError(f"--shield applies to --controller policy, not {ctrl}")
         try:
-            shield = ShieldConfig(margin=args.shield_margin, lookahead=args.shield_lookahead)
+            given = {"margin": args.shield_margin, "lookahead": args.shield_lookahead}
+            shield = ShieldConfig(**{k: v for k, v in given.items() if v is not None})
         except ValueError as e:
             raise UsageError(str(e).replace("shield.", "--shield-", 1)) from e
     if args.episodes is not None and args.episodes < 0:

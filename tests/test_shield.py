@@ -131,6 +131,8 @@ def test_safe_actions_pass_unchanged_and_the_candidates_start_with_the_action():
         (dict(margin=2.0), "margin"),
         (dict(lookahead=0), "lookahead"),
         (dict(lookahead=1.5), "lookahead"),
+        (dict(margin=True), "margin"),
+        (dict(lookahead=True), "lookahead"),
         (dict(speeds=()), "speeds"),
         (dict(steers=(0.0, 1.5)), "steers"),
     ],
@@ -225,6 +227,7 @@ def test_evaluate_cli_shield(tmp_path, capsys):
     assert "shield" in rec["label"]
     for argv, msg in [
         ([str(run), "--shield-margin", "0.1"], "need --shield"),
+        ([str(run), "--shield-margin", "0.05"], "need --shield"),
         ([str(run), "--shield", "--shield-margin", "5"], "--shield-margin"),
         (["--controller", "gp-mpc", "--shield"], "applies to --controller policy"),
     ]:

@@ -46,9 +46,11 @@ class ShieldConfig:
     steers: tuple[float, ...] = (-1.0, -0.75, -0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0)
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.margin, (int, float)) and 0.0 <= self.margin <= 1.0):
+        number = isinstance(self.margin, (int, float)) and not isinstance(self.margin, bool)
+        if not (number and 0.0 <= self.margin <= 1.0):
             raise ValueError(f"shield.margin: expected a number in [0, 1] m, got {self.margin!r}")
-        if not (isinstance(self.lookahead, int) and 1 <= self.lookahead <= 20):
+        integer = isinstance(self.lookahead, int) and not isinstance(self.lookahead, bool)
+        if not (integer and 1 <= self.lookahead <= 20):
             raise ValueError(
                 f"shield.lookahead: expected an integer in [1, 20], got {self.lookahead!r}"
             )
