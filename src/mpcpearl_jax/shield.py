@@ -30,6 +30,7 @@ from jax import Array
 from mpcpearl_jax import physics
 from mpcpearl_jax.dynamics import bicycle_step, to_physical
 from mpcpearl_jax.envs.types import EnvState, NavConfig, TaskParams
+from mpcpearl_jax.validate import is_int, is_number
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,11 +47,9 @@ class ShieldConfig:
     steers: tuple[float, ...] = (-1.0, -0.75, -0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0)
 
     def __post_init__(self) -> None:
-        number = isinstance(self.margin, (int, float)) and not isinstance(self.margin, bool)
-        if not (number and 0.0 <= self.margin <= 1.0):
+        if not (is_number(self.margin) and 0.0 <= self.margin <= 1.0):
             raise ValueError(f"shield.margin: expected a number in [0, 1] m, got {self.margin!r}")
-        integer = isinstance(self.lookahead, int) and not isinstance(self.lookahead, bool)
-        if not (integer and 1 <= self.lookahead <= 20):
+        if not (is_int(self.lookahead) and 1 <= self.lookahead <= 20):
             raise ValueError(
                 f"shield.lookahead: expected an integer in [1, 20], got {self.lookahead!r}"
             )
