@@ -201,6 +201,13 @@ def test_demo_share_schedule():
             "bc_weight",
         ),
         (lambda: TrainConfig(mpc_demo_step_prob=-0.1), "mpc_demo_step_prob"),
+        (lambda: TrainConfig(explore_start_share=1.0), "explore_start_share"),
+        (lambda: TrainConfig(explore_start_share=-0.1), "explore_start_share"),
+        (lambda: TrainConfig(explore_start_share=True), "explore_start_share"),
+        (
+            lambda: TrainConfig(explore_start_share=0.5, posterior_episodes=0),
+            "explore_start_share",
+        ),
         (lambda: PearlConfig(bc_q_filter=1), "bc_q_filter"),
         (lambda: TrainConfig(mpc_dagger_labels=True), "mpc_dagger_labels"),
         (
@@ -237,7 +244,7 @@ def test_paper_presets_have_every_extension_off(name):
     assert cfg.train.mpc_demo_step_prob == 1.0
     assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
     assert cfg.pearl.policy_ema == 0 and not cfg.train.mpc_dagger_labels
-    assert not cfg.mpc.unsafe_recovery
+    assert not cfg.mpc.unsafe_recovery and cfg.train.explore_start_share == 0
     for field in (
         "observe_velocity",
         "observe_relative",
@@ -729,3 +736,90 @@ def test_collision_penalty_is_paid_exactly_on_blocked_steps():
     assert 5 <= hits <= 35  # both kinds of step were exercised
     with pytest.raises(ConfigError, match="w_collision"):
         make_env("restaurant", w_collision=-1.0)
+
+
+def _restaurant_task():
+    from mpcpearl_jax.envs import make_env, make_tasks
+
+    env = make_env("restaurant")
+    tasks = make_tasks("restaurant", "train", 0, config=env.config)
+    return env, jax.tree_util.tree_map(lambda x: x[0], tasks)
+
+
+def test_random_start_is_free_in_the_arena_and_outside_the_goal():
+    env, task = _restaurant_task()
+    cfg = env.config
+    poses = np.asarray(
+        jax.vmap(lambda k: env.random_start(k, task))(jax.random.split(jax.random.PRNGKey(0), 400))
+    )
+    assert poses.shape == (400, 3) and np.all(np.isfinite(poses))
+    assert np.all(np.abs(poses[:, 2]) <= np.pi)
+    lo = np.asarray(cfg.arena_lo) + cfg.robot_radius
+    hi = np.asarray(cfg.arena_hi) - cfg.robot_radius
+    assert np.all(poses[:, :2] >= lo) and np.all(poses[:, :2] <= hi)
+    # NumPy reference of the two exclusions: no table or person present at t = 0 within reach,
+    # not inside the goal region
+    hp, hm = np.asarray(task.human_pos[0]), np.asarray(task.human_mask[0])
+    slo, shi = np.asarray(task.static_lo), np.asarray(task.static_hi)
+    srad = np.asarray(task.static_radius)
+    for p in poses[:, :2]:
+        d_s = np.linalg.norm(np.maximum(np.maximum(slo - p, p - shi), 0.0), axis=-1) - srad
+        assert np.all(d_s >= cfg.robot_radius)
+        d_h = np.linalg.norm(hp - p, axis=-1)[hm]
+        assert np.all(d_h >= cfg.robot_radius + cfg.human_radius)
+        assert np.linalg.norm(p - np.asarray(task.goal)) > cfg.goal_radius
+    # spread over the arena, not a handful of spots
+    assert np.std(poses[:, 0]) > 2.0 and np.std(poses[:, 1]) > 2.0
+    assert len(np.unique(np.round(poses[:, :2], 3), axis=0)) == 400
+
+
+def test_random_start_falls_back_to_the_task_start_when_nothing_is_free():
+    env, task = _restaurant_task()
+    blocked = task.replace(  # one box over the whole arena: no candidate is free
+        static_lo=task.static_lo.at[0].set(jnp.array([-5.0, -5.0])),
+        static_hi=task.static_hi.at[0].set(jnp.array([5.0, 5.0])),
+    )
+    pose = env.random_start(jax.random.PRNGKey(3), blocked)
+    np.testing.assert_array_equal(np.asarray(pose), np.asarray(task.start, np.float32))
+
+
+def test_exploring_starts_change_only_the_marked_rows_and_never_the_encoder_context():
+    from mpcpearl_jax.envs.types import EnvState
+    from mpcpearl_jax.trainer import Trainer
+    from tests.test_training import TINY
+
+    tc = dataclasses.replace(TINY.train, explore_start_share=0.9)
+    tr = Trainer(TINY.replace(train=tc))
+    state = tr.init_state()
+    # the collector: rows marked explore start at env.random_start, the others at the start
+    ids = jnp.array([[0, 1, 0, 1]] * TINY.seeds)
+    tasks = jax.vmap(lambda t, i: jax.tree_util.tree_map(lambda x: x[i], t))(state.tasks, ids)
+    z = jnp.zeros((TINY.seeds, 4, TINY.pearl.latent_dim))
+    explore = jnp.array([[True, False, True, False]] * TINY.seeds)
+    key = jax.random.PRNGKey(5)
+    ep = jax.jit(tr._collector)(key, state.learner.params["policy"], z, tasks, None, explore)
+    start = np.asarray(tasks.start[..., :2])
+    first = np.asarray(ep.position[:, :, 0])
+    np.testing.assert_allclose(first[:, [1, 3]], start[:, [1, 3]], atol=1e-6)
+    assert np.all(np.linalg.norm(first[:, [0, 2]] - start[:, [0, 2]], axis=-1) > 1e-3)
+    # the first observation of an exploring row is the env's observation of its pose
+    task = jax.tree_util.tree_map(lambda x: x[0, 0], tasks)
+    obs0 = np.asarray(ep.transitions.obs[0, 0, 0])
+    pose = jnp.array([first[0, 0, 0], first[0, 0, 1], obs0[2] * np.pi], jnp.float32)
+    want = tr.env.observe(EnvState(pose=pose, t=jnp.zeros((), jnp.int32)), task)
+    np.testing.assert_allclose(obs0, np.asarray(want), atol=1e-5)
+    # the trainer: the prior phase (encoder context) never explores, the posterior phase does
+    two = ids[:, :2]
+    state, prior = tr.collect_phase(state, two, 1, False, True, True, jnp.float32(0.0))
+    state, post = tr.collect_phase(state, two, 1, True, False, False, jnp.float32(0.0))
+    assert float(jnp.sum(prior["explore_rows"])) == 0.0
+    assert float(jnp.sum(post["explore_rows"])) > 0.0
+    for s_ in range(TINY.seeds):
+        for t_ in (0, 1):
+            task = jax.tree_util.tree_map(lambda x, s_=s_, t_=t_: x[s_, t_], state.tasks)
+            start_obs = np.asarray(tr.env.reset(key, task)[0])
+            np.testing.assert_allclose(
+                np.asarray(state.enc.data.obs[s_, t_, 0]), start_obs, atol=1e-5
+            )
+    state, log = tr.iteration(state)
+    assert np.isfinite(log["train_return"]) and 0.0 < log["train_explore_rows"] <= 1.0

@@ -57,7 +57,9 @@ def make_collector(
     an event fires and a uniform draw is <= eps (paper Algorithm 1); its (normalized) actions go
     into the episodes unmarked, except for the `used_mpc` log. `demo` [S, R] bool (the MPC warm
     start extension, `TrainConfig.mpc_demo_share`) makes the MPC act on those rows at every step
-    with probability `demo_prob` (1 = every step). `mesh` (`mpcpearl_jax.distributed`): the
+    with probability `demo_prob` (1 = every step). `explore` [S, R] bool (the exploring-starts
+    extension, `TrainConfig.explore_start_share`) starts those rows at `env.random_start` instead
+    of the task's start pose. `mesh` (`mpcpearl_jax.distributed`): the
     seed axis, hence the flat rows, is split over its devices; the bridge then runs per shard
     (`MPCBridge.on_mesh`). `dagger_labels` (extension `TrainConfig.mpc_dagger_labels`): on the
     `demo` rows the MPC is solved on every step, its action executed with probability
@@ -77,12 +79,23 @@ def make_collector(
         return jax.vmap(act)(policy_params, obs, z, keys)
 
     def collect(
-        key: Array, policy_params, z: Array, tasks: TaskParams, demo: Array | None = None
+        key: Array,
+        policy_params,
+        z: Array,
+        tasks: TaskParams,
+        demo: Array | None = None,
+        explore: Array | None = None,
     ) -> Episodes:
         s, r = z.shape[:2]
         flat = jax.tree_util.tree_map(lambda x: x.reshape((s * r, *x.shape[2:])), tasks)
         demo_flat = jnp.zeros((s * r,), bool) if demo is None else demo.reshape(s * r)
         obs0, state0 = jax.vmap(env.reset)(jax.random.split(key, s * r), flat)
+        if explore is not None:  # extension: exploring starts on these rows
+            k_start = jax.random.split(jax.random.fold_in(key, 0x57A7), s * r)
+            pose = jax.vmap(env.random_start)(k_start, flat)
+            pose = jnp.where(explore.reshape(s * r, 1), pose, state0.pose)
+            state0 = state0.replace(pose=pose)
+            obs0 = jax.vmap(env.observe)(state0, flat)
         # stamp of this batch of episodes: the bridge forgets plans of earlier batches
         stamp = jax.random.bits(jax.random.fold_in(key, 0x5EED), (2,), jnp.uint32)
 

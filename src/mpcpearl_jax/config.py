@@ -64,6 +64,11 @@ class TrainConfig:
     # learned by heart (domain randomization against the train/test gap); the task's buffers
     # keep their older transitions, its encoder buffer is refilled with the new behaviour
     redraw_behaviours: bool = False
+    # exploring starts: this share of the posterior-phase collection rows (the episodes that go
+    # to the RL buffer only) starts at a random free pose of the arena instead of the task's
+    # start, so the critic sees the goal and the ways round the tables early; the encoder's
+    # context episodes and every evaluation start from the task's start as in the paper
+    explore_start_share: float = 0.0
 
     def __post_init__(self) -> None:
         v.ints(
@@ -81,10 +86,31 @@ class TrainConfig:
             "mpc_buffer_capacity",
         )
         v.ints(self, "posterior_episodes", "eval_interval", "mpc_demo_iterations", lo=0)
-        unit = ("eps", "mpc_demo_share", "mpc_demo_step_prob", "mpc_buffer_fraction")
+        unit = (
+            "eps",
+            "mpc_demo_share",
+            "mpc_demo_step_prob",
+            "mpc_buffer_fraction",
+            "explore_start_share",
+        )
         v.interval(self, *unit, lo=0.0, hi=1.0)
         v.check(self.mpc_buffer_fraction < 1.0, self, "mpc_buffer_fraction", "must be below 1")
         v.flags(self, "redraw_behaviours", "mpc_dagger_labels")
+        v.check(
+            self.explore_start_share < 1.0,
+            self,
+            "explore_start_share",
+            "must be below 1 (the training statistics read the rows that start at the task's "
+            "start)",
+        )
+        if self.explore_start_share > 0:
+            v.check(
+                self.posterior_episodes > 0,
+                self,
+                "explore_start_share",
+                "exploring starts apply to the posterior-phase episodes: set "
+                "posterior_episodes > 0",
+            )
         if self.mpc_dagger_labels:
             v.check(
                 self.mpc_demo_share > 0 and self.mpc_demo_iterations > 0,

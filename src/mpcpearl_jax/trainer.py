@@ -213,7 +213,12 @@ class Trainer:
         if self.bridge is not None:
             k_demo = jax.random.fold_in(sub[0, 1], 7)
             demo = jax.random.uniform(k_demo, rows.shape) < demo_share
-        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, demo)
+        share = self.cfg.train.explore_start_share
+        explore = None
+        if share > 0 and posterior and not to_encoder:  # extension: exploring starts
+            k_explore = jax.random.fold_in(sub[0, 1], 11)
+            explore = jax.random.uniform(k_explore, rows.shape) < share
+        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, demo, explore)
         s, k = task_ids.shape
         to_task = lambda x: x.reshape((s, k, episodes * self.horizon, *x.shape[3:]))  # noqa: E731
         per_task = jax.tree_util.tree_map(to_task, ep.transitions)
@@ -227,14 +232,23 @@ class Trainer:
         if self.use_labels:  # extension: (obs, MPC label) of the policy's steps
             rows_l = per_task._replace(action=to_task(ep.label))
             labels = jax.vmap(buffers.insert_masked)(labels, task_ids, rows_l, to_task(ep.labelled))
+        success = jnp.any(ep.in_goal, -1) & ~jnp.any(ep.collision, -1)  # [S, R]
+        # episode statistics are over the rows that start at the task's start (all without
+        # exploring starts); the exploring ones are counted apart
+        w = jnp.ones(rows.shape) if explore is None else (~explore).astype(jnp.float32)
+        on_start = lambda x: jnp.sum(w * x, axis=-1) / jnp.maximum(jnp.sum(w, axis=-1), 1.0)
+        x_rows = jnp.zeros(rows.shape) if explore is None else explore.astype(jnp.float32)
         stats = {
-            "return": jnp.mean(jnp.sum(ep.transitions.reward, axis=-1), axis=-1),  # [S]
-            "success": jnp.mean(jnp.any(ep.in_goal, -1) & ~jnp.any(ep.collision, -1), axis=-1),
-            "collision_free": jnp.mean(~jnp.any(ep.collision, -1), axis=-1),
+            "return": on_start(jnp.sum(ep.transitions.reward, axis=-1)),  # [S]
+            "success": on_start(success),
+            "collision_free": on_start(~jnp.any(ep.collision, -1)),
             "event_rate": jnp.mean(ep.event, axis=(-1, -2)),
             "mpc_share": jnp.mean(ep.used_mpc, axis=(-1, -2)),
             "demo_rows": jnp.mean(demo, axis=-1) if demo is not None else jnp.zeros(s),
             "labelled": jnp.mean(ep.labelled, axis=(-1, -2)),
+            "explore_rows": jnp.mean(x_rows, axis=-1),
+            "explore_success": jnp.sum(x_rows * success, axis=-1)
+            / jnp.maximum(jnp.sum(x_rows, axis=-1), 1.0),
             "steps": jnp.asarray(ep.transitions.reward[0].size),
         }
         new = state.replace(rl=rl, enc=enc, mpc=mpc, labels=labels, key=keys)
@@ -405,6 +419,8 @@ class Trainer:
             "mpc_share",
             "demo_rows",
             "labelled",
+            "explore_rows",
+            "explore_success",
         )
         src, prior_ret = to_host(({n: src[n] for n in names}, prior["return"]))
         for name in names:

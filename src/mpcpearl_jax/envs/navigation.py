@@ -48,6 +48,29 @@ class NavEnv:
         state = EnvState(pose=params.start.astype(jnp.float32), t=jnp.zeros((), jnp.int32))
         return self.observe(state, params), state
 
+    def random_start(self, key: Array, params: TaskParams, tries: int = 32) -> Array:
+        """A random start pose [3] for the extension `TrainConfig.explore_start_share`
+        (exploring starts; never used by the paper's tasks or at test time).
+
+        Position uniform in the arena shrunk by the robot radius, heading uniform in [-pi, pi).
+        A candidate is kept if it neither collides (a table or a person present at t = 0) nor
+        lies inside the goal region; the first of `tries` candidates that qualifies is returned,
+        and the task's own start if none does.
+        """
+        cfg = self.config
+        k_xy, k_th = jax.random.split(key)
+        lo = jnp.asarray(cfg.arena_lo) + cfg.robot_radius
+        hi = jnp.asarray(cfg.arena_hi) - cfg.robot_radius
+        xy = jax.random.uniform(k_xy, (tries, 2), minval=lo, maxval=hi)
+        theta = jax.random.uniform(k_th, (tries,), minval=-jnp.pi, maxval=jnp.pi)
+        humans, mask = self.humans_at(params, jnp.zeros((), jnp.int32))
+        hit = jax.vmap(lambda p: physics.collides(p, humans, mask, params, cfg))(xy)
+        in_goal = jnp.linalg.norm(xy - params.goal, axis=-1) <= cfg.goal_radius
+        ok = ~hit & ~in_goal
+        i = jnp.argmax(ok)
+        pose = jnp.concatenate([xy[i], theta[i][None]]).astype(jnp.float32)
+        return jnp.where(ok[i], pose, params.start.astype(jnp.float32))
+
     def step(
         self, key: Array, state: EnvState, action: Array, params: TaskParams
     ) -> tuple[Array, EnvState, Array, Array, StepInfo]:
