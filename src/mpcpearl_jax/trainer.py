@@ -235,9 +235,9 @@ class Trainer:
         success = jnp.any(ep.in_goal, -1) & ~jnp.any(ep.collision, -1)  # [S, R]
         # episode statistics are over the rows that start at the task's start (all without
         # exploring starts); the exploring ones are counted apart
-        w = jnp.ones(rows.shape) if explore is None else (~explore).astype(jnp.float32)
-        on_start = lambda x: jnp.sum(w * x, axis=-1) / jnp.maximum(jnp.sum(w, axis=-1), 1.0)
         x_rows = jnp.zeros(rows.shape) if explore is None else explore.astype(jnp.float32)
+        mean_over = lambda w, x: jnp.sum(w * x, -1) / jnp.maximum(jnp.sum(w, -1), 1.0)  # noqa: E731
+        on_start = lambda x: mean_over(1.0 - x_rows, x)  # noqa: E731
         stats = {
             "return": on_start(jnp.sum(ep.transitions.reward, axis=-1)),  # [S]
             "success": on_start(success),
@@ -247,8 +247,7 @@ class Trainer:
             "demo_rows": jnp.mean(demo, axis=-1) if demo is not None else jnp.zeros(s),
             "labelled": jnp.mean(ep.labelled, axis=(-1, -2)),
             "explore_rows": jnp.mean(x_rows, axis=-1),
-            "explore_success": jnp.sum(x_rows * success, axis=-1)
-            / jnp.maximum(jnp.sum(x_rows, axis=-1), 1.0),
+            "explore_success": mean_over(x_rows, success),
             "steps": jnp.asarray(ep.transitions.reward[0].size),
         }
         new = state.replace(rl=rl, enc=enc, mpc=mpc, labels=labels, key=keys)
