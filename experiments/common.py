@@ -11,7 +11,7 @@ import typing
 from pathlib import Path
 
 from mpcpearl_jax.config import PRESETS, ExperimentConfig, TrainConfig, preset
-from mpcpearl_jax.envs import mpc_defaults
+from mpcpearl_jax.envs import can_redraw, mpc_defaults
 from mpcpearl_jax.envs.types import NavConfig
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.mpc.config import MPCConfig
@@ -144,6 +144,10 @@ def _field_value(item: str, section: str, field: str, text: str):
 
 def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfig:
     base = preset(args.preset)
+    if args.preset == "default" and not can_redraw(env):
+        # the main command runs on every family: the default re-draws crowds where the family
+        # can (the restaurant); a recorded crowd (the sidewalk) is kept as it is
+        base = base.replace(train=dataclasses.replace(base.train, redraw_behaviours=False))
     # the family's MPC defaults (its registration), then the caller's, on top of the preset's
     extra = {**extra, "mpc": base.mpc.replace(**{**mpc_defaults(env), **extra.get("mpc", {})})}
     cfg = base.replace(env=env, **extra)

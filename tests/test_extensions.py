@@ -244,6 +244,7 @@ def test_paper_presets_have_every_extension_off(name):
     assert cfg.train.mpc_demo_step_prob == 1.0
     assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
     assert cfg.pearl.policy_ema == 0 and not cfg.train.mpc_dagger_labels
+    assert not cfg.pearl.auto_entropy and cfg.pearl.target_entropy is None
     assert not cfg.mpc.unsafe_recovery and cfg.train.explore_start_share == 0
     for field in (
         "observe_velocity",
@@ -274,9 +275,17 @@ def test_cpu_presets_differ_only_in_the_extensions():
     assert ext.pearl.replace(bc_weight=0.0, bc_q_filter=True, layer_norm=False) == paper.pearl
 
 
-def test_cpu_tuned_preset_is_the_committed_restaurant_headline(tmp_path, capsys):
-    """`--preset cpu-tuned --eps 0.2` builds exactly the headline's config.json (the run wrote
-    the iterations it finished), so one short command reproduces it; the sidewalk, which cannot
+@pytest.mark.parametrize(
+    "name, eps, folder",
+    [
+        ("cpu-explore", "0.2", "mpc-pearl-eps0.2"),
+        ("cpu-tuned", "0.2", "ablation/extended-60min"),
+        ("cpu-tuned", "0", "pearl"),
+    ],
+)
+def test_presets_build_the_committed_restaurant_runs(tmp_path, capsys, name, eps, folder):
+    """`--preset P --eps E` builds exactly the committed run's config.json (the run wrote the
+    iterations it finished), so one short command reproduces it; the sidewalk, which cannot
     re-draw its crowds, is refused before anything is written."""
     import json
     from pathlib import Path
@@ -284,17 +293,48 @@ def test_cpu_tuned_preset_is_the_committed_restaurant_headline(tmp_path, capsys)
     from benchmarks import learning
     from experiments.common import ENV_EXTRAS, build_config
 
-    args = learning.parse_args(["--preset", "cpu-tuned", "--eps", "0.2", "--minutes", "60"])
+    args = learning.parse_args(["--preset", name, "--eps", eps, "--minutes", "60"])
     cfg = build_config(args, "restaurant", **ENV_EXTRAS["restaurant"])
-    head = Path(__file__).parents[1] / "results/restaurant/mpc-pearl-eps0.2/config.json"
+    head = Path(__file__).parents[1] / "results/restaurant" / folder / "config.json"
     ref = ExperimentConfig.from_dict(json.loads(head.read_text()))
     assert cfg == ref.replace(train=dataclasses.replace(ref.train, iterations=cfg.train.iterations))
-    tuned, cpu = preset("cpu-tuned"), preset("cpu")
-    assert tuned.mpc == cpu.mpc and tuned.pearl.replace(bc_weight=cpu.pearl.bc_weight) == cpu.pearl
-    argv = ["--env", "sidewalk", "--preset", "cpu-tuned", "--eps", "0.2", "--minutes", "1"]
+    argv = ["--env", "sidewalk", "--preset", name, "--eps", "0.2", "--minutes", "1"]
     out = tmp_path / "run"
     assert learning.main([*argv, "--out", str(out)]) == 2
     assert "train.redraw_behaviours" in capsys.readouterr().err and not out.exists()
+
+
+def test_tuned_presets_differ_from_cpu_only_where_documented():
+    tuned, cpu, explore = preset("cpu-tuned"), preset("cpu"), preset("cpu-explore")
+    assert tuned.mpc == cpu.mpc and tuned.pearl.replace(bc_weight=cpu.pearl.bc_weight) == cpu.pearl
+    assert explore.pearl == tuned.pearl.replace(bc_weight=0.0)
+    assert explore.env_overrides == tuned.env_overrides and explore.mpc == tuned.mpc
+    changed = {
+        k: v for k, v in explore.train.__dict__.items() if tuned.train.__dict__[k] != v
+    }  # the MPC-based extensions off, exploring starts on
+    assert changed == {
+        "mpc_demo_share": 0.0,
+        "mpc_demo_iterations": 0,
+        "mpc_buffer_fraction": 0.0,
+        "explore_start_share": 0.5,
+    }
+    default = preset("default")
+    assert default.train.explore_start_share == 0.5 and default.train.mpc_demo_share == 0
+    assert default.pearl.hidden == (64, 64) and default.pearl.meta_batch == 4
+    assert default.pearl == explore.pearl.replace(
+        hidden=(64, 64), encoder_hidden=(64, 64), meta_batch=4, auto_entropy=True
+    )
+    assert default.env_overrides == tuned.env_overrides
+
+
+def test_default_preset_keeps_the_sidewalk_crowd():
+    """The main command's preset re-draws crowds on the restaurant and leaves the sidewalk's
+    recorded crowd alone (instead of refusing it, as an explicit preset is)."""
+    from experiments.common import ENV_EXTRAS, build_config, parser
+
+    for env, redraw in (("restaurant", True), ("sidewalk", False)):
+        cfg = build_config(parser(env).parse_args([]), env, **ENV_EXTRAS[env])
+        assert cfg.train.redraw_behaviours is redraw and cfg.train.explore_start_share == 0.5
 
 
 def test_unsafe_recovery_uses_the_least_violating_move_instead_of_falling_back():

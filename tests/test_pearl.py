@@ -14,6 +14,7 @@ from mpcpearl_jax.pearl import (
     init_learner,
     losses,
     make_update,
+    target_entropy,
 )
 from mpcpearl_jax.pearl.networks import (
     Networks,
@@ -230,3 +231,45 @@ def test_policy_average_follows_its_recursion_and_leaves_training_alone():
     assert max(jax.tree_util.tree_leaves(gap)) > 0
     with pytest.raises(ConfigError, match="PearlConfig.policy_ema"):
         SMALL.replace(policy_ema=1.5)
+
+
+@pytest.mark.parametrize("target", [100.0, -100.0])
+def test_auto_entropy_moves_alpha_towards_the_target_and_starts_at_the_paper_update(target):
+    """Extension `auto_entropy`: alpha starts at 1, so the first step's networks equal the
+    paper's update; log alpha then takes Adam steps of about lr, up while the policy's entropy is
+    below the target (log pi + target > 0) and down while above, as the NumPy sign says."""
+    on = Networks(SMALL.replace(auto_entropy=True, target_entropy=target), OBS, A)
+    off = Networks(SMALL, OBS, A)
+    s_on, s_off = init_learner(jax.random.PRNGKey(0), on), init_learner(jax.random.PRNGKey(0), off)
+    assert float(s_on.log_alpha) == 0.0 and s_off.log_alpha is None
+    up_on, up_off = make_update(on), make_update(off)
+    args = (_batch(jax.random.PRNGKey(1)), _context(jax.random.PRNGKey(2)), jax.random.PRNGKey(3))
+    n_on, m_on = up_on(s_on, *args)
+    n_off, m_off = up_off(s_off, *args)
+    chex.assert_trees_all_close(n_on.params, n_off.params, rtol=1e-6, atol=1e-7)
+    assert float(m_on["alpha"]) == 1.0 and "alpha" not in m_off
+    sign = np.sign(float(m_on["log_pi"]) + target)
+    np.testing.assert_allclose(float(n_on.log_alpha), sign * SMALL.lr, rtol=1e-3)
+    state, alphas = n_on, []
+    for i in range(5):
+        state, m = up_on(state, _batch(jax.random.PRNGKey(10 + i)), *args[1:])
+        alphas.append(float(m["alpha"]))
+    assert np.all(sign * np.diff(alphas) > 0), alphas
+    assert (
+        target_entropy(on) == target
+        and target_entropy(Networks(SMALL.replace(auto_entropy=True), OBS, A)) == -A
+    )
+
+
+@pytest.mark.parametrize(
+    "changes, field",
+    [
+        ({"auto_entropy": 1}, "auto_entropy"),
+        ({"auto_entropy": True, "target_entropy": "high"}, "target_entropy"),
+        ({"auto_entropy": True, "target_entropy": float("nan")}, "target_entropy"),
+        ({"target_entropy": -2.0}, "target_entropy"),
+    ],
+)
+def test_invalid_auto_entropy_settings_name_the_field(changes, field):
+    with pytest.raises(ConfigError, match=f"PearlConfig.{field}"):
+        SMALL.replace(**changes)

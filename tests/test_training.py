@@ -115,6 +115,21 @@ def test_policy_average_resumes_exactly_and_is_what_is_exported(tmp_path):
     assert max(jax.tree_util.tree_leaves(gap)) > 0
 
 
+def test_learned_entropy_weight_resumes_exactly(tmp_path):
+    """Extension `pearl.auto_entropy`: log alpha and its optimizer state are part of the
+    checkpointed learner state (resume is exact), each seed has its own, and the log has it."""
+    cfg = TINY.replace(pearl=TINY.pearl.replace(auto_entropy=True, target_entropy=5.0))
+    _, full = train(cfg, tmp_path / "full", progress=False)
+    short = cfg.replace(train=TrainConfig(**{**cfg.train.__dict__, "iterations": 2}))
+    train(short, tmp_path / "cut", progress=False)
+    _, resumed = train(cfg, tmp_path / "cut", resume=True, progress=False)
+    _leaves_equal(full, resumed)
+    alpha = np.exp(np.asarray(full.learner.log_alpha))
+    assert alpha.shape == (cfg.seeds,) and np.all(alpha > 1.0)  # entropy below the target 5
+    log = [json.loads(x) for x in (tmp_path / "full" / "metrics.jsonl").read_text().splitlines()]
+    assert all(r["alpha"] >= 1.0 for r in log) and log[-1]["alpha"] > log[0]["alpha"]
+
+
 def test_resume_with_other_config_is_a_clear_error(tmp_path):
     train(TINY, tmp_path / "run", progress=False)
     other = TINY.replace(pearl=TINY.pearl.replace(lr=1e-3))

@@ -1,7 +1,13 @@
 """PEARL (SAC + probabilistic context encoder) in JAX: networks, losses, buffers, learner."""
 
 from mpcpearl_jax.pearl.config import PearlConfig
-from mpcpearl_jax.pearl.learner import LearnerState, deployed_params, init_learner, make_update
+from mpcpearl_jax.pearl.learner import (
+    LearnerState,
+    deployed_params,
+    init_learner,
+    make_update,
+    target_entropy,
+)
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import Transitions, context_from
 
@@ -14,4 +20,5 @@ __all__ = [
     "deployed_params",
     "init_learner",
     "make_update",
+    "target_entropy",
 ]

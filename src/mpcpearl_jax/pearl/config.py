@@ -45,6 +45,13 @@ class PearlConfig:
     # first 1 / policy_ema steps, then an exponential average over about 1 / policy_ema steps.
     # 0 = off: the trained parameters are deployed.
     policy_ema: float = 0.0
+    # automatic entropy tuning (Haarnoja et al. 2018b, "SAC algorithms and applications"): the
+    # entropy weight alpha of the actor loss and the V target (1 in the paper, whose temperature
+    # is 1 / reward_scale) becomes a learned exp(log_alpha), starting at 1 (the paper's
+    # temperature) and moved by Adam (lr) on -log_alpha (log pi + target entropy), so the
+    # policy's entropy is pulled to the target; target_entropy None = -(action dimension)
+    auto_entropy: bool = False
+    target_entropy: float | None = None
 
     def __post_init__(self) -> None:
         v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size")
@@ -52,7 +59,19 @@ class PearlConfig:
         v.positive(self, "lr", "reward_scale", "min_posterior_var")
         v.interval(self, "gamma", "tau", lo=0.0, hi=1.0)
         v.nonnegative(self, "kl_weight", "policy_mean_reg", "policy_std_reg", "bc_weight")
-        v.flags(self, "use_context", "layer_norm", "bc_q_filter")
+        v.flags(self, "use_context", "layer_norm", "bc_q_filter", "auto_entropy")
+        v.check(
+            self.target_entropy is None or v.is_number(self.target_entropy),
+            self,
+            "target_entropy",
+            "must be a number or null (= minus the action dimension)",
+        )
+        v.check(
+            self.target_entropy is None or self.auto_entropy,
+            self,
+            "target_entropy",
+            "only used with auto_entropy: set pearl.auto_entropy=true",
+        )
         v.interval(self, "policy_ema", lo=0.0, hi=1.0)
         v.check(
             v.is_number(self.log_std_min)

@@ -25,6 +25,7 @@ __all__ = [
     "deployed_params",
     "init_learner",
     "make_update",
+    "target_entropy",
 ]
 
 
@@ -38,6 +39,8 @@ class LearnerState:
     steps: Array  # int32 gradient steps taken
     # {policy, encoder} Polyak average (extension `PearlConfig.policy_ema`); None when off
     average: dict | None = None
+    # log of the learned entropy weight (extension `PearlConfig.auto_entropy`); None when off
+    log_alpha: Array | None = None
 
 
 def acting_params(params: dict) -> dict:
@@ -78,7 +81,20 @@ def init_learner(key: Array, nets: Networks) -> LearnerState:
         "v": opt.init(params["v"]),
     }
     average = acting_params(params) if nets.cfg.policy_ema > 0 else None
-    return LearnerState(params, params["v"], opt_state, jnp.zeros((), jnp.int32), average)
+    log_alpha = None
+    if nets.cfg.auto_entropy:
+        log_alpha = jnp.zeros((), jnp.float32)  # alpha = 1: the paper's temperature at first
+        opt_state["alpha"] = opt.init(log_alpha)
+    return LearnerState(
+        params, params["v"], opt_state, jnp.zeros((), jnp.int32), average, log_alpha
+    )
+
+
+def target_entropy(nets: Networks) -> float:
+    """The entropy the `auto_entropy` extension steers to: the configured value, or minus the
+    action dimension (the usual SAC heuristic)."""
+    t = nets.cfg.target_entropy
+    return -float(nets.action_dim) if t is None else float(t)
 
 
 def _update(
@@ -101,6 +117,7 @@ def _update(
     """
     k_z, k_pi = jax.random.split(key)
     p = state.params
+    alpha = None if state.log_alpha is None else jnp.exp(state.log_alpha)
     # 1. Q and encoder: L_psi + beta KL (paper L_phi).
     q_enc = {"q": p["q"], "encoder": p["encoder"]}
     (qe_loss, aux), grads = jax.value_and_grad(losses.critic_encoder_loss, has_aux=True)(
@@ -125,6 +142,7 @@ def _update(
         cfg.bc_weight,
         cfg.bc_q_filter,
         dagger,
+        alpha,
     )
     upd, os_pi = opt.update(g_pi, state.opt_state["policy"], p["policy"])
     policy = optax.apply_updates(p["policy"], upd)
@@ -136,13 +154,22 @@ def _update(
     v = optax.apply_updates(p["v"], upd)
     target_v = optax.incremental_update(v, state.target_v, cfg.tau)
 
+    opt_state = {"q_enc": os_qe, "policy": os_pi, "v": os_v}
+    # 4. entropy weight (extension `auto_entropy`), from the same policy sample's log pi
+    log_alpha = state.log_alpha
+    if log_alpha is not None:
+        g_a = jax.grad(losses.temperature_loss)(log_alpha, pi_aux["log_pi"], target_entropy(nets))
+        upd, opt_state["alpha"] = opt.update(g_a, state.opt_state["alpha"], log_alpha)
+        log_alpha = optax.apply_updates(log_alpha, upd)
+
     params = {"policy": policy, "q": q_enc["q"], "v": v, "encoder": q_enc["encoder"]}
     new_state = LearnerState(
         params,
         target_v,
-        {"q_enc": os_qe, "policy": os_pi, "v": os_v},
+        opt_state,
         state.steps + 1,
         _averaged(state, params, cfg.policy_ema),
+        log_alpha,
     )
     metrics = {
         "q_loss": aux["q_loss"],
@@ -153,6 +180,8 @@ def _update(
         "q_mean": aux["q1_mean"],
         "loss_total": qe_loss,
     }
+    if alpha is not None:
+        metrics["alpha"] = alpha
     for k in ("bc_kept", "bc_error", "bc_label_error"):
         if k in pi_aux:
             metrics[k] = pi_aux[k]

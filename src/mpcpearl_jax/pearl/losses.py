@@ -63,6 +63,7 @@ def policy_loss(
     bc_weight: float = 0.0,
     bc_q_filter: bool = True,
     dagger=None,
+    alpha=None,
 ):
     """Paper's actor loss L_theta = KL(pi || exp(Q)/Z) = E[log pi - min_i Q_i] + regularisers.
 
@@ -74,15 +75,18 @@ def policy_loss(
     lambda = alpha / mean|Q|; bc_weight 0.4 matches its alpha = 2.5). Extension
     `TrainConfig.mpc_dagger_labels`: dagger = (obs [MB, D, O], label [MB, D, A], mask [MB, D])
     adds the MPC's labels on the policy's own states to the same sums (Q-filtered alike, the
-    filter comparing Q(s, label) with Q(s, tanh mu(s))), n counting both. Returns (loss, aux).
+    filter comparing Q(s, label) with Q(s, tanh mu(s))), n counting both. Extension
+    `PearlConfig.auto_entropy`: alpha (a detached scalar) weighs log pi in the loss and in the V
+    target, E[alpha log pi - min_i Q_i]; None = 1 as in the paper. Returns (loss, aux).
     """
     mean, log_std = nets.policy_out(policy_params, obs, z)
     action, log_pi = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=key)
     q1, q2 = nets.q_values(q_params, obs, action, z)
     min_q = jnp.minimum(q1, q2)
-    loss = jnp.mean(log_pi - min_q)
+    entropy_term = log_pi if alpha is None else alpha * log_pi
+    loss = jnp.mean(entropy_term - min_q)
     loss += mean_reg * jnp.mean(mean**2) + std_reg * jnp.mean(log_std**2)
-    aux = {"log_pi": jnp.mean(log_pi), "v_target": min_q - log_pi}
+    aux = {"log_pi": jnp.mean(log_pi), "v_target": min_q - entropy_term}
     if bc_weight > 0 and demo_action is not None and demo_mask is not None:
 
         def clone(det, o, label, mask, zz):  # -> (kept rows, squared errors)
@@ -109,3 +113,10 @@ def policy_loss(
         loss += bc_weight * q_scale * kept / n
         aux["bc_kept"] = total / n
     return loss, aux
+
+
+def temperature_loss(log_alpha, log_pi, target_entropy: float):
+    """Automatic entropy tuning (extension `PearlConfig.auto_entropy`): -log_alpha (log pi +
+    target entropy), log pi detached, so alpha grows while the policy's entropy is below the
+    target and shrinks while it is above."""
+    return -log_alpha * jax.lax.stop_gradient(jnp.mean(log_pi) + target_entropy)
