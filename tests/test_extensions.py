@@ -276,14 +276,17 @@ def test_cpu_presets_differ_only_in_the_extensions():
 
 
 @pytest.mark.parametrize(
-    "name, eps, folder",
+    "name, eps, algo, folder",
     [
-        ("cpu-explore", "0.2", "mpc-pearl-eps0.2"),
-        ("cpu-tuned", "0.2", "ablation/extended-60min"),
-        ("cpu-tuned", "0", "pearl"),
+        ("cpu-explore", "0.2", "pearl", "mpc-pearl-eps0.2"),
+        ("cpu-explore", "0", "pearl", "pearl"),
+        ("cpu-explore", "0.2", "sac", "mpc-sac"),
+        ("cpu-tuned", "0.2", "pearl", "ablation/extended-60min"),
+        ("cpu-tuned", "0", "pearl", "ablation/pearl-tuned-60min"),
+        ("cpu-tuned", "0.2", "sac", "ablation/mpc-sac-tuned-60min"),
     ],
 )
-def test_presets_build_the_committed_restaurant_runs(tmp_path, capsys, name, eps, folder):
+def test_presets_build_the_committed_restaurant_runs(tmp_path, capsys, name, eps, algo, folder):
     """`--preset P --eps E` builds exactly the committed run's config.json (the run wrote the
     iterations it finished), so one short command reproduces it; the sidewalk, which cannot
     re-draw its crowds, is refused before anything is written."""
@@ -293,7 +296,7 @@ def test_presets_build_the_committed_restaurant_runs(tmp_path, capsys, name, eps
     from benchmarks import learning
     from experiments.common import ENV_EXTRAS, build_config
 
-    args = learning.parse_args(["--preset", name, "--eps", eps, "--minutes", "60"])
+    args = learning.parse_args(["--preset", name, "--eps", eps, "--algo", algo, "--minutes", "60"])
     cfg = build_config(args, "restaurant", **ENV_EXTRAS["restaurant"])
     head = Path(__file__).parents[1] / "results/restaurant" / folder / "config.json"
     ref = ExperimentConfig.from_dict(json.loads(head.read_text()))
