@@ -2,7 +2,7 @@
 
     python -m benchmarks.learning --preset P --eps E --minutes M [--algo sac] [--env ENV]
         [--set SECTION.FIELD=VALUE ...] [--eval-minutes X] [--out DIR] [--seed N]
-        [--seeds S] [--label NAME] [--overwrite] [--policy-only]
+        [--seeds S] [--label NAME] [--overwrite | --resume] [--policy-only]
 
 Builds `Trainer(cfg)` (same presets, --eps, --algo and --set as `experiments.*`) and calls
 `trainer.iteration` until M minutes of training have passed, counted from the start of the first
@@ -15,10 +15,18 @@ There is also an evaluation of the untrained policy at minute 0.
 
 Writes into --out (default runs/learning/<label>): curve.json (config, machine, load average,
 eval points, time to the first success and to SR 0.5 / 0.75 on test and val), curve.png,
-metrics.jsonl (one line per iteration, as `run.train` writes it), config.json, the policy and
-training state as `run.train` saves them (`mpcpearl_jax.load_policy(out)` works;
-`experiments.<env> --resume --out DIR --iterations N` continues the run), and what
-`run.final_evaluation` writes (results.json, learning_curves.png, trajectory figures).
+metrics.jsonl (one line per iteration, as `run.train` writes it), curve-points.jsonl (the eval
+points so far), config.json, the policy and training state as `run.train` saves them
+(`mpcpearl_jax.load_policy(out)` works; `experiments.<env> --resume --out DIR --iterations N`
+continues the run), and what `run.final_evaluation` writes (results.json, learning_curves.png,
+trajectory figures).
+
+A learning run is a run (`mpcpearl_jax.run.prepare`: one writer per folder, the same checks,
+checkpoints and log): the training state is checkpointed every `train.checkpoint_interval`
+iterations and after every evaluation, so a crash (kill -9) loses at most the work since then.
+Ctrl-C stops at the next phase boundary, saves, and exits 130; `--resume` (the same options;
+--minutes may grow) continues exactly: the curve points so far are kept and the budget counts the
+training minutes already spent.
 
 Train alone: other work on the machine slows every iteration down and so shifts the whole curve.
 The 1-minute load average at the start is recorded, with a warning above LOAD_WARN.
@@ -40,6 +48,8 @@ from pathlib import Path
 from typing import Any
 
 from experiments.common import ENV_EXTRAS, add_config_options, build_config
+from mpcpearl_jax.checkpoint import write_json
+from mpcpearl_jax.envs.restaurant.scenarios import VAL_IDS, check_val_split, uses_scenarios
 from mpcpearl_jax.report import run_label
 
 METRICS = ("SR", "CFR", "TT", "SPL", "MGD", "return")
@@ -53,6 +63,7 @@ TARGETS = (
     ("SR_0.75", "SR", 0.75, False),
 )
 # files this script writes; --overwrite removes them (and only them) first
+POINTS_FILE = "curve-points.jsonl"  # one line per eval point, as metrics.jsonl (for --resume)
 OUTPUTS = (
     "curve.json",
     "curve.png",
@@ -60,6 +71,8 @@ OUTPUTS = (
     "config.json",
     "policy.msgpack",
     "policy-trained.msgpack",  # with pearl.policy_ema: the trained parameters
+    "network.json",
+    "curve-points.jsonl",
     "results.json",
     "learning_curves.png",
     "episode_test0.gif",
@@ -101,6 +114,12 @@ def make_parser(env: str = "restaurant") -> argparse.ArgumentParser:
         "--overwrite",
         action="store_true",
         help="reuse a non-empty --out (this script's earlier outputs there are removed)",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out (same options; --minutes may grow): its checkpoint, "
+        "metrics and curve points; the budget counts the training minutes already spent",
     )
     p.add_argument(
         "--policy-only",
@@ -185,19 +204,15 @@ def default_label(env: str, preset: str, algo: str, eps: float) -> str:
 
 
 def check_out(out: Path, overwrite: bool) -> str | None:
-    """Make `out` ready (create it; with overwrite, remove this script's old outputs).
+    """Check that `out` can take a new run (create it and prove it writable; a non-empty folder
+    only with overwrite, whose old outputs `clear_outputs` removes once the folder is locked).
     Returns a one-line error, or None."""
+    from mpcpearl_jax.runlock import LOCK_FILE
+
     if out.exists() and not out.is_dir():
         return f"--out {out}: exists and is not a folder"
-    if out.is_dir() and any(out.iterdir()):
-        if not overwrite:
-            return f"--out {out}: exists and is not empty (pass --overwrite or another --out)"
-        for name in OUTPUTS:
-            (out / name).unlink(missing_ok=True)
-        for fig in out.glob("trajectory_test*.png"):
-            fig.unlink()
-        shutil.rmtree(out / "checkpoints", ignore_errors=True)
-        shutil.rmtree(out / "tensorboard", ignore_errors=True)
+    if out.is_dir() and any(p.name != LOCK_FILE for p in out.iterdir()) and not overwrite:
+        return f"--out {out}: exists and is not empty (pass --overwrite, --resume or another --out)"
     try:
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
@@ -205,6 +220,16 @@ def check_out(out: Path, overwrite: bool) -> str | None:
     except OSError as e:
         return f"--out {out}: not writable ({e.strerror or e})"
     return None
+
+
+def clear_outputs(out: Path) -> None:
+    """--overwrite: remove this script's earlier outputs from `out` (and only them)."""
+    for name in OUTPUTS:
+        (out / name).unlink(missing_ok=True)
+    for fig in out.glob("trajectory_test*.png"):
+        fig.unlink()
+    for folder in ("checkpoints", "corrupt_checkpoints", "tensorboard"):
+        shutil.rmtree(out / folder, ignore_errors=True)
 
 
 def _loadavg() -> list[float] | None:
@@ -286,7 +311,10 @@ def summary_rows(record: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, clock=time.perf_counter) -> int:
+    """Exit codes: 0 done, 2 an error before or around training (one line naming the field, file
+    or folder), 1 training diverged, 130 Ctrl-C (saved; continue with --resume). `clock` times
+    the training (tests give a fake one)."""
     args = parse_args(argv)
     from mpcpearl_jax.errors import ConfigError
     from mpcpearl_jax.run import check_config
@@ -311,11 +339,45 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
     label = args.label or default_label(args.env, args.preset, args.algo, cfg.train.eps)
     out = args.out or Path("runs") / "learning" / label
-    err = check_out(out, args.overwrite)
+    err = None
+    if args.resume and (args.overwrite or args.policy_only):
+        err = "--resume continues a run: not with --overwrite or --policy-only (no checkpoint)"
+    elif not args.resume:
+        err = check_out(out, args.overwrite)
     if err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    return run(args, cfg, label, out)
+    return _locked_run(args, cfg, label, out, clock)
+
+
+def _locked_run(args: argparse.Namespace, cfg, label: str, out: Path, clock) -> int:
+    """`run` with --out locked (before --overwrite removes anything) and its errors as one
+    line."""
+    from experiments.common import error_line, out_of_memory
+    from mpcpearl_jax.errors import CheckpointError, ConfigError, RunDirError
+    from mpcpearl_jax.runlock import RunLock
+
+    lock = None
+    try:
+        if not args.resume:  # --resume: run.prepare checks the folder first, then locks it
+            lock = RunLock(out)
+            if args.overwrite:
+                clear_outputs(out)
+        return run(args, cfg, label, out, clock=clock)
+    except (ConfigError, CheckpointError, RunDirError, OSError) as e:
+        print(f"error: {error_line(e)}", file=sys.stderr, flush=True)
+        return 2
+    except KeyboardInterrupt:  # before training, or a second Ctrl-C: the last checkpoint stands
+        print("interrupted; continue with --resume", file=sys.stderr, flush=True)
+        return 130
+    except RuntimeError as e:
+        if not out_of_memory(e):
+            raise
+        print(f"error: {out_of_memory(e)}", file=sys.stderr, flush=True)
+        return 2
+    finally:
+        if lock is not None:
+            lock.release()
 
 
 def env_steps(trainer, iterations: int) -> int:
@@ -349,29 +411,45 @@ def train_for(
     clock=time.perf_counter,
     on_point=_print_point,
     tensorboard=None,
+    save=None,
+    checkpoint_every: int = 0,
+    stop=None,
+    start: dict[str, Any] | None = None,
+    points_path: Path | None = None,
 ) -> tuple[Any, list[dict[str, Any]], dict[str, Any]]:
     """Train until `budget_s` seconds of `trainer.iteration` calls have passed; evaluate at 0,
     every `every_s` training seconds and at the end (evaluation is off the clock).
 
     Appends one JSON line per iteration to `log_path` (and writes it to `tensorboard`, a
-    `mpcpearl_jax.livelog.TensorBoardLog`, if given). Returns (state, eval points, info) with
-    info = {iterations, train_s, eval_s, first_iteration_s, stopped}; stopped is "budget" or
-    "diverged: ..." (then `state` is the last one evaluated and must not be used any more: the
-    failed iteration donated it).
+    `mpcpearl_jax.livelog.TensorBoardLog`, if given) and one per eval point to `points_path`.
+    `save(iteration, state)` checkpoints every `checkpoint_every` iterations, after every
+    evaluation and when stopping on `stop()` (Ctrl-C, polled between iterations and inside
+    them). `start` continues an earlier process: {points, train_s, wall_s, first_iteration_s,
+    iterations} at the restored checkpoint. Returns (state, eval points, info) with info =
+    {iterations, saved, train_s, eval_s, first_iteration_s, stopped}; stopped is "budget",
+    "interrupted" or "diverged: ..." (then `state` is the last one evaluated and must not be used
+    any more: the failed iteration donated it; after "interrupted" it is None when the iteration
+    under way was abandoned, and `saved` is the iteration a resume starts from).
     """
     from mpcpearl_jax.errors import TrainingDiverged
+    from mpcpearl_jax.run import append_log
+    from mpcpearl_jax.trainer import IterationAbandoned
 
+    start = start or {}
     ups = trainer.cfg.train.updates_per_iteration
-    points: list[dict[str, Any]] = []
+    points: list[dict[str, Any]] = list(start.get("points", []))
     info: dict[str, Any] = {
-        "iterations": 0,
-        "train_s": 0.0,
-        "eval_s": 0.0,
-        "first_iteration_s": None,
+        "iterations": start.get("iterations", 0),
+        "saved": start.get("saved", -1),
+        "train_s": start.get("train_s", 0.0),
+        "eval_s": sum(p["eval_s"] for p in points),
+        "first_iteration_s": start.get("first_iteration_s"),
         "stopped": "budget",
     }
-    t_loop0 = clock()
+    t_loop0 = clock() - start.get("wall_s", 0.0)
     log: dict[str, Any] | None = None
+    stopping = stop or (lambda: False)
+    kw = {"stop": stop} if stop is not None else {}
 
     def evaluate() -> dict[str, Any]:
         t = clock()
@@ -390,62 +468,63 @@ def train_for(
             **_train_logs(log),
         }
         points.append(point)
+        if points_path is not None:
+            append_log(points_path, point)
         if on_point is not None:
             on_point(point)
         return point
 
-    evaluate()  # the untrained policy at minute 0 (compiles the evaluator, off the clock)
-    next_eval_s = every_s
-    while True:
+    def checkpoint() -> None:
+        if save is not None and info["saved"] != info["iterations"]:
+            save(info["iterations"], state)
+            info["saved"] = info["iterations"]
+
+    if not points:
+        evaluate()  # the untrained policy at minute 0 (compiles the evaluator, off the clock)
+    next_eval_s = (math.floor(info["train_s"] / every_s) + 1) * every_s
+    while info["train_s"] < budget_s:
+        if stopping():  # Ctrl-C between iterations: the state is whole, keep it
+            checkpoint()
+            info["stopped"] = "interrupted"
+            break
         t = clock()
         try:
-            state, log = trainer.iteration(state)
+            state, log = trainer.iteration(state, **kw)
         except TrainingDiverged as e:
             info["stopped"] = f"diverged: {e}"
             print(f"error: {e}", file=sys.stderr, flush=True)
+            break
+        except IterationAbandoned:  # Ctrl-C inside an iteration: the state was consumed
+            info["stopped"], state = "interrupted", None
             break
         dt = clock() - t
         info["train_s"] += dt
         if info["first_iteration_s"] is None:
             info["first_iteration_s"] = dt
-        info["iterations"] = log["iteration"]
+        info["iterations"] = done = log["iteration"]
         row = dict(log, train_s=info["train_s"], wall_s=clock() - t_loop0)
         last = info["train_s"] >= budget_s
-        if last or info["train_s"] >= next_eval_s:
+        evaluated = last or info["train_s"] >= next_eval_s
+        if evaluated:
             point = evaluate()
             row.update(
                 {k: v for k, v in point.items() if k.startswith(("test_", "val_", "trained_"))}
             )
             row["eval_s"] = point["eval_s"]
             next_eval_s = (math.floor(info["train_s"] / every_s) + 1) * every_s
-        with log_path.open("a") as f:
-            f.write(json.dumps(row) + "\n")
+        append_log(log_path, row)
         if tensorboard is not None:
             tensorboard.write(row)
-        if last:
-            break
+        if evaluated or (checkpoint_every and done % checkpoint_every == 0) or stopping():
+            checkpoint()
+    else:
+        if points[-1]["iteration"] != info["iterations"]:  # resumed at the end of the budget
+            evaluate()
     return state, points, info
 
 
-def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
-    import dataclasses
-
-    import jax
-
-    from benchmarks.harness import available_cores, machine_info, print_table
-    from mpcpearl_jax.checkpoint import (
-        POLICY_FILE,
-        TRAINED_POLICY_FILE,
-        Checkpointer,
-        atomic_write,
-        save_config,
-        save_network,
-    )
-    from mpcpearl_jax.distributed import to_host
-    from mpcpearl_jax.envs import make_tasks
-    from mpcpearl_jax.pearl.learner import acting_params
-    from mpcpearl_jax.run import LOG_FILE, _policy_params, final_evaluation
-    from mpcpearl_jax.trainer import Trainer
+def run(args: argparse.Namespace, cfg, label: str, out: Path, clock=time.perf_counter) -> int:
+    from mpcpearl_jax.run import prepare
 
     budget_s = args.minutes * 60.0
     every_s = eval_every_minutes(args.minutes, args.eval_minutes) * 60.0
@@ -457,53 +536,121 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
             file=sys.stderr,
             flush=True,
         )
-    online = cfg.online_eval
     print(
         f"[learning] {run_label(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
         f"budget={args.minutes:g} min, eval every {every_s / 60:.3g} min "
-        f"({'online' if online else 'adaptation'} protocol), out={out}",
+        f"({'online' if cfg.online_eval else 'adaptation'} protocol), out={out}"
+        + (" (resumed)" if args.resume else ""),
         flush=True,
     )
-    save_config(out, cfg)
     t_wall0 = time.perf_counter()
-    trainer = Trainer(cfg)
+    # the checks, lock, trainer and (restored) state, config.json and metrics.jsonl of a run
+    sess = prepare(cfg, out, resume=args.resume, until_budget=True)
+    try:
+        return _run_session(args, sess, label, budget_s, every_s, load_start, t_wall0, clock)
+    finally:
+        sess.ckpt.close()
+        sess.lock.release()
+
+
+def _start_from(sess, points_path: Path) -> dict[str, Any]:
+    """What `train_for` continues from: the eval points, training seconds and wall seconds of
+    the restored checkpoint (all zero for a new run); curve-points.jsonl is cut back to it."""
+    from mpcpearl_jax.checkpoint import atomic_write
+    from mpcpearl_jax.run import read_log
+
+    points = read_log(points_path, sess.done) if sess.done or sess.saved >= 0 else []
+    atomic_write(points_path, "".join(json.dumps(p) + "\n" for p in points))
+    rows = [r for r in sess.rows if r["iteration"] <= sess.done]
+    return {
+        "points": points,
+        "iterations": sess.done,
+        "saved": sess.saved,
+        "train_s": rows[-1]["train_s"] if rows else 0.0,
+        "wall_s": rows[-1].get("wall_s", 0.0) if rows else 0.0,
+        "first_iteration_s": rows[0]["train_s"] if rows else None,
+    }
+
+
+def _run_session(
+    args: argparse.Namespace, sess, label: str, budget_s, every_s, load_start, t_wall0, clock
+) -> int:
+    import dataclasses
+
+    import jax
+
+    from benchmarks.harness import available_cores, machine_info, print_table
+    from mpcpearl_jax.checkpoint import POLICY_FILE, TRAINED_POLICY_FILE, save_config, save_params
+    from mpcpearl_jax.distributed import to_host
+    from mpcpearl_jax.envs import make_tasks
+    from mpcpearl_jax.pearl.learner import acting_params
+    from mpcpearl_jax.run import (
+        LOG_FILE,
+        RunInterrupted,
+        _policy_params,
+        _sigint_flag,
+        final_evaluation,
+        write_error,
+    )
+
+    cfg, trainer, out = sess.cfg, sess.trainer, sess.run_dir
+    online = cfg.online_eval
     build_s = time.perf_counter() - t_wall0
-    save_network(out, trainer.nets)
-    t0 = time.perf_counter()
-    state = trainer.init_state()
-    jax.block_until_ready(state)
-    init_s = time.perf_counter() - t0
     val_set = "the family's 'val' split (held-out behaviours, neither train nor test)"
     try:  # a held-out validation split where the family has one (restaurant)
         kw = {"data": cfg.data} if cfg.data else {}
+        kw.update(cfg.task_options)
+        check_val_split(cfg.task_options, "val")  # not the scenarios the run trains on
         val_tasks = make_tasks(cfg.env, "val", cfg.task_seed, config=trainer.env.config, **kw)
+        if uses_scenarios(cfg.task_options):
+            val_set = f"the paper's scenarios {VAL_IDS[0]}-{VAL_IDS[-1]} (held out of training)"
     except ValueError:
         val_tasks = jax.tree_util.tree_map(lambda x: x[:VAL_TASKS], trainer.train_tasks)
         val_set = f"the first {VAL_TASKS} training tasks (or all if fewer)"
     tc = cfg.train
-    log_path = out / LOG_FILE
-    log_path.write_text("")
+    log_path, points_path = out / LOG_FILE, out / POINTS_FILE
+    start = _start_from(sess, points_path)
     tb = None
     if args.tensorboard:
         from mpcpearl_jax.livelog import TB_DIR, TensorBoardLog
 
-        tb = TensorBoardLog(out / TB_DIR)
+        tb = TensorBoardLog(out / TB_DIR, purge_step=sess.done + 1 if sess.done else None)
+
+    def save(step: int, state) -> None:
+        if args.policy_only:  # no orbax checkpoint (no --resume): the policy only
+            save_params(out / POLICY_FILE, _policy_params(state))
+        else:  # exactly as run.train: orbax checkpoint of the TrainState + policy.msgpack
+            sess.ckpt.save(step, state, _policy_params(state))
+
     try:
-        state, points, info = train_for(
-            trainer,
-            state,
-            budget_s=budget_s,
-            every_s=every_s,
-            val_tasks=val_tasks,
-            log_path=log_path,
-            online=online,
-            tensorboard=tb,
-        )
+        with _sigint_flag(True) as stop:
+            state, points, info = train_for(
+                trainer,
+                sess.state,
+                budget_s=budget_s,
+                every_s=every_s,
+                val_tasks=val_tasks,
+                log_path=log_path,
+                online=online,
+                clock=clock,
+                tensorboard=tb,
+                save=save,
+                checkpoint_every=tc.checkpoint_interval,
+                stop=stop,
+                start=start,
+                points_path=points_path,
+            )
+    except OSError as e:  # a full disk or an I/O error while logging
+        steps = sess.ckpt.steps()
+        raise write_error(e, steps[-1] if steps else -1) from e
     finally:
         if tb is not None:
             tb.close()
     done, train_s, eval_s = info["iterations"], info["train_s"], info["eval_s"]
     stopped, first_iteration_s = info["stopped"], info["first_iteration_s"]
+    saved = max(info["saved"], 0)
+    if stopped == "interrupted":  # the curve as a resume will continue it
+        done, points = saved, [p for p in points if p["iteration"] <= saved]
     load_end = _loadavg()
     if done:  # the config as run: iterations = those done (a --resume continues from here)
         cfg = cfg.replace(train=dataclasses.replace(cfg.train, iterations=done))
@@ -526,9 +673,9 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
         "updates_per_iteration": tc.updates_per_iteration,
         "grad_steps": done * tc.updates_per_iteration,
         "env_steps": env_steps(trainer, done),
+        "resumed_at_iteration": sess.done if args.resume else None,
         "timing": {
-            "build_s": build_s,
-            "init_state_s": init_s,
+            "build_s": build_s,  # the trainer and its initial (or restored) state
             "first_iteration_s": first_iteration_s,
             "train_s": train_s,
             "eval_s": eval_s,
@@ -558,34 +705,30 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path) -> int:
     # compilation ~ first iteration minus a steady one (the first also does the initial collection)
     record["timing"]["iteration_s_median"] = statistics.median(steady) if steady else None
     curve_path = out / "curve.json"
-    curve_path.write_text(json.dumps(record, indent=2))
+    write_json(curve_path, record)
     plot_curve(points, out / "curve.png", f"{label}: {run_label(cfg)}, {args.minutes:g} min")
+    if stopped == "interrupted":
+        lost = info["iterations"] - saved
+        line = str(RunInterrupted(saved, lost))
+        if args.policy_only:
+            line = f"interrupted at iteration {saved} (--policy-only: no checkpoint to resume from)"
+        print(line, file=sys.stderr, flush=True)
+        return 130
     if done == 0:
         print(f"error: no iteration finished; {curve_path} written", file=sys.stderr)
         return 1
 
-    t = time.perf_counter()
-    if stopped == "budget":
-        if args.policy_only:
-            from flax import serialization
-
-            (out / POLICY_FILE).write_bytes(serialization.to_bytes(_policy_params(state)))
-        else:  # exactly as run.train: orbax checkpoint of the TrainState + policy.msgpack
-            ckpt = Checkpointer(out, keep=tc.keep_checkpoints)
-            ckpt.save(done, state, _policy_params(state))
-            ckpt.close()
-        if cfg.pearl.policy_ema > 0:  # the trained parameters beside the averaged ones
-            from flax import serialization
-
-            trained = to_host(acting_params(state.learner.params))
-            atomic_write(out / TRAINED_POLICY_FILE, serialization.to_bytes(trained))
+    t = time.perf_counter()  # the last checkpoint was saved with the last evaluation
+    if stopped == "budget" and cfg.pearl.policy_ema > 0:  # the trained parameters beside them
+        trained = to_host(acting_params(state.learner.params))
+        save_params(out / TRAINED_POLICY_FILE, trained)
     record["timing"]["save_s"] = time.perf_counter() - t
     t = time.perf_counter()
     if stopped == "budget":
         final_evaluation(trainer, state, out, label)
     record["timing"]["final_evaluation_s"] = time.perf_counter() - t
     record["timing"]["total_wall_s"] = time.perf_counter() - t_wall0
-    curve_path.write_text(json.dumps(record, indent=2))
+    write_json(curve_path, record)
 
     tm = record["timing"]
     print_table(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import time
 import typing
@@ -66,6 +67,20 @@ def add_config_options(
     p.add_argument(
         "--debug", action="store_true", help="show the traceback of an error, not one line"
     )
+    if env == "restaurant":
+        p.add_argument(
+            "--scenarios",
+            type=Path,
+            metavar="DIR",
+            help="train and evaluate on the paper's own scenarios: a clone of the authors' "
+            "repository or a folder with scenarios/X.npy (and optionally "
+            "scenarios_out_of_distribution/X.npy); default: the project's crowd generator",
+        )
+        p.add_argument(
+            "--hold-out-val",
+            action="store_true",
+            help="--scenarios: train on tasks 0-149 only, keeping 150-179 as the val split",
+        )
     if env == "sidewalk":
         p.add_argument(
             "--data",
@@ -96,6 +111,13 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
     g.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0")
     g.add_argument("--num-processes", type=int, metavar="N", help="number of processes")
     g.add_argument("--process-id", type=int, metavar="I", help="this process, 0 to N - 1")
+    g.add_argument(
+        "--coordinator-timeout",
+        type=float,
+        default=120.0,
+        metavar="S",
+        help="seconds to wait for the coordinator and the other processes (default 120)",
+    )
     return p
 
 
@@ -144,10 +166,18 @@ def _field_value(item: str, section: str, field: str, text: str):
 
 def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfig:
     base = preset(args.preset)
-    if args.preset == "default" and not can_redraw(env):
+    scenarios = getattr(args, "scenarios", None)
+    if getattr(args, "hold_out_val", False) and scenarios is None:
+        raise ConfigError("--hold-out-val applies to --scenarios")
+    if args.preset == "default" and (scenarios is not None or not can_redraw(env)):
         # the main command runs on every family: the default re-draws crowds where the family
-        # can (the restaurant); a recorded crowd (the sidewalk) is kept as it is
+        # can (the restaurant); a recorded crowd (the sidewalk, the paper's scenarios) is kept
         base = base.replace(train=dataclasses.replace(base.train, redraw_behaviours=False))
+    if scenarios is not None:
+        from mpcpearl_jax.envs.restaurant import scenario_options
+
+        # checks the folder and its files now, and records their sha256 in config.json
+        extra = {**extra, "task_options": scenario_options(scenarios, args.hold_out_val)}
     # the family's MPC defaults (its registration), then the caller's, on top of the preset's
     extra = {**extra, "mpc": base.mpc.replace(**{**mpc_defaults(env), **extra.get("mpc", {})})}
     cfg = base.replace(env=env, **extra)
@@ -217,15 +247,8 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
     """Exit codes: 0 done, 2 a command-line error (config, data, checkpoint, permissions: one
     line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (resumable)."""
     args = parser(env).parse_args(argv)
-    from mpcpearl_jax.errors import CheckpointError, TrainingDiverged
-    from mpcpearl_jax.run import (
-        RunDirError,
-        RunInterrupted,
-        check_config,
-        final_evaluation,
-        prepare,
-        train_session,
-    )
+    from mpcpearl_jax.errors import CheckpointError, RunDirError
+    from mpcpearl_jax.run import check_config, prepare
 
     def fail(e: BaseException, code: int = 2) -> int:
         if args.debug:
@@ -238,10 +261,11 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
 
         if missing():
             return fail(LiveLogError(missing()))
-    try:  # everything up to training: each check names the field, file or folder
-        from mpcpearl_jax.distributed import initialize
+    from mpcpearl_jax.distributed import CoordinatorTimeout, initialize
 
-        initialize(args.coordinator, args.num_processes, args.process_id)  # before any JAX work
+    try:  # everything up to training: each check names the field, file or folder
+        # before any JAX work
+        initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
         cfg = build_config(args, env, **extra)
         check_config(cfg)
         out = args.out or Path("runs") / f"{env}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"
@@ -251,11 +275,39 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
             flush=True,
         )
         sess = prepare(cfg, out, resume=args.resume)
+    except CoordinatorTimeout as e:  # the runtime's start-up thread would abort the process
+        print(f"error: {e}", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(2)
     except (ValueError, TypeError, OSError, CheckpointError, RunDirError) as e:
         return fail(e)
+    except RuntimeError as e:
+        if not out_of_memory(e):
+            raise
+        return fail(MemoryError(out_of_memory(e)))
     except KeyboardInterrupt:
         print("interrupted before training started", file=sys.stderr, flush=True)
         return 130
+    try:  # the run folder stays locked until its last file is written
+        return _train_and_evaluate(args, sess, fail)
+    finally:
+        sess.lock.release()
+
+
+def out_of_memory(e: BaseException) -> str:
+    """The one line of XLA's out-of-memory error ('' for any other error)."""
+    text = str(e)
+    if "RESOURCE_EXHAUSTED" not in text or "memory" not in text.lower():
+        return ""
+    first = text.strip().splitlines()[0]
+    return f"out of memory ({first}); lower the config's size fields (--set)"
+
+
+def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
+    from mpcpearl_jax.errors import CheckpointError, RunDirError, TrainingDiverged
+    from mpcpearl_jax.run import RunInterrupted, final_evaluation, train_session
+
+    cfg, out = sess.cfg, sess.run_dir
     t0 = time.perf_counter()
     try:
         trainer, state = train_session(
@@ -267,10 +319,14 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
     except KeyboardInterrupt:  # a second Ctrl-C: stopped at once, the last checkpoint stands
         print("interrupted; continue with --resume", file=sys.stderr, flush=True)
         return 130
-    except (OSError, CheckpointError) as e:
+    except (OSError, CheckpointError, RunDirError) as e:
         return fail(e)
     except TrainingDiverged as e:
         return fail(e, 1)
+    except RuntimeError as e:
+        if not out_of_memory(e):
+            raise
+        return fail(MemoryError(out_of_memory(e)))
     print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
     try:
         final_evaluation(trainer, state, out, run_label(cfg))

@@ -35,6 +35,7 @@ import argparse
 import functools
 import json
 import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -44,7 +45,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mpcpearl_jax.checkpoint import write_json
 from mpcpearl_jax.envs import SPLITS, make_env, make_tasks
+from mpcpearl_jax.envs.perturb import parse_perturbation, perturb_tasks
 from mpcpearl_jax.envs.types import NavConfig, TaskParams
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.metrics import METRIC_NAMES
@@ -83,6 +86,23 @@ def make_parser() -> argparse.ArgumentParser:
         "one mean with its standard error over tasks (a lower-variance estimate; no figures)",
     )
     p.add_argument("--data", type=Path, help="ETH/UCY file for the sidewalk (default: the run's)")
+    p.add_argument(
+        "--scenarios",
+        type=Path,
+        metavar="DIR",
+        help="restaurant: the paper's own scenarios (a clone of the authors' repository or a "
+        "folder with scenarios/X.npy and scenarios_out_of_distribution/X.npy) instead of the "
+        "generated crowds; splits train 0-179, val 150-179, test 180-204, ood the 25 shifted "
+        "ones (default: the run's task source)",
+    )
+    p.add_argument(
+        "--perturb",
+        default="none",
+        metavar="delay=K,speed=S",
+        help="re-time the people on their paths (mpcpearl_jax.envs.perturb): delay=K holds "
+        "everyone at the start K more steps, speed=S follows the paths S times as fast; both "
+        "combine, e.g. delay=3,speed=1.3 (default none)",
+    )
     p.add_argument("--online", action="store_true", help="online adaptation (one episode)")
     p.add_argument(
         "--episodes", type=int, help="adaptation episodes before the evaluated one (default: run's)"
@@ -132,15 +152,33 @@ def make_parser() -> argparse.ArgumentParser:
 
 
 def _parse_ranges(text: str, what: str) -> set[int]:
-    """'0,3,5' | '0-3' (inclusive) | a mix -> the set of integers."""
+    """'0,3,5' | '0-3' (inclusive) | a mix -> the set of integers; UsageError for an empty or
+    reversed range (5-1) and for nothing at all."""
     out: set[int] = set()
-    try:
-        for part in text.split(","):
-            a, dash, b = part.partition("-")
-            out.update(range(int(a), (int(b) if dash else int(a)) + 1))
-    except ValueError:
-        raise UsageError(f"{what} {text!r}: expected numbers like 0,3,5 or 0-3") from None
+    for part in text.split(","):
+        a, dash, b = part.partition("-")
+        try:
+            lo, hi = int(a), (int(b) if dash else int(a))
+        except ValueError:
+            raise UsageError(f"{what} {text!r}: expected numbers like 0,3,5 or 0-3") from None
+        if hi < lo:
+            raise UsageError(
+                f"{what} {text!r}: the range {part.strip()} is reversed (give A-B, A <= B)"
+            )
+        out.update(range(lo, hi + 1))
     return out
+
+
+def probe_out(out: Path) -> None:
+    """Create the output folder and prove it writable before any work (a probe file written and
+    removed); UsageError naming it otherwise."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-probe-"):
+            pass
+    except OSError as e:
+        why = e.strerror or type(e).__name__
+        raise UsageError(f"--out {out}: not writable ({why}); choose another --out") from e
 
 
 def parse_indices(text: str, n: int, what: str) -> list[int]:
@@ -179,6 +217,9 @@ class Setup:
     mpc: dict = field(default_factory=dict)  # MPCConfig overrides
     eps: float | None = None  # policy+mpc: MPC probability on an event
     shield: ShieldConfig | None = None  # policy: test-time safety shield (extension)
+    # the paper's scenarios (folder and sha256 of each file) when they are the task source
+    scenarios: dict | None = None
+    perturbation: str = "none"  # the crowd's timing changed (envs.perturb), e.g. "delay=6"
 
 
 def _mpc_overrides(items: list[str], base: dict) -> dict:
@@ -252,9 +293,14 @@ def setup(args: argparse.Namespace) -> Setup:
     task_seed = args.task_seed if args.task_seed is not None else (cfg.task_seed if cfg else 0)
     kw: dict[str, Any] = {"data": data} if data else {}
     kw.update(cfg.task_options if cfg else {})
+    scenarios = _scenario_source(args, cfg, env_name, kw)
+    if scenarios is not None:
+        kw = dict(scenarios)
     try:
         all_tasks = make_tasks(env_name, args.split, task_seed, config=env.config, **kw)
-    except (ValueError, TypeError) as e:
+    except (ValueError, TypeError, OSError) as e:
+        if isinstance(e, OSError) and scenarios is None:
+            raise
         raise UsageError(f"{env_name} --split {args.split}: {e}") from e
     n = all_tasks.num_tasks
     task_ids = parse_indices(args.tasks, n, "--tasks")
@@ -268,6 +314,11 @@ def setup(args: argparse.Namespace) -> Setup:
         if missing:
             raise UsageError(f"--figures: task(s) {missing} are not evaluated (see --tasks)")
     tasks = jax.tree_util.tree_map(lambda x: x[np.asarray(task_ids)], all_tasks)
+    try:
+        perturbation = parse_perturbation(args.perturb)
+    except ValueError as e:
+        raise UsageError(str(e)) from e
+    tasks = perturb_tasks(tasks, perturbation)
 
     base_mpc = cfg.mpc.to_dict() if cfg else mpc_defaults(env_name)
     mpc = _mpc_overrides(args.set, base_mpc) if ctrl != "policy" else {}
@@ -292,11 +343,14 @@ def setup(args: argparse.Namespace) -> Setup:
     elif args.seed_index is not None:
         raise UsageError("--seed-index applies to a run's policy, not to gp-mpc")
     out = args.out
+    split_name = f"scenarios-{args.split}" if scenarios is not None else args.split
+    if not perturbation.is_identity:
+        split_name += "-" + perturbation.label.replace("=", "").replace(",", "-")
     if out is None and args.run is not None:
         name = f"{ctrl}-shield" if shield is not None else ctrl
-        out = args.run / "eval" / (f"{name}-{args.split}" + ("-online" if args.online else ""))
+        out = args.run / "eval" / (f"{name}-{split_name}" + ("-online" if args.online else ""))
     elif out is None:
-        out = Path("runs") / "eval" / f"gp-mpc-{env_name}-{args.split}"
+        out = Path("runs") / "eval" / f"gp-mpc-{env_name}-{split_name}"
     return Setup(
         controller=ctrl,
         env_name=env_name,
@@ -316,7 +370,33 @@ def setup(args: argparse.Namespace) -> Setup:
         mpc=mpc,
         eps=eps,
         shield=shield,
+        scenarios=scenarios,
+        perturbation=perturbation.label,
     )
+
+
+def _scenario_source(args: argparse.Namespace, cfg: Any, env_name: str, kw: dict) -> dict | None:
+    """The task options of the paper's scenarios when they are the task source (--scenarios, or
+    the run trained on them), else None. A run that trained on every training scenario is not
+    scored on the val split (its tasks 150-179 were training tasks)."""
+    from mpcpearl_jax.envs.restaurant.scenarios import check_val_split, scenario_options
+
+    if args.scenarios is None and not kw.get("scenarios"):
+        return None
+    if env_name != "restaurant":
+        raise UsageError(f"--scenarios: the paper's scenarios are restaurant tasks, not {env_name}")
+    if args.task_seed is not None or args.task_seeds is not None:
+        raise UsageError("--task-seed(s): the paper's scenarios are one fixed set of tasks")
+    trained = dict(cfg.task_options) if cfg else {}
+    try:
+        if args.scenarios is not None:
+            out = scenario_options(args.scenarios)
+        else:  # the run's own scenarios: the same files it recorded
+            out = {k: v for k, v in kw.items() if k in ("scenarios", "scenario_sha256")}
+        check_val_split(trained, args.split)
+    except (ValueError, OSError) as e:
+        raise UsageError(f"--scenarios: {e}") from e
+    return out
 
 
 # ------------------------------------------------------------------------------ controllers
@@ -566,8 +646,10 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
         "run": str(s.run) if s.run else None,
         "env": s.env_name,
         "split": s.split,
-        "task_seed": s.task_seed,
+        "task_seed": None if s.scenarios else s.task_seed,
         "data": s.data,
+        "scenarios": s.scenarios,
+        "perturbation": s.perturbation,
         "protocol": protocol,
         "eval_seed": args.eval_seed,
         "seeds": s.seed_ids or [0],
@@ -623,13 +705,21 @@ def main_task_seeds(args: argparse.Namespace) -> int:
     if args.figures not in (None, "none") or args.animate:
         print("error: --task-seeds makes no figures (drop --figures/--animate)", file=sys.stderr)
         return 2
-    records, s = [], None
+    records, s, out = [], None, args.out
     try:
         seeds = sorted(_parse_ranges(args.task_seeds.strip(), "--task-seeds"))
+        span = (
+            f"{seeds[0]}-{seeds[-1]}"
+            if seeds == list(range(seeds[0], seeds[-1] + 1))
+            else ",".join(map(str, seeds))
+        )
         for ts in seeds:
             a = copy.copy(args)
             a.task_seed, a.figures = ts, "none"
             s = setup(a)
+            if ts == seeds[0]:  # the output folder, checked before the first evaluation
+                out = out or s.out.parent / f"{s.out.name}-seeds{span.replace(',', '_')}"
+                probe_out(out)
             record, _ = evaluate(a, s)
             records.append(record)
             print(
@@ -642,33 +732,28 @@ def main_task_seeds(args: argparse.Namespace) -> int:
         return 2
     n_tasks = sum(len(r["tasks"]) for r in records)
     pool = pooled(records)
-    span = (
-        f"{seeds[0]}-{seeds[-1]}"
-        if seeds == list(range(seeds[0], seeds[-1] + 1))
-        else ",".join(map(str, seeds))
-    )
     protocol = records[0]["protocol"]
-    print(f"{s.label}: {s.env_name}/{s.split}, task seeds {span} ({n_tasks} tasks), {protocol}")
+    crowd = "" if s.perturbation == "none" else f", crowd perturbed {s.perturbation}"
+    print(
+        f"{s.label}: {s.env_name}/{s.split}, task seeds {span} ({n_tasks} tasks){crowd}, {protocol}"
+    )
     print("| metric | mean | s.e. | per task seed |\n|---|---|---|---|")
     for k, v in pool.items():
         per = " ".join(f"{x:.2f}" for x in v["per_task_seed"])
         print(f"| {k} | {v['mean']:.2f} | {v['se']:.2f} | {per} |")
     fails = failures([r["per_task"] for r in records])
     print(failure_line(fails))
-    out = args.out
-    if out is None:
-        out = s.out.parent / f"{s.out.name}-seeds{span.replace(',', '_')}"
-    out.mkdir(parents=True, exist_ok=True)
     summary = {
         "label": s.label,
         "split": s.split,
+        "perturbation": s.perturbation,
         "task_seeds": seeds,
         "num_tasks": n_tasks,
         "pooled": pool,
         "failures": fails,
         "records": records,
     }
-    (out / "results.json").write_text(json.dumps(summary, indent=2))
+    write_json(out / "results.json", summary)
     print(f"wrote {out / 'results.json'}")
     return 0
 
@@ -681,12 +766,16 @@ def main(argv: list[str] | None = None) -> int:
         return main_task_seeds(args)
     try:
         s = setup(args)
+        probe_out(s.out)  # before the evaluation, not after it
     except (UsageError, CheckpointError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     n_seeds = len(s.seed_ids) or 1
+    source = "the paper's scenarios" if s.scenarios else f"task seed {s.task_seed}"
+    if s.perturbation != "none":
+        source += f", crowd perturbed {s.perturbation}"
     print(
-        f"[evaluate] {s.label}: {s.env_name}/{s.split} (task seed {s.task_seed}), "
+        f"[evaluate] {s.label}: {s.env_name}/{s.split} ({source}), "
         f"{len(s.task_ids)} task(s), {n_seeds} seed(s), controller {s.controller}",
         flush=True,
     )
@@ -694,8 +783,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{record['protocol']}; {record['wall_s']:.1f} s", flush=True)
     print(tables(record))
     print(failure_line(record["failures"]))
-    s.out.mkdir(parents=True, exist_ok=True)
-    (s.out / "results.json").write_text(json.dumps(record, indent=2))
+    write_json(s.out / "results.json", record)
     written = write_figures(s, result, args.animate)
     print(f"wrote {s.out / 'results.json'}" + "".join(f", {p.name}" for p in written))
     return 0

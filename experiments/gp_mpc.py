@@ -1,6 +1,7 @@
 """GP-MPC baseline (the paper's "GP-MPC" column): the risk-aware MPC acting at every step.
 
     python -m experiments.gp_mpc --env restaurant --split test [--set v_max=5.0 --set alpha=0.95]
+    python -m experiments.gp_mpc --scenarios path/to/MPC-PEARL --split test   # the paper's tasks
 
 Prints the method §8 metrics next to the paper's numbers, the MPC status counts and solve times, and
 writes a JSON record and a trajectory figure (one task) under --out.
@@ -11,6 +12,7 @@ from __future__ import annotations
 import argparse
 import ast
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -37,7 +39,7 @@ def parse_overrides(items: list[str]) -> dict:
     return out
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.gp_mpc", description=__doc__)
     ap.add_argument("--env", default="restaurant")
     ap.add_argument("--split", default="test")
@@ -56,11 +58,28 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--data", type=Path, help="ETH/UCY file for the sidewalk env (default: the synthetic crowd)"
     )
+    ap.add_argument(
+        "--scenarios",
+        type=Path,
+        metavar="DIR",
+        help="restaurant: the paper's own scenarios (a clone of the authors' repository or a "
+        "folder with scenarios/X.npy) instead of the generated crowds",
+    )
     args = ap.parse_args(argv)
 
     env = make_env(args.env)
-    kw = {"data": str(args.data)} if args.data else {}
-    tasks = make_tasks(args.env, args.split, seed=args.seed, **kw)
+    kw: dict = {"data": str(args.data)} if args.data else {}
+    try:
+        if args.scenarios is not None:
+            if args.env != "restaurant":
+                raise ValueError("--scenarios: the paper's scenarios are restaurant tasks")
+            from mpcpearl_jax.envs.restaurant import scenario_options
+
+            kw = scenario_options(args.scenarios)
+        tasks = make_tasks(args.env, args.split, seed=args.seed, **kw)
+    except (ValueError, TypeError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     if args.max_tasks:
         tasks = jax.tree_util.tree_map(lambda a: a[: args.max_tasks], tasks)
     overrides = parse_overrides(args.set)
@@ -87,7 +106,8 @@ def main(argv: list[str] | None = None) -> None:
         "env": args.env,
         "split": args.split,
         "data": str(args.data) if args.data else None,
-        "seed": args.seed,
+        "scenarios": kw if args.scenarios is not None else None,
+        "seed": None if args.scenarios is not None else args.seed,
         "sample_seed": args.sample_seed,
         "mpc": cfg.to_dict(),
         "metrics": m,
@@ -103,6 +123,7 @@ def main(argv: list[str] | None = None) -> None:
     path.write_text(json.dumps(record, indent=2))
     print(f"wrote {path}")
     _plot(args, env, tasks, traj)
+    return 0
 
 
 def _plot(args, env, tasks, traj) -> None:
@@ -122,4 +143,4 @@ def _plot(args, env, tasks, traj) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

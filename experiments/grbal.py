@@ -47,6 +47,18 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="base seed (seed s uses seed + s)")
     p.add_argument("--data", type=Path, help="sidewalk: an ETH/UCY file (default: synthetic)")
     p.add_argument(
+        "--scenarios",
+        type=Path,
+        metavar="DIR",
+        help="restaurant: the paper's own scenarios (a clone of the authors' repository or a "
+        "folder with scenarios/X.npy) instead of the generated crowds",
+    )
+    p.add_argument(
+        "--hold-out-val",
+        action="store_true",
+        help="--scenarios: train on tasks 0-149 only, keeping 150-179 as the val split",
+    )
+    p.add_argument(
         "--set",
         action="append",
         default=[],
@@ -84,6 +96,17 @@ def build_config(args: argparse.Namespace) -> GrbalExperimentConfig:
         if not args.data.is_file():
             raise ConfigError(f"--data {args.data}: no such file")
         top["data"] = str(args.data)
+    if args.hold_out_val and args.scenarios is None:
+        raise ConfigError("--hold-out-val applies to --scenarios")
+    if args.scenarios is not None:
+        if args.env != "restaurant":
+            raise ConfigError("--scenarios: the paper's scenarios are restaurant tasks")
+        from mpcpearl_jax.envs.restaurant import scenario_options
+
+        try:  # checks the folder and files now; config.json records their sha256
+            top["task_options"] = scenario_options(args.scenarios, args.hold_out_val)
+        except OSError as e:
+            raise ConfigError(str(e)) from e
     for item in args.set:
         key, sep, raw = item.partition("=")
         if not sep:
@@ -109,8 +132,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    from mpcpearl_jax.errors import CheckpointError
-    from mpcpearl_jax.grbal.run import final_evaluation, train
+    from experiments.common import error_line, out_of_memory
+    from mpcpearl_jax.errors import CheckpointError, RunDirError
+    from mpcpearl_jax.grbal.run import final_evaluation, load_config, train
+    from mpcpearl_jax.runlock import RunLock
 
     out = args.out or Path("runs") / f"{args.env}-{args.preset}-grbal"
     g = cfg.grbal
@@ -123,13 +148,21 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     progress = None if args.no_progress else (lambda line: print(line, flush=True))
     try:
-        budget = None if args.minutes is None else 60.0 * args.minutes
-        trainer, state = train(cfg, out, resume=args.resume, progress=progress, budget_s=budget)
-    except (ConfigError, CheckpointError) as e:
-        print(f"error: {e}", file=sys.stderr)
+        if args.resume:
+            load_config(out)  # a GrBAL run folder, before the lock creates anything
+        with RunLock(out):  # held through the final evaluation (train takes it again)
+            budget = None if args.minutes is None else 60.0 * args.minutes
+            trainer, state = train(cfg, out, resume=args.resume, progress=progress, budget_s=budget)
+            print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
+            final_evaluation(trainer, state, out)
+    except (ConfigError, CheckpointError, RunDirError, OSError) as e:
+        print(f"error: {error_line(e)}", file=sys.stderr)
         return 2
-    print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
-    final_evaluation(trainer, state, out)
+    except RuntimeError as e:
+        if not out_of_memory(e):
+            raise
+        print(f"error: {out_of_memory(e)}", file=sys.stderr)
+        return 2
     print(f"results, curves and figures in {out}", flush=True)
     return 0
 

@@ -1,6 +1,9 @@
 """Fault injection: kill -9 at any moment then --resume (ends identical to a run never stopped,
 with and without the MPC), Ctrl-C, corrupt checkpoints, torn metrics lines, unwritable folders,
-malformed data files, wrong options and wrong `load_policy` inputs.
+malformed data files, wrong options and wrong `load_policy` inputs; learning-curve runs stopped
+and resumed, a second writer on a run folder, --resume with nothing to resume, non-finite
+parameters and JSON values, an unreachable coordinator, a full disk, unwritable evaluation
+folders, reversed ranges, oversized size fields and a GrBAL folder given to `load_policy`.
 
 The runs are a smoke run shrunk to a few seconds (8 training tasks, tiny networks); the long
 variants (the real command line, kill points at random moments, eps 0 and 0.2) are marked slow.
@@ -608,3 +611,377 @@ def _alive(pid: int) -> bool:
             return f.read().split()[2] != "Z"
     except OSError:
         return False
+
+
+# ------------------------------------------- learning runs, one writer, nothing lost or non-finite
+LEARNING_SMALL = [a for a in SMALL if a != "--no-progress"]
+
+
+def learning_args(out: Path, minutes: float, every: float, *extra: str) -> list[str]:
+    return [*LEARNING_SMALL, "--eps", "0", "--minutes", str(minutes)] + [
+        *("--eval-minutes", str(every), "--out", str(out), *extra)
+    ]
+
+
+class _Tick:
+    """A fake clock for `benchmarks.learning.main`: every call is one second later, so that each
+    iteration takes one training second; once metrics.jsonl in `sigint_log` holds `sigint_rows`
+    rows, the next call sends this process a SIGINT (a real Ctrl-C, handled by the harness)."""
+
+    def __init__(self, sigint_log: Path | None = None, sigint_rows: int = 0):
+        self.t, self.log, self.rows, self.sent = 0.0, sigint_log, sigint_rows, False
+
+    def __call__(self) -> float:
+        if self.log is not None and not self.sent and rows_at_least(self.log, self.rows)():
+            self.sent = True
+            os.kill(os.getpid(), signal.SIGINT)
+        self.t += 1.0
+        return self.t
+
+
+def _points(run: Path) -> list[dict]:
+    skip = {"wall_minutes", "eval_s"}
+    rec = json.loads((run / "curve.json").read_text())
+    return [{k: v for k, v in p.items() if k not in skip} for p in rec["points"]]
+
+
+def test_learning_run_stops_on_ctrl_c_and_resumes_exactly(tmp_path, monkeypatch, capsys):
+    """benchmarks.learning stopped by Ctrl-C in its fifth iteration (a fake clock: one second per
+    iteration, 6 s of budget, an evaluation every 3 s) saves iteration 4 and exits 130 with one
+    line; --resume ends identical to a run never stopped: checkpoint, policy, metrics and the
+    curve points (the budget counts the 4 s already trained)."""
+    from benchmarks import learning
+
+    monkeypatch.setattr("mpcpearl_jax.run.final_evaluation", lambda *a, **k: {})  # not needed
+    ref, run = tmp_path / "ref", tmp_path / "run"
+    assert learning.main(learning_args(ref, 0.1, 0.05), clock=_Tick()) == 0
+    capsys.readouterr()
+    assert learning.main(learning_args(run, 0.1, 0.05), clock=_Tick(run, 4)) == 130
+    err = [x for x in capsys.readouterr().err.splitlines() if not x.startswith("warning: 1-min")]
+    assert [x for x in err if x.strip()][-1] == "interrupted at iteration 4; continue with --resume"
+    assert "Traceback" not in "\n".join(err)
+    assert (run / "checkpoints" / "4").is_dir() and len(read_log(run / LOG_FILE)) == 4
+    rec = json.loads((run / "curve.json").read_text())
+    assert rec["stopped"] == "interrupted" and [p["iteration"] for p in rec["points"]] == [0, 3]
+    assert json.loads((run / "config.json").read_text())["train"]["iterations"] == 4
+    assert learning.main(learning_args(run, 0.1, 0.05, "--resume"), clock=_Tick()) == 0
+    assert_same_run(ref, run)
+    assert _points(ref) == _points(run) and [p["iteration"] for p in _points(run)] == [0, 3, 6]
+    assert json.loads((run / "curve.json").read_text())["resumed_at_iteration"] == 4
+
+
+def test_learning_run_ctrl_c_then_kill9_then_resume(tmp_path, monkeypatch):
+    """The command line: Ctrl-C gives exit 130 and one line within seconds, with the checkpoint,
+    config.json and curve saved; a --resume killed with SIGKILL loses at most the iteration under
+    way (a checkpoint every iteration here); the next --resume continues the curve and the log
+    where the last checkpoint left them."""
+    from benchmarks import learning
+
+    run, log = tmp_path / "run", tmp_path / "log.txt"
+    cmd = [sys.executable, "-m", "benchmarks.learning", *learning_args(run, 10, 5)]
+    with open(log, "a") as f:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT, env=_env())
+    t_sig = _sigint_when(proc, rows_at_least(run, 2))
+    assert proc.wait(timeout=60) == 130
+    assert time.monotonic() - t_sig < 15
+    text = log.read_text()
+    lines = [x for x in text.splitlines() if x.startswith("interrupted at iteration")]
+    assert len(lines) == 1 and lines[0].endswith("; continue with --resume"), text
+    assert "Traceback" not in text
+    n = int(lines[0].split()[3].rstrip(";"))
+    assert n >= 2 and (run / "checkpoints" / str(n)).is_dir()
+    assert json.loads((run / "curve.json").read_text())["stopped"] == "interrupted"
+    assert json.loads((run / "config.json").read_text())["train"]["iterations"] == n
+    with open(log, "a") as f:
+        proc = subprocess.Popen(
+            [*cmd, "--resume"], cwd=ROOT, stdout=f, stderr=subprocess.STDOUT, env=_env()
+        )
+    assert kill_when(proc, rows_at_least(run, n + 2))
+    before = read_log(run / "curve-points.jsonl")
+    monkeypatch.setattr("mpcpearl_jax.run.final_evaluation", lambda *a, **k: {})
+    # a budget already spent: no further iteration, the last point evaluated, the curve written
+    assert learning.main(learning_args(run, 0.01, 0.005, "--resume")) == 0
+    rows = read_log(run / LOG_FILE)
+    done = rows[-1]["iteration"]
+    assert [r["iteration"] for r in rows] == list(range(1, done + 1)) and done >= n + 1
+    points = read_log(run / "curve-points.jsonl")
+    kept = [p for p in before if p["iteration"] <= done]
+    assert points[: len(kept)] == kept and points[-1]["iteration"] == done
+    assert json.loads((run / "curve.json").read_text())["iterations"] == done
+
+
+def test_resume_with_nothing_to_resume_is_an_error(tmp_path, ref0, capsys):
+    """--resume on a folder whose log holds iterations but no checkpoint: one line naming the
+    folder, and metrics.jsonl untouched; with nothing logged either it says so and starts at 0."""
+    run = tmp_path / "run"
+    shutil.copytree(ref0, run)
+    shutil.rmtree(run / "checkpoints")
+    before = (run / LOG_FILE).read_bytes()
+    line = _one_line_error(capsys, small_args(0.0, run, ITERATIONS, "--resume"))
+    assert f"{run}: nothing to resume: no checkpoint" in line and "logs 6 iteration(s)" in line
+    assert (run / LOG_FILE).read_bytes() == before
+    (run / LOG_FILE).write_text("")
+    sess = prepare(small_cfg(0.0), run, resume=True)
+    sess.ckpt.close()
+    sess.lock.release()
+    assert sess.done == 0 and "starting at iteration 0" in capsys.readouterr().err
+
+
+def _hold_lock(folder: Path) -> subprocess.Popen:
+    code = (
+        "import sys, time\nfrom mpcpearl_jax.runlock import RunLock\n"
+        "RunLock(sys.argv[1])\nprint('locked', flush=True)\ntime.sleep(600)\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(folder)], stdout=subprocess.PIPE, text=True, env=_env()
+    )
+    assert proc.stdout.readline().strip() == "locked"
+    return proc
+
+
+def test_one_writer_per_run_folder(tmp_path, ref0, capsys):
+    """While another process holds a run folder, a new run, a --resume, the learning harness and
+    GrBAL each stop with one line naming the holder's PID and write nothing; once the holder is
+    killed (SIGKILL), its lock file no longer blocks anyone."""
+    from benchmarks import learning
+    from experiments import grbal
+    from mpcpearl_jax.runlock import LOCK_FILE, RunLock
+
+    new, old = tmp_path / "new", tmp_path / "old"
+    shutil.copytree(ref0, old)
+    before = (old / LOG_FILE).read_bytes()
+    holders = [_hold_lock(new), _hold_lock(old)]
+    try:
+        busy = (
+            "is writing this run folder; wait for it to end (or stop it), or choose another --out"
+        )
+        pid_new, pid_old = (f"PID {p.pid} {busy}" for p in holders)
+        line = _one_line_error(capsys, small_args(0.0, new))
+        assert line == f"error: {new}: {pid_new}"
+        line = _one_line_error(capsys, small_args(0.0, old, 8, "--resume"))
+        assert line == f"error: {old}: {pid_old}"
+        assert learning.main(learning_args(new, 1, 0.5)) == 2
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"error: {new}: {pid_new}"
+        assert grbal.main(["--preset", "smoke", "--out", str(new)]) == 2
+        assert capsys.readouterr().err.strip().splitlines()[-1] == f"error: {new}: {pid_new}"
+        assert sorted(p.name for p in new.iterdir()) == [LOCK_FILE]
+        assert (old / LOG_FILE).read_bytes() == before
+    finally:
+        for p in holders:
+            p.kill()
+            p.wait()
+    with RunLock(new), RunLock(old):  # the stale lock files of killed holders
+        assert (new / LOCK_FILE).read_text().split()[0] == str(os.getpid())
+
+
+def _nan_policy(run: Path) -> Path:
+    from flax import serialization
+
+    pfile = run / "policy.msgpack"
+    raw = serialization.msgpack_restore(pfile.read_bytes())
+    nan = jax.tree_util.tree_map(lambda x: np.full_like(x, np.nan), raw)
+    pfile.write_bytes(serialization.msgpack_serialize(nan))
+    return pfile
+
+
+def test_non_finite_parameters_are_refused_on_save_and_load(tmp_path, ref0, capsys):
+    from experiments import evaluate
+    from mpcpearl_jax.checkpoint import Checkpointer, save_params
+
+    run = tmp_path / "run"
+    shutil.copytree(ref0, run)
+    pfile = _nan_policy(run)
+    with pytest.raises(CheckpointError, match=rf"{pfile}: non-finite network parameters"):
+        load_policy(run)
+    assert evaluate.main([str(run), "--tasks", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {pfile}: non-finite network parameters")
+    assert not (run / "eval").exists()
+    params = {"policy": {"w": np.array([1.0, np.nan])}}
+    with pytest.raises(CheckpointError, match="not saved: non-finite network parameters"):
+        save_params(tmp_path / "p.msgpack", params)
+    assert not (tmp_path / "p.msgpack").exists()
+    ckpt = Checkpointer(tmp_path / "c")
+    try:
+        with pytest.raises(CheckpointError, match="policy.msgpack: not saved: non-finite"):
+            ckpt.save(1, {"x": jnp.zeros(2)}, params)
+    finally:
+        ckpt.close()
+    assert ckpt.steps() == [] and not (tmp_path / "c" / "policy.msgpack").exists()
+
+
+def _strict(text: str):
+    def refuse(token):
+        raise AssertionError(f"non-standard JSON token {token}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_results_json_never_holds_nan_or_infinity(tmp_path, ref0, capsys):
+    """One task: the standard error over tasks is undefined (NaN); results.json says null and
+    why, in strict JSON."""
+    from experiments import evaluate
+    from mpcpearl_jax.checkpoint import strict_json
+
+    doc = _strict(strict_json({"a": float("nan"), "b": [1.0, float("-inf")], "c": 2}))
+    assert doc["a"] is None and doc["b"] == [1.0, None] and doc["c"] == 2
+    assert set(doc["null_values"]) == {"a", "b[1]"} and "NaN" in doc["null_values"]["a"]
+    out = tmp_path / "seeds"
+    argv = [str(ref0), "--task-seeds", "0-0", "--tasks", "0", "--out", str(out)]
+    assert evaluate.main(argv) == 0
+    rec = _strict((out / "results.json").read_text())
+    assert rec["pooled"]["SR"]["se"] is None and "pooled.SR.se" in rec["null_values"]
+
+
+def test_unreachable_coordinator_is_a_one_line_error_in_bounded_time(tmp_path):
+    """No coordinator at the address (process 1), or process 0 left alone: exit 2 and one line
+    after --coordinator-timeout, not a C++ abort minutes later."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        free = s.getsockname()[1]
+    cases = [("127.0.0.1:1", 1, "no answer within 3 s"), (f"127.0.0.1:{free}", 0, "not every")]
+    for address, pid, needle in cases:
+        t0 = time.monotonic()
+        proc = subprocess.run(
+            [sys.executable, "-m", "experiments.restaurant", "--preset", "smoke"]
+            + ["--out", str(tmp_path / "r"), "--coordinator", address, "--num-processes", "2"]
+            + ["--process-id", str(pid), "--coordinator-timeout", "3"],
+            cwd=ROOT,
+            env=_env(),
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert proc.returncode == 2, proc.stderr[-3000:]
+        assert time.monotonic() - t0 < 60
+        errors = [x for x in proc.stderr.splitlines() if x.startswith("error:")]
+        assert len(errors) == 1 and errors[0].startswith(f"error: --coordinator {address}: ")
+        assert needle in errors[0] and "Check failure" not in proc.stderr, proc.stderr
+        assert not (tmp_path / "r").exists()
+
+
+def test_full_disk_while_saving_is_one_line_and_the_run_resumes_exactly(
+    tmp_path, ref0, monkeypatch, capsys
+):
+    """ENOSPC injected into the checkpoint write of iteration 3 (orbax's own error, after a
+    partial temporary folder), then into metrics.jsonl on the resumed run: each time exit 2 with
+    one line naming the path, the cause and the iteration a resume starts from, no temporary
+    folder left; the run then resumes to the same end as a run never stopped."""
+    import errno
+
+    import orbax.checkpoint as ocp
+
+    run = tmp_path / "run"
+    real_save, real_write = ocp.CheckpointManager.save, os.write
+
+    def full_disk_at_3(self, step, *a, **k):
+        if step == 3:
+            part = run / "checkpoints" / "3.orbax-checkpoint-tmp-1" / "default"
+            part.mkdir(parents=True)
+            (part / "d").write_bytes(b"partial")
+            raise ValueError(
+                f'RESOURCE_EXHAUSTED: Error writing local file "{part}/_sharding": Failed to write '
+                "17259 bytes to file 4: No space left on device [os_error_code='28']"
+            )
+        return real_save(self, step, *a, **k)
+
+    monkeypatch.setattr(ocp.CheckpointManager, "save", full_disk_at_3)
+    line = _one_line_error(capsys, small_args(0.0, run))
+    assert line == (
+        f"error: {run / 'checkpoints' / '3'}: cannot save (No space left on device); --resume "
+        "continues from iteration 2 once the cause is fixed"
+    )
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["1", "2"]
+    monkeypatch.setattr(ocp.CheckpointManager, "save", real_save)
+
+    def full_log_at_5(fd, data):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            target = ""
+        if target.endswith(LOG_FILE) and b'"iteration": 5' in bytes(data):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_write(fd, data)
+
+    monkeypatch.setattr(os, "write", full_log_at_5)
+    line = _one_line_error(capsys, small_args(0.0, run, ITERATIONS, "--resume"))
+    assert line == (
+        f"error: {run / LOG_FILE}: cannot write (No space left on device); --resume continues "
+        "from iteration 4 once the cause is fixed"
+    )
+    monkeypatch.setattr(os, "write", real_write)
+    assert not any("tmp" in p.name for p in (run / "checkpoints").iterdir())
+    train(small_cfg(0.0), run, resume=True, progress=False)
+    assert_same_run(ref0, run)
+
+
+def test_evaluate_checks_its_output_folder_and_ranges_first(tmp_path, ref0, capsys):
+    """An unwritable --out stops before the evaluation; reversed ranges are one-line errors."""
+    from experiments import evaluate
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    undo = _make_unwritable(locked)
+    try:
+        assert evaluate.main([str(ref0), "--animate", "--out", str(locked / "eval")]) == 2
+    finally:
+        undo()
+    cap = capsys.readouterr()
+    assert cap.err.strip().splitlines() == [
+        f"error: --out {locked / 'eval'}: not writable ("
+        + cap.err.split("not writable (", 1)[1].strip()
+    ]
+    assert "[evaluate]" not in cap.out and not (locked / "eval").exists()
+    for argv, needle in (
+        (["--task-seeds", "5-1"], "--task-seeds '5-1': the range 5-1 is reversed"),
+        (["--tasks", "3-1"], "--tasks '3-1': the range 3-1 is reversed"),
+        (["--tasks", "0,4-2"], "the range 4-2 is reversed"),
+    ):
+        assert evaluate.main([str(ref0), *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0], err
+
+
+def test_size_fields_are_bounded_before_anything_is_written(tmp_path, capsys):
+    from experiments import grbal
+    from mpcpearl_jax.resources import check_fits
+
+    out = tmp_path / "g"
+
+    def grbal_error(horizon: int) -> list[str]:
+        argv = ["--preset", "smoke", "--set", f"grbal.plan_horizon={horizon}", "--out", str(out)]
+        assert grbal.main(argv) == 2
+        return capsys.readouterr().err.strip().splitlines()
+
+    assert grbal_error(100000000) == [
+        "error: GrbalConfig.plan_horizon: must be at most 1000, got 100000000"
+    ]
+    assert not out.exists()
+    err = grbal_error(500)  # within the bound, beyond the episode
+    assert len(err) == 1 and "plan_horizon: must not exceed the episode length 80" in err[0]
+    assert not (out / "config.json").exists() and not (out / LOG_FILE).exists()
+    run = tmp_path / "r"
+    line = _one_line_error(capsys, small_args(0.0, run, 2, "--set", "train.rl_capacity=1000000000"))
+    assert line.startswith("error: train.rl_capacity") and "would need" in line
+    assert not (run / "config.json").exists() and not (run / LOG_FILE).exists()
+    assert not (run / "checkpoints").exists()
+    with pytest.raises(ConfigError, match=r"f: x would need 1.0 GiB of memory, 512 MiB are free"):
+        check_fits(2**30, "x", "f", free=2**29)
+
+
+def test_load_policy_on_a_grbal_run_says_what_it_is(tmp_path, capsys):
+    from experiments import evaluate
+    from mpcpearl_jax.grbal.config import GrbalExperimentConfig, preset
+
+    run = tmp_path / "grbal"
+    run.mkdir()
+    (run / "config.json").write_text(GrbalExperimentConfig(grbal=preset("smoke")).to_json())
+    with pytest.raises(
+        CheckpointError, match=rf"{run}: a GrBAL run .* python -m experiments.grbal"
+    ):
+        load_policy(run)
+    assert evaluate.main([str(run)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a GrBAL run" in err[0] and "load_policy" in err[0]

@@ -11,7 +11,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "mpcpearl_jax"
 # lowest first; a module is ranked by its longest listed prefix (modules not listed are not
 # checked)
 LAYERS = [
-    ["errors", "validate", "dynamics"],
+    ["errors", "validate", "dynamics", "runlock", "resources"],
     ["physics", "metrics", "pearl.types", "pearl.config", "mpc.config"],
     ["envs", "pearl.networks", "pearl.losses", "pearl.learner", "pearl.buffers", "pearl"],
     ["mpc", "shield"],

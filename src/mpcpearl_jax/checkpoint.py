@@ -17,23 +17,28 @@ newest intact one is used instead.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
+import math
 import os
+import re
 import shutil
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import orbax.checkpoint as ocp
 from flax import serialization
 from jax import Array
 
 from mpcpearl_jax.config import ExperimentConfig
-from mpcpearl_jax.errors import CheckpointError
+from mpcpearl_jax.errors import CheckpointError, RunDirError
 from mpcpearl_jax.pearl.networks import Networks
 
 CONFIG_FILE = "config.json"
@@ -55,9 +60,62 @@ def atomic_write(path: Path, data: bytes | str) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as e:  # e.g. a full disk: name the file, not its temporary
+        raise OSError(e.errno, e.strerror or str(e), str(path)) from e
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def strict_json(obj: Any, indent: int | None = 2) -> str:
+    """JSON text without the non-standard NaN / Infinity tokens: a non-finite float is written
+    as null, and a dict at the top level gets a `null_values` entry saying which fields were
+    not finite and what they held (e.g. {"pooled.SR.se": "NaN"})."""
+    nulls: dict[str, str] = {}
+
+    def clean(x: Any, where: str) -> Any:
+        if isinstance(x, dict):
+            return {k: clean(v, f"{where}.{k}" if where else str(k)) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v, f"{where}[{i}]") for i, v in enumerate(x)]
+        if isinstance(x, float) and not math.isfinite(x):
+            nulls[where] = "NaN" if math.isnan(x) else ("Infinity" if x > 0 else "-Infinity")
+            return None
+        return x
+
+    out = clean(obj, "")
+    if nulls and isinstance(out, dict):
+        out["null_values"] = {
+            k: f"{v} (not a finite number; written as null)" for k, v in nulls.items()
+        }
+    return json.dumps(out, indent=indent, allow_nan=False)
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """`strict_json(obj)` written atomically to `path` (results.json, curve.json)."""
+    atomic_write(path, strict_json(obj))
+
+
+def non_finite_leaves(tree: Any) -> list[str]:
+    """Paths of the floating-point leaves of `tree` that hold NaN or inf."""
+    bad = []
+    for path, leaf in jax.tree_util.tree_leaves_with_path(tree):
+        x = np.asarray(leaf)
+        if np.issubdtype(x.dtype, np.floating) and not np.all(np.isfinite(x)):
+            bad.append(jax.tree_util.keystr(path))
+    return bad
+
+
+def save_params(path: Path, params: Any) -> None:
+    """Network parameters (flax msgpack) written atomically; CheckpointError naming the file if
+    any of them is NaN or inf (a diverged network is never saved as a policy)."""
+    bad = non_finite_leaves(params)
+    if bad:
+        raise CheckpointError(
+            f"{path}: not saved: non-finite network parameters (NaN or inf in {len(bad)} "
+            f"array(s), e.g. {bad[0]}); the run diverged, its last good checkpoint is kept"
+        )
+    atomic_write(path, serialization.to_bytes(params))
 
 
 def save_config(run_dir: Path, cfg: ExperimentConfig) -> None:
@@ -76,7 +134,15 @@ def load_config(run_dir: str | Path) -> ExperimentConfig:
     if not path.is_file():
         raise CheckpointError(f"{path}: no config.json; is this a run directory?")
     try:
-        return ExperimentConfig.from_dict(json.loads(path.read_text()))
+        raw = json.loads(path.read_text())
+        if isinstance(raw, dict) and raw.get("method") == "grbal":
+            raise CheckpointError(
+                f"{run_dir}: a GrBAL run (a learned dynamics model planned with MPPI, not a "
+                "policy): load_policy and experiments.evaluate do not apply; python -m "
+                "experiments.grbal evaluates it when training ends (results.json; the same "
+                "command with --resume evaluates a finished run again)"
+            )
+        return ExperimentConfig.from_dict(raw)
     except (json.JSONDecodeError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: unreadable or invalid config ({e})") from e
 
@@ -125,10 +191,41 @@ class Checkpointer:
         return sorted(self.manager.all_steps())
 
     def save(self, step: int, state, policy_params: dict) -> None:
-        self.manager.save(step, args=ocp.args.StandardSave(state))
-        self.manager.wait_until_finished()
-        if jax.process_index() == 0:  # every process saves its shards above; one writes this
-            atomic_write(self.run_dir / POLICY_FILE, serialization.to_bytes(policy_params))
+        """Checkpoint `state` as iteration `step`, then write policy.msgpack. Non-finite
+        parameters are refused before anything is written (CheckpointError naming the file). A
+        failed write (a full disk, an I/O error) removes the partial checkpoint and raises
+        RunDirError naming the folder, the cause and the iteration a resume starts from."""
+        primary = jax.process_index() == 0  # every process saves its shards; one writes the rest
+        pfile = self.run_dir / POLICY_FILE
+        bad = non_finite_leaves(policy_params) if primary else []
+        if bad:
+            raise CheckpointError(
+                f"{pfile}: not saved: non-finite network parameters at iteration {step} (NaN or "
+                f"inf, e.g. {bad[0]}); the last good checkpoint is kept"
+            )
+        try:
+            with _quiet_orbax():
+                self.manager.save(step, args=ocp.args.StandardSave(state))
+                self.manager.wait_until_finished()
+        except Exception as e:  # orbax wraps OS errors in ValueError (tensorstore) and others
+            self._failed = True
+            self._discard_partial()
+            raise _save_error(self.run_dir / "checkpoints" / str(step), e, self.steps()) from e
+        if primary:
+            try:
+                save_params(pfile, policy_params)
+            except OSError as e:
+                self._failed = True
+                raise _save_error(pfile, e, self.steps()) from e
+
+    def _discard_partial(self) -> None:
+        """Remove the temporary folders of a save that failed (orbax renames a checkpoint into
+        place only once complete, so they hold nothing a resume could use)."""
+        folder = self.run_dir / "checkpoints"
+        for p in folder.glob(f"*{TMP_SUFFIX}*") if folder.is_dir() else []:
+            shutil.rmtree(p, ignore_errors=True)
+        with contextlib.suppress(Exception):
+            self.manager.reload()
 
     def restore(
         self, template, step: int | None = None, report: Callable[[str], None] | None = None
@@ -193,7 +290,77 @@ class Checkpointer:
         return dst
 
     def close(self) -> None:
-        self.manager.close()
+        try:
+            with _quiet_orbax():
+                self.manager.close()
+        except Exception:
+            if not getattr(self, "_failed", False):
+                raise  # after a failed save the error has been reported once already
+
+
+TMP_SUFFIX = ".orbax-checkpoint-tmp"  # orbax's name for a checkpoint not yet committed
+
+
+@contextlib.contextmanager
+def _quiet_orbax() -> Iterator[None]:
+    """orbax logs every failure of its writer threads with a traceback before raising it, and
+    after a failed write (a full disk) the writes still under way end on a closed event loop,
+    each printing `RuntimeError: Event loop is closed`; the caller reports the one failure as one
+    line instead. After a failure those closed-loop errors stay silenced (the writer threads
+    outlive the call)."""
+    log = logging.getLogger("absl")
+    level, hooks = log.level, (sys.excepthook, sys.unraisablehook)
+    log.setLevel(logging.CRITICAL)
+    sys.excepthook = _skip_closed_loop(sys.excepthook)
+    sys.unraisablehook = _skip_closed_loop_unraisable(sys.unraisablehook)
+    try:
+        yield
+    except BaseException:
+        log.setLevel(level)
+        raise
+    log.setLevel(level)
+    sys.excepthook, sys.unraisablehook = hooks
+
+
+def _closed_loop(value: BaseException | None) -> bool:
+    return isinstance(value, RuntimeError) and str(value) == "Event loop is closed"
+
+
+def _skip_closed_loop(hook: Callable) -> Callable:
+    def excepthook(kind, value, tb):
+        if not _closed_loop(value):
+            hook(kind, value, tb)
+
+    return excepthook
+
+
+def _skip_closed_loop_unraisable(hook: Callable) -> Callable:
+    def unraisablehook(unraisable):
+        if not _closed_loop(unraisable.exc_value):
+            hook(unraisable)
+
+    return unraisablehook
+
+
+def _cause(e: BaseException) -> str:
+    """The operating system's words for an error (orbax and tensorstore wrap them), else the
+    first line of the message."""
+    seen: BaseException | None = e
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.strerror:
+            return seen.strerror
+        code = re.search(r"os_error_code='?(\d+)", str(seen))
+        if code:
+            return os.strerror(int(code.group(1)))
+        seen = seen.__cause__ or seen.__context__
+    return (str(e).strip().splitlines() or [type(e).__name__])[0]
+
+
+def _save_error(where: Path, e: BaseException, steps: list[int]) -> RunDirError:
+    then = (
+        f"--resume continues from iteration {steps[-1]}" if steps else "no checkpoint is saved yet"
+    )
+    return RunDirError(f"{where}: cannot save ({_cause(e)}); {then} once the cause is fixed")
 
 
 def _is_traced(x: Any) -> bool:
@@ -331,5 +498,11 @@ def load_policy(
             raise ValueError("parameter shapes differ from the saved networks")
     except Exception as e:
         raise CheckpointError(f"{pfile}: corrupt or from a different network size: {e}") from e
+    bad = non_finite_leaves(params)
+    if bad:
+        raise CheckpointError(
+            f"{pfile}: non-finite network parameters (NaN or inf in {len(bad)} array(s), e.g. "
+            f"{bad[0]}); the run diverged or the file is damaged"
+        )
     params = jax.tree_util.tree_map(lambda x: jnp.asarray(x[seed_index]), params)
     return LoadedPolicy(cfg, params, nets)

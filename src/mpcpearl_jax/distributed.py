@@ -15,6 +15,9 @@ written by process 0 only (`is_primary`).
 
 from __future__ import annotations
 
+import socket
+import sys
+import threading
 from typing import Any
 
 import jax
@@ -25,17 +28,30 @@ from jax.sharding import PartitionSpec as P
 from mpcpearl_jax.errors import ConfigError
 
 AXIS = "seeds"  # the mesh axis: seeds (and each seed's collection rows) are split along it
+JOIN_TIMEOUT_S = 120.0  # default wait for the coordinator and the other processes
+NOTICE_S = 5.0  # a start-up slower than this says what it waits for
+
+
+class CoordinatorTimeout(ConfigError):
+    """The distributed runtime did not start within the time given. Its start-up is still
+    blocked in a thread of the runtime (which would abort the process later): after reporting
+    this error, end the process at once with `os._exit`."""
 
 
 def initialize(
     coordinator: str | None = None,
     num_processes: int | None = None,
     process_id: int | None = None,
+    timeout_s: float = JOIN_TIMEOUT_S,
 ) -> bool:
     """Start JAX's distributed runtime (`jax.distributed.initialize`) when the three options are
     given (all or none; False when none). On CPU the collectives use gloo, so several processes
     on one machine (or hosts without accelerators) train one sharded program. Must run before
-    any JAX computation; ConfigError naming the option otherwise."""
+    any JAX computation; ConfigError naming the option otherwise.
+
+    The runtime aborts the whole process (a C++ stack, exit 134) when the coordinator does not
+    answer or a process does not join in time; so it starts in a thread with a longer deadline of
+    its own, and when `timeout_s` seconds pass first, CoordinatorTimeout names the coordinator."""
     given = (coordinator, num_processes, process_id)
     if all(v is None for v in given):
         return False
@@ -54,6 +70,8 @@ def initialize(
             f"--process-id: must lie in [0, {num_processes - 1}] (--num-processes "
             f"{num_processes}), got {process_id!r}"
         )
+    if not (isinstance(timeout_s, (int, float)) and 0 < timeout_s < float("inf")):
+        raise ConfigError(f"--coordinator-timeout: must be a positive number, got {timeout_s!r}")
     from jax._src import xla_bridge
 
     if xla_bridge.backends_are_initialized():
@@ -62,12 +80,56 @@ def initialize(
             "jax.distributed.initialize must come first"
         )
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
-    try:
-        jax.distributed.initialize(coordinator, num_processes, process_id)
-    except Exception as e:  # noqa: BLE001 - one line for the command line
+    errors: list[BaseException] = []
+
+    def start() -> None:
+        try:  # the runtime's own deadline comes well after ours
+            jax.distributed.initialize(
+                coordinator,
+                num_processes,
+                process_id,
+                initialization_timeout=int(timeout_s) + 60,
+            )
+        except Exception as e:  # noqa: BLE001 - reported by the caller's thread
+            errors.append(e)
+
+    thread = threading.Thread(target=start, name="jax-distributed-start", daemon=True)
+    thread.start()
+    thread.join(min(NOTICE_S, timeout_s))
+    if thread.is_alive():  # say what it waits for rather than nothing
+        print(
+            f"waiting for the coordinator at {coordinator} and the other processes (at most "
+            f"{timeout_s:g} s, --coordinator-timeout)",
+            file=sys.stderr,
+            flush=True,
+        )
+        thread.join(max(timeout_s - NOTICE_S, 0.0))
+    if thread.is_alive():
+        raise CoordinatorTimeout(_no_answer(coordinator, host, int(port), process_id, timeout_s))
+    if errors:
+        e = errors[0]
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
         raise ConfigError(f"--coordinator {coordinator}: cannot join ({first})") from e
     return True
+
+
+def _no_answer(coordinator: str, host: str, port: int, process_id: int, timeout_s: float) -> str:
+    """The one line of a start-up that timed out: whether anything listens at the address."""
+    waited = f"within {timeout_s:g} s (--coordinator-timeout)"
+    if process_id == 0:
+        return (
+            f"--coordinator {coordinator}: not every process joined {waited}; start the same "
+            "command with each --process-id"
+        )
+    try:
+        with socket.create_connection((host, port), timeout=2.0):
+            listening = "it accepts connections but the runtime did not start"
+    except OSError as e:
+        listening = f"nothing answers there ({e.strerror or type(e).__name__})"
+    return (
+        f"--coordinator {coordinator}: no answer {waited}: {listening}; is process 0 running "
+        "with this address?"
+    )
 
 
 def select_devices(seeds: int, devices: int = 0) -> list:

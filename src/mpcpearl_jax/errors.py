@@ -22,4 +22,9 @@ class TrainingDiverged(RuntimeError):
     """A loss became NaN/inf; the last good checkpoint is kept."""
 
 
-__all__ = ["CheckpointError", "ConfigError", "DataFormatError", "TrainingDiverged"]
+class RunDirError(RuntimeError):
+    """A run directory cannot be created or written (permissions, a full disk, an I/O error), or
+    another process is writing it (`mpcpearl_jax.runlock`); the message names the folder."""
+
+
+__all__ = ["CheckpointError", "ConfigError", "DataFormatError", "RunDirError", "TrainingDiverged"]

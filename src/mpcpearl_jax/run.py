@@ -31,19 +31,18 @@ from mpcpearl_jax.checkpoint import (
     load_config,
     save_config,
     save_network,
+    write_json,
 )
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
-from mpcpearl_jax.errors import CheckpointError, ConfigError
+from mpcpearl_jax.errors import CheckpointError, ConfigError, RunDirError
 from mpcpearl_jax.pearl.learner import deployed_params
 from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
+from mpcpearl_jax.resources import check_state_fits
+from mpcpearl_jax.runlock import RunLock
 from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState, check_redraw
 
 LOG_FILE = "metrics.jsonl"
-
-
-class RunDirError(RuntimeError):
-    """The run directory (or its checkpoints/ folder) cannot be created or written."""
 
 
 class RunInterrupted(Exception):
@@ -88,13 +87,26 @@ def append_log(path: Path, row: dict) -> None:
     """Append one line with a single write on an O_APPEND descriptor: a crash leaves at most a
     torn last line (dropped on resume), never a mixed one."""
     data = (json.dumps(row) + "\n").encode()
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     try:
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view) :]
-    finally:
-        os.close(fd)
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view) :]
+        finally:
+            os.close(fd)
+    except OSError as e:  # e.g. a full disk: name the file
+        raise OSError(e.errno, e.strerror or str(e), str(path)) from e
+
+
+def write_error(e: OSError, saved: int) -> RunDirError:
+    """A failed write during training (a full disk, an I/O error) as one line: the file, the
+    cause, and the iteration a resume starts from (saved: the newest checkpoint, -1: none)."""
+    then = (
+        f"--resume continues from iteration {saved}" if saved >= 0 else "no checkpoint is saved yet"
+    )
+    where = e.filename or "the run folder"
+    return RunDirError(f"{where}: cannot write ({e.strerror or e}); {then} once the cause is fixed")
 
 
 def check_writable(run_dir: Path) -> None:
@@ -148,24 +160,58 @@ class Session:
     rows: list[dict]
     done: int
     saved: int  # the iteration of the newest checkpoint (-1: none)
+    lock: RunLock  # this process writes run_dir (mpcpearl_jax.runlock); release() when done
 
 
-def prepare(cfg: ExperimentConfig, out: str | Path, resume: bool = False) -> Session:
-    """Every check before training, in this order: config (MPC and env overrides), run directory
-    (resume compatibility, writable folders), data and tasks (building the Trainer), checkpoint
-    restore (falling back past corrupt ones), --iterations against the finished count. Only then
-    is config.json written and metrics.jsonl cut back to the restored iteration."""
+def prepare(
+    cfg: ExperimentConfig, out: str | Path, resume: bool = False, until_budget: bool = False
+) -> Session:
+    """Every check before training, in this order: config (MPC and env overrides), the run
+    directory's lock (one writer per folder), resume compatibility, writable folders, data and
+    tasks (building the Trainer), checkpoint restore (falling back past corrupt ones; nothing to
+    resume from is an error where iterations were logged), --iterations against the finished
+    count (not with until_budget: a run that stops on a time budget, `benchmarks.learning`).
+    Only then is config.json written and metrics.jsonl cut back to the restored iteration. The
+    session holds the lock: `sess.lock.release()` once the run's last file is written."""
     run_dir = Path(out)
     check_config(cfg)
     if resume:
+        load_config(run_dir)  # a run folder at all, before the lock creates anything
+    lock = RunLock(run_dir, enabled=is_primary())
+    try:
+        return _prepare_locked(cfg, run_dir, resume, until_budget, lock)
+    except BaseException:
+        lock.release()
+        raise
+
+
+def _prepare_locked(
+    cfg: ExperimentConfig, run_dir: Path, resume: bool, until_budget: bool, lock: RunLock
+) -> Session:
+    if resume:
         check_resumable(load_config(run_dir), cfg, run_dir)
+        folder = run_dir / "checkpoints"
+        if not (folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())):
+            check_nothing_lost(run_dir)
     elif (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").iterdir()):
         raise CheckpointError(
             f"{run_dir} already holds checkpoints: pass --resume to continue "
             "or choose another --out"
         )
+    new_folder = not (run_dir / "checkpoints").exists()
     check_writable(run_dir)
-    trainer = Trainer(cfg)
+    try:
+        trainer = Trainer(cfg)
+        check_state_fits(  # before anything is allocated
+            trainer.init_state,
+            "the training state (replay buffers, networks)",
+            "train.rl_capacity, train.mpc_buffer_capacity, the training tasks or the seeds",
+        )
+    except BaseException:
+        if new_folder:  # a refused run leaves no empty checkpoints/ behind
+            with contextlib.suppress(OSError):
+                (run_dir / "checkpoints").rmdir()
+        raise
     ckpt = Checkpointer(run_dir, keep=cfg.train.keep_checkpoints)
     try:
         state = trainer.init_state()
@@ -174,7 +220,7 @@ def prepare(cfg: ExperimentConfig, out: str | Path, resume: bool = False) -> Ses
             state = ckpt.restore(state)
             saved = ckpt.restored_step
         done = int(first_local(state.iteration))
-        if cfg.train.iterations < done:
+        if not until_budget and cfg.train.iterations < done:
             raise CheckpointError(
                 f"{run_dir} has finished {done} iterations; --iterations {cfg.train.iterations} "
                 f"is below that (give --iterations {done} or more, or another --out)"
@@ -188,7 +234,21 @@ def prepare(cfg: ExperimentConfig, out: str | Path, resume: bool = False) -> Ses
     if is_primary():  # with several processes, process 0 writes the run's files
         save_config(run_dir, cfg)
         _write_log(log_path, rows)
-    return Session(cfg, run_dir, trainer, ckpt, state, rows, done, saved)
+    return Session(cfg, run_dir, trainer, ckpt, state, rows, done, saved, lock)
+
+
+def check_nothing_lost(run_dir: Path) -> None:
+    """--resume found no checkpoint: an error naming the folder if metrics.jsonl logs iterations
+    (a restart would erase them: never silently); otherwise the run stopped before its first
+    iteration and starting at iteration 0 is the exact resume, said in one line."""
+    logged = len(read_log(run_dir / LOG_FILE))
+    if logged:
+        raise CheckpointError(
+            f"{run_dir}: nothing to resume: no checkpoint in {run_dir / 'checkpoints'}, but "
+            f"{LOG_FILE} logs {logged} iteration(s) that a restart would erase; start over "
+            "without --resume (replacing them) or in another --out"
+        )
+    _warn(f"{run_dir}: no checkpoint yet (stopped before its first one); starting at iteration 0")
 
 
 @contextlib.contextmanager
@@ -226,7 +286,11 @@ def train(
     chunk, ~10 s), saves a checkpoint of the last finished iteration if it is still in memory,
     and raises RunInterrupted. With tensorboard, every metrics row also goes to out/tensorboard
     (`mpcpearl_jax.livelog`)."""
-    return train_session(prepare(cfg, out, resume), progress, handle_sigint, tensorboard)
+    sess = prepare(cfg, out, resume)
+    try:
+        return train_session(sess, progress, handle_sigint, tensorboard)
+    finally:
+        sess.lock.release()
 
 
 def train_session(
@@ -295,6 +359,8 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
                 bar.update(1)
             if stopping() and done < total:
                 raise RunInterrupted(done)
+    except OSError as e:  # a full disk or an I/O error while logging
+        raise write_error(e, saved) from e
     finally:
         if bar is not None:
             bar.close()
@@ -336,7 +402,7 @@ def final_evaluation(
     results["paper"] = PAPER.get(trainer.cfg.env, {})
     if not is_primary():  # every process evaluates its seeds; process 0 writes
         return results
-    (run_dir / "results.json").write_text(json.dumps(results, indent=2))
+    write_json(run_dir / "results.json", results)
     print(results_table(results))
     plot_learning_curves([(label, read_log(run_dir / LOG_FILE))], run_dir / "learning_curves.png")
     _trajectory_figure(trainer, raw, run_dir)

@@ -81,6 +81,11 @@ def check_redraw(cfg: ExperimentConfig) -> None:
             f"TrainConfig.redraw_behaviours: env {cfg.env!r} cannot redraw its training "
             "behaviours (add --set train.redraw_behaviours=false)"
         )
+    if cfg.train.redraw_behaviours and cfg.task_options.get("scenarios"):
+        raise ConfigError(
+            "TrainConfig.redraw_behaviours: the paper's scenarios are fixed crowds and cannot be "
+            "re-drawn (add --set train.redraw_behaviours=false)"
+        )
 
 
 class Trainer:

@@ -14,6 +14,7 @@ from jax import Array
 
 from mpcpearl_jax import physics
 from mpcpearl_jax.dynamics import bicycle_step, to_physical
+from mpcpearl_jax.envs import observation
 from mpcpearl_jax.envs.types import EnvState, NavConfig, StepInfo, TaskParams
 
 ACTION_DIM = 2
@@ -125,12 +126,11 @@ class NavEnv:
         return physics.events(state.pose[:2], humans, mask, params.goal, self.config)
 
     def normalize_xy(self, p: Array) -> Array:
-        lo = jnp.asarray(self.config.arena_lo)
-        hi = jnp.asarray(self.config.arena_hi)
-        return jnp.clip(2.0 * (p - lo) / (hi - lo) - 1.0, -1.0, 1.0)
+        return observation.normalize_xy(self.config, p)
 
     def observe(self, state: EnvState, params: TaskParams) -> Array:
-        """Observation in [-1, 1]: pose, people (absent ones at (-1, -1)), [people's last-step
+        """Observation in [-1, 1] (`envs.observation.observation`, which `deploy.observe` builds
+        from a robot's raw arrays): pose, people (absent ones at (-1, -1)), [people's last-step
         displacement (extension `observe_velocity`)], [static centres], [people, nearest static
         points and goal in the robot's frame (extension `observe_relative`)]. With the extension
         `sensing_radius` a person farther than it from the robot counts as absent throughout; [the
@@ -138,36 +138,10 @@ class NavEnv:
         listed nearest first in every part."""
         humans, mask = self.humans_at(params, state.t)
         prev, prev_mask = self.humans_at(params, jnp.maximum(state.t - 1, 0))
-        dist = jnp.linalg.norm(humans - state.pose[:2], axis=-1)
-        if self.config.sensing_radius > 0:  # extension: people out of range look absent
-            mask = mask & (dist <= self.config.sensing_radius)
-        if self.config.observe_sorted:  # extension: nearest person first
-            order = jnp.argsort(jnp.where(mask, dist, jnp.inf), stable=True)
-            humans, mask, prev, prev_mask = (x[order] for x in (humans, mask, prev, prev_mask))
-        h = jnp.where(mask[:, None], self.normalize_xy(humans), -1.0)
-        parts = [self.normalize_xy(state.pose[:2]), state.pose[2:3] / jnp.pi, h.reshape(-1)]
-        if self.config.observe_velocity:  # extension: people's last-step displacement
-            scale = self.config.velocity_scale * self.config.dt
-            vel = jnp.clip((humans - prev) / scale, -1.0, 1.0)
-            parts.append(jnp.where((mask & prev_mask)[:, None], vel, 0.0).reshape(-1))
-        if self.config.observe_static:
-            parts.append(self.normalize_xy(params.static_center).reshape(-1))
-        if self.config.observe_relative:  # extension: egocentric positions
-            pos, th = state.pose[:2], state.pose[2]
-            c, s = jnp.cos(th), jnp.sin(th)
-
-            def ego(q: Array) -> Array:  # world points [N, 2] -> robot frame, scaled, clipped
-                d = q - pos
-                local = jnp.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1)
-                return jnp.clip(local / self.config.relative_scale, -1.0, 1.0)
-
-            nearest = jnp.clip(pos, params.static_lo, params.static_hi)  # [S, 2]
-            parts.append(jnp.where(mask[:, None], ego(humans), 1.0).reshape(-1))
-            parts.append(ego(nearest).reshape(-1))
-            parts.append(ego(params.goal[None]).reshape(-1))
-        if self.config.observe_time:  # extension: elapsed fraction of the episode
-            parts.append((2.0 * state.t / self.config.horizon - 1.0).reshape(1))
-        return jnp.concatenate(parts).astype(jnp.float32)
+        lo, hi = params.static_lo, params.static_hi
+        return observation.observation(
+            self.config, state.pose, state.t, humans, mask, prev, prev_mask, lo, hi, params.goal
+        )
 
     def _check_action(self, action: Array) -> None:
         if jnp.shape(action) != (ACTION_DIM,):

@@ -16,6 +16,10 @@ from mpcpearl_jax.config import SerializableConfig
 from mpcpearl_jax.errors import ConfigError
 
 ROBOT_MODELS = ("learned", "known")
+# upper bounds of the planner's size fields: MPPI holds num_samples sequences of plan_horizon
+# actions per env and step (the trainer also bounds plan_horizon by the episode length)
+MAX_PLAN_HORIZON = 1000
+MAX_SAMPLES = 65536
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,6 +84,9 @@ class GrbalConfig:
             "keep_checkpoints",
         )
         v.ints(self, "eval_interval", lo=0)
+        for name, top in (("plan_horizon", MAX_PLAN_HORIZON), ("num_samples", MAX_SAMPLES)):
+            value = getattr(self, name)
+            v.check(value <= top, self, name, f"must be at most {top}, got {value}")
         v.interval(self, "lr", lo=0.0, hi=1.0, open_lo=True)
         v.interval(self, "inner_lr", lo=0.0, hi=10.0)
         v.interval(self, "gamma", lo=0.0, hi=1.0)

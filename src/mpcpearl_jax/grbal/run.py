@@ -15,12 +15,14 @@ from typing import Any
 import jax
 import numpy as np
 
-from mpcpearl_jax.checkpoint import CONFIG_FILE, Checkpointer, atomic_write
+from mpcpearl_jax.checkpoint import CONFIG_FILE, Checkpointer, atomic_write, write_json
 from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
 from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
-from mpcpearl_jax.run import LOG_FILE, append_log, read_log
+from mpcpearl_jax.resources import check_fits, tree_bytes
+from mpcpearl_jax.run import LOG_FILE, append_log, check_nothing_lost, read_log, write_error
+from mpcpearl_jax.runlock import RunLock
 
 LABEL = "GrBAL"
 # The paper prints no GrBAL numbers (its restaurant bar charts only); its text (Sec. IV-A):
@@ -109,23 +111,76 @@ def train(
     this many seconds after training started in this process, if the iterations last longer."""
     run_dir = Path(out)
     if resume:
+        load_config(run_dir)  # a GrBAL run folder at all, before the lock creates anything
+    with RunLock(run_dir):  # one writer per run folder
+        trainer, ckpt, state = _prepare(cfg, run_dir, resume)
+        try:
+            return trainer, _loop(trainer, ckpt, state, run_dir, progress, budget_s)
+        finally:
+            ckpt.close()
+
+
+def _prepare(
+    cfg: GrbalExperimentConfig, run_dir: Path, resume: bool
+) -> tuple[GrbalTrainer, Checkpointer, GrbalState]:
+    """Every check before anything is written (the config, the trainer's tasks and sizes, the
+    memory the state and the planner need, the checkpoint restore), then config.json and the
+    log cut back to the restored iteration."""
+    if resume:
         check_resumable(load_config(run_dir), cfg, run_dir)
+        folder = run_dir / "checkpoints"
+        if not (folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())):
+            check_nothing_lost(run_dir)
     elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
         raise CheckpointError(
             f"{run_dir} already holds checkpoints: pass --resume to continue "
             "or choose another --out"
         )
-    save_config(run_dir, cfg)
     trainer = GrbalTrainer(cfg)
+    _check_memory(trainer)
     g = cfg.grbal
     ckpt = Checkpointer(run_dir, keep=g.keep_checkpoints)
-    state = trainer.init_state()
-    if resume and ckpt.latest() is not None:
-        state = ckpt.restore(state)
+    try:
+        state = trainer.init_state()
+        if resume and ckpt.latest() is not None:
+            state = ckpt.restore(state)
+        done = int(np.asarray(state.iteration)[0])
+        log_path = run_dir / LOG_FILE
+        rows = read_log(log_path, done)
+        save_config(run_dir, cfg)
+        atomic_write(log_path, "".join(json.dumps(r) + "\n" for r in rows))
+    except BaseException:
+        ckpt.close()
+        raise
+    return trainer, ckpt, state
+
+
+def _check_memory(trainer: GrbalTrainer) -> None:
+    """The state (model, optimizer, per-task buffers) and MPPI's sampled sequences (every env of
+    a collection or an evaluation batch holds num_samples x plan_horizon actions, noise and
+    costs) must fit in memory: ConfigError naming the fields otherwise."""
+    g, seeds = trainer.cfg.grbal, trainer.cfg.seeds
+    envs = seeds * max(
+        g.tasks_per_iteration * g.episodes_per_task, int(trainer.test_tasks.start.shape[0])
+    )
+    planner = envs * g.num_samples * g.plan_horizon * (3 * 2 + 2) * 4
+    state = tree_bytes(jax.eval_shape(trainer.init_state)) // jax.process_count()
+    fields = "grbal.plan_horizon, grbal.num_samples, grbal.buffer_episodes or the seeds"
+    check_fits(state + planner, "the state and the MPPI samples", fields)
+
+
+def _loop(
+    trainer: GrbalTrainer,
+    ckpt: Checkpointer,
+    state: GrbalState,
+    run_dir: Path,
+    progress: Callable[[str], None] | None,
+    budget_s: float | None,
+) -> GrbalState:
+    g = trainer.cfg.grbal
     done = int(np.asarray(state.iteration)[0])
     log_path = run_dir / LOG_FILE
-    rows = read_log(log_path, done)
-    atomic_write(log_path, "".join(json.dumps(r) + "\n" for r in rows))
+    rows = read_log(log_path, done, report=lambda msg: None)
     wall0 = rows[-1].get("wall_s", 0.0) if rows else 0.0
     t_start = time.perf_counter()
     while done < g.iterations:
@@ -138,7 +193,11 @@ def train(
             log.update(_eval_row(trainer, state))
             log["eval_s"] = time.perf_counter() - t0
         log["wall_s"] = wall0 + time.perf_counter() - t_start
-        append_log(log_path, log)
+        try:
+            append_log(log_path, log)
+        except OSError as e:  # a full disk or an I/O error
+            steps = ckpt.steps()
+            raise write_error(e, steps[-1] if steps else -1) from e
         if done % g.checkpoint_interval == 0 or last:
             ckpt.save(done, state, trainer.model_params(state))
         if progress is not None:
@@ -147,8 +206,7 @@ def train(
             if progress is not None:
                 progress(f"time budget of {budget_s:.0f} s reached after iteration {done}")
             break
-    ckpt.close()
-    return trainer, state
+    return state
 
 
 def final_evaluation(trainer: GrbalTrainer, state: GrbalState, out: str | Path) -> dict[str, Any]:
@@ -175,7 +233,7 @@ def final_evaluation(trainer: GrbalTrainer, state: GrbalState, out: str | Path) 
     results["paper"] = PAPER.get(cfg.env, {})
     no_result = "no GrBAL result in the paper"
     results["paper_note"] = PAPER_NOTE if cfg.env == "restaurant" else no_result
-    (run_dir / "results.json").write_text(json.dumps(results, indent=2))
+    write_json(run_dir / "results.json", results)
     print(results_table(results))
     print(results["paper_note"])
     plot_learning_curves([(LABEL, read_log(run_dir / LOG_FILE))], run_dir / "learning_curves.png")

@@ -82,6 +82,11 @@ class GrbalTrainer:
                 f"GrbalConfig.future: past + future ({g.past + g.future}) must not exceed the "
                 f"episode length {self.horizon}"
             )
+        if g.plan_horizon > self.horizon:  # MPPI plans at most one episode ahead
+            raise ConfigError(
+                f"GrbalConfig.plan_horizon: must not exceed the episode length {self.horizon}, "
+                f"got {g.plan_horizon}"
+            )
         self.layout = layout_of(self.env, self.train_tasks)
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         assert self.layout.obs_dim == self.obs_dim

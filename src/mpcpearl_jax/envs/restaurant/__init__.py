@@ -11,6 +11,12 @@ from mpcpearl_jax.envs.restaurant.generator import (
     simulate_crowd,
     table_layout,
 )
+from mpcpearl_jax.envs.restaurant.scenarios import (
+    SCENARIO_OPTIONS,
+    make_scenario_tasks,
+    scenario_digests,
+    scenario_options,
+)
 from mpcpearl_jax.envs.types import NavConfig, TaskParams
 
 RESTAURANT_CONFIG = NavConfig(
@@ -25,6 +31,16 @@ RESTAURANT_CONFIG = NavConfig(
 
 
 def _builder(split: str, seed: int, config: NavConfig, **kwargs: Any) -> TaskParams:
+    """The project's generated crowds, or with `scenarios=DIR` the paper's own scenarios
+    (`scenarios.make_scenario_tasks`; the seed does not apply to them)."""
+    if kwargs.get("scenarios"):
+        unknown = set(kwargs) - SCENARIO_OPTIONS
+        if unknown:
+            raise TypeError(
+                f"make_tasks('restaurant', scenarios=...) got options of the generated crowds "
+                f"{sorted(unknown)} (the scenarios are fixed crowds)"
+            )
+        return make_scenario_tasks(split, config, **kwargs)
     unknown = set(kwargs) - {"train_behaviours"}
     if unknown:
         raise TypeError(f"make_tasks('restaurant') got unexpected arguments {sorted(unknown)}")
@@ -38,7 +54,10 @@ __all__ = [
     "TABLE_CONFIGS",
     "CrowdModel",
     "make_restaurant_tasks",
+    "make_scenario_tasks",
     "redraw_train_tasks",
+    "scenario_digests",
+    "scenario_options",
     "simulate_crowd",
     "table_layout",
 ]

@@ -1,0 +1,678 @@
+"""The results tables of README.md and results/README.md, generated from the committed records.
+
+    python -m experiments.table              # rewrite the tables between their marker comments
+    python -m experiments.table --check      # exit 1 with a diff if the committed text differs
+    python -m experiments.table --paired results/restaurant/pearl results/restaurant/mpc-sac
+
+Every number comes from a record under results/: a run folder's `results.json` (test tasks after
+two adaptation episodes, online, OOD), `curve.json` (budget, gradient steps, the last validation
+point; `metrics.jsonl` and `config.json` where a run has no curve), its
+`eval/policy-val-seeds1-8/results.json` (192 validation tasks, pooled) and
+`eval/policy-scenarios-{test,ood}/results.json` (the paper's 25 test and 25 OOD scenarios); the
+GP-MPC's from `results/gp_mpc/`; the paper's from `mpcpearl_jax.report.PAPER`. A table lists its
+rows (or columns) in `README_QUALITY` and `RESTAURANT`: a label and one run folder, or several
+folders of one configuration (one per seed), shown as mean +- standard error over the seeds and
+the worst seed. A missing record is reported by name (exit 1), never filled in.
+
+`--paired A B` prints the paired difference A - B of the success rate over the 192 validation
+tasks (the same tasks for both: the same task seeds, in the same order), with its standard error
+over tasks and how many tasks each solved alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import json
+import math
+import re
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mpcpearl_jax.report import PAPER
+
+VAL8 = "eval/policy-val-seeds1-8/results.json"  # 192 validation tasks (task seeds 1-8), pooled
+SCENARIOS = {  # the paper's 25 test and 25 OOD scenarios
+    "scen_test": "eval/policy-scenarios-test/results.json",
+    "scen_ood": "eval/policy-scenarios-ood/results.json",
+}
+RESULTS_KEY = {"test": "test_adapt", "online": "test_online", "ood": "ood_adapt"}
+LOWER_IS_BETTER = frozenset({"TT", "MGD"})  # the worst seed of these is the largest value
+NO_RECORD = "-"  # a record that does not exist by design (e.g. no validation run)
+MISSING = "MISSING"  # a record that should exist and does not (reported, never filled in)
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One row (or column) of a table.
+
+    runs: run folders under results/, one per seed of the same configuration; files: for a
+    controller without a run folder (the GP-MPC), kind -> record file under results/; paper: a
+    method of `PAPER["restaurant"]`; absent: kinds that have no record by design, shown as '-'.
+    Kinds: test, online, ood (results.json), budget, grad_steps, val_end (curve.json), val8,
+    scen_test, scen_ood (eval records).
+    """
+
+    label: str
+    runs: tuple[str, ...] = ()
+    files: tuple[tuple[str, str], ...] = ()
+    paper: str | None = None
+    absent: frozenset[str] = frozenset()
+
+    def sources(self) -> list[str]:
+        return list(self.runs) + [f for _, f in self.files]
+
+
+@dataclass(frozen=True)
+class Stat:
+    """One seed's value; se is the standard error over tasks where the record gives one."""
+
+    value: float
+    se: float | None = None
+
+
+@dataclass
+class Records:
+    """Reads records under `results`, once each; remembers the ones that should exist and do
+    not (`missing`, paths as given to `read`)."""
+
+    results: Path
+    missing: list[str] = field(default_factory=list)
+    _cache: dict[Path, Any] = field(default_factory=dict)
+
+    def read(self, rel: str) -> Any:
+        """The parsed record (a list of rows for .jsonl), or None if the file is absent."""
+        path = self.results / rel
+        if path not in self._cache:
+            if not path.is_file():
+                self._cache[path] = None
+            elif path.suffix == ".jsonl":
+                lines = path.read_text().splitlines()
+                self._cache[path] = [json.loads(line) for line in lines if line.strip()]
+            else:
+                self._cache[path] = json.loads(path.read_text())
+        if self._cache[path] is None:
+            shown = str(Path(self.results.name) / rel)
+            if shown not in self.missing:
+                self.missing.append(shown)
+        return self._cache[path]
+
+
+# ---------------------------------------------------------------- values from records
+
+
+def run_value(rec: Records, run: str, kind: str, metric: str) -> Stat | None:
+    """One run folder's value of `metric` for `kind`, or None (and noted) if the record is
+    missing."""
+    if kind in RESULTS_KEY:
+        res = rec.read(f"{run}/results.json")
+        return None if res is None else Stat(res[RESULTS_KEY[kind]][metric])
+    if kind == "val8":
+        return _pooled(rec, f"{run}/{VAL8}", metric)
+    if kind in SCENARIOS:
+        res = rec.read(f"{run}/{SCENARIOS[kind]}")
+        return None if res is None else Stat(res["metrics"][metric])
+    if kind in ("budget", "grad_steps", "val_end"):
+        return _curve_value(rec, run, kind, metric)
+    raise ValueError(f"unknown kind {kind!r}")
+
+
+def _pooled(rec: Records, rel: str, metric: str) -> Stat | None:
+    res = rec.read(rel)
+    if res is None:
+        return None
+    p = res["pooled"][metric]
+    return Stat(p["mean"], p["se"])
+
+
+def _curve_value(rec: Records, run: str, kind: str, metric: str) -> Stat | None:
+    """benchmarks.learning's curve.json; a run of the training CLIs has none: its budget is the
+    training wall time of metrics.jsonl and its gradient steps iterations x updates."""
+    if (rec.results / run / "curve.json").is_file():
+        curve = rec.read(f"{run}/curve.json")
+        if kind == "budget":
+            return Stat(curve["budget_minutes"])
+        if kind == "grad_steps":
+            return Stat(curve["grad_steps"])
+        return Stat(curve["points"][-1][f"val_{metric}"])
+    rows = rec.read(f"{run}/metrics.jsonl")
+    cfg = rec.read(f"{run}/config.json")
+    if rows is None or cfg is None or kind == "val_end":
+        return None
+    last = rows[-1]
+    if kind == "budget":
+        return Stat(last["wall_s"] / 60)
+    section = cfg.get("train", cfg.get("grbal"))
+    return Stat(last["iteration"] * section["updates_per_iteration"])
+
+
+def entry_values(rec: Records, e: Entry, kind: str, metric: str) -> list[Stat] | str:
+    """The per-seed values of one cell, or the text to show instead ('-' by design, MISSING)."""
+    if kind in e.absent:
+        return NO_RECORD
+    if e.paper is not None:
+        paper = PAPER["restaurant"][e.paper]
+        ok = kind in ("test", "scen_test") and metric in paper
+        return [Stat(paper[metric])] if ok else NO_RECORD
+    if e.files:
+        rel = dict(e.files).get(kind)
+        if rel is None:
+            return NO_RECORD
+        if kind == "val8":
+            stat = _pooled(rec, rel, metric)
+        else:
+            res = rec.read(rel)
+            stat = None if res is None else Stat(res["metrics"][metric])
+        return MISSING if stat is None else [stat]
+    stats = [run_value(rec, run, kind, metric) for run in e.runs]
+    found = [s for s in stats if s is not None]
+    return found if len(found) == len(stats) else MISSING
+
+
+# ---------------------------------------------------------------- seed groups and pairs
+
+
+def seed_stats(values: Sequence[float], metric: str) -> tuple[float, float, float]:
+    """Mean, standard error over seeds (ddof 1) and the worst seed (the largest TT or MGD, the
+    smallest of the others) of one configuration's per-seed values."""
+    n = len(values)
+    if n < 2:
+        raise ValueError("a seed group needs at least two seeds")
+    mean = sum(values) / n
+    var = sum((v - mean) ** 2 for v in values) / (n - 1)
+    worst = max(values) if metric in LOWER_IS_BETTER else min(values)
+    return mean, math.sqrt(var / n), worst
+
+
+@dataclass(frozen=True)
+class Paired:
+    """A - B over the same tasks: mean, its standard error over tasks, and task counts."""
+
+    mean: float
+    se: float
+    tasks: int
+    both: int
+    only_a: int
+    only_b: int
+
+    def __str__(self) -> str:
+        return (
+            f"{self.mean:+.2f} +- {self.se:.2f} over {self.tasks} tasks "
+            f"({self.both} solved by both, {self.only_a} only by A, {self.only_b} only by B)"
+        )
+
+
+def per_task_sr(record: dict) -> tuple[list[tuple], list[float]]:
+    """(task seed, task) keys and the per-task SR (mean over the policy's seeds) of a pooled
+    `--task-seeds` record."""
+    keys: list[tuple] = []
+    sr: list[float] = []
+    for r in record["records"]:
+        rows = r["per_task"]["SR"]
+        for i, task in enumerate(r["tasks"]):
+            keys.append((r["task_seed"], task))
+            sr.append(sum(row[i] for row in rows) / len(rows))
+    return keys, sr
+
+
+def paired_difference(a: dict, b: dict) -> Paired:
+    """Paired difference of the SR of two pooled records over the same tasks (ValueError if the
+    records' task seeds or tasks differ)."""
+    ka, sa = per_task_sr(a)
+    kb, sb = per_task_sr(b)
+    if ka != kb:
+        raise ValueError("the two records are not on the same tasks (task seeds or tasks differ)")
+    d = [x - y for x, y in zip(sa, sb, strict=True)]
+    n = len(d)
+    mean = sum(d) / n
+    se = math.sqrt(sum((v - mean) ** 2 for v in d) / (n - 1) / n)
+    both = sum(1 for x, y in zip(sa, sb, strict=True) if x == 1 and y == 1)
+    only_a = sum(1 for x, y in zip(sa, sb, strict=True) if x == 1 and y < 1)
+    only_b = sum(1 for x, y in zip(sa, sb, strict=True) if y == 1 and x < 1)
+    return Paired(mean, se, n, both, only_a, only_b)
+
+
+# ---------------------------------------------------------------- cells
+
+
+def f2(x: float) -> str:
+    return f"{x:.2f}"
+
+
+def fmt_metric(stats: list[Stat] | str, metric: str, with_se: bool = False) -> str:
+    """One metric: a single seed as the record has it (2 decimals, '+- se' over tasks where
+    asked), a seed group as 'mean +- se (worst w)' over seeds."""
+    if isinstance(stats, str):
+        return stats
+    if len(stats) == 1:
+        s = stats[0]
+        return f2(s.value) + (f" +- {f2(s.se)}" if with_se and s.se is not None else "")
+    mean, se, worst = seed_stats([s.value for s in stats], metric)
+    return f"{f2(mean)} +- {f2(se)} (worst {f2(worst)})"
+
+
+def fmt_count(stats: list[Stat] | str, fmt: Callable[[float], str]) -> str:
+    """Budget or gradient steps: one value, or the range over a group's seeds."""
+    if isinstance(stats, str):
+        return stats
+    lo, hi = fmt(min(s.value for s in stats)), fmt(max(s.value for s in stats))
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def _minutes(x: float) -> str:
+    return f"{round(x, 1):g}"
+
+
+def _steps(x: float) -> str:
+    return str(int(round(x)))
+
+
+def pair_cell(rec: Records, e: Entry, kind: str) -> str:
+    """'SR / CFR' of one kind."""
+    return " / ".join(fmt_metric(entry_values(rec, e, kind, m), m) for m in ("SR", "CFR"))
+
+
+def val8_cell(rec: Records, e: Entry, cfr: bool) -> str:
+    """SR on the 192 validation tasks (+- se over tasks for one seed, over seeds for a group),
+    optionally with the CFR."""
+    sr = fmt_metric(entry_values(rec, e, "val8", "SR"), "SR", with_se=True)
+    if not cfr or sr == NO_RECORD:
+        return sr
+    c = entry_values(rec, e, "val8", "CFR")
+    if isinstance(c, str):
+        return f"{sr} (CFR {c})"
+    return f"{sr} (CFR {f2(sum(s.value for s in c) / len(c))})"
+
+
+def run_ref(e: Entry) -> str:
+    return ", ".join(f"`{s}`" for s in e.sources())
+
+
+# ---------------------------------------------------------------- the tables
+
+METRICS = ("SR", "TT", "CFR", "SPL", "MGD")
+SEEDS_NOTE = (
+    "a +- b: the standard error over the 192 validation tasks for one seed; for a group of "
+    "seeds, mean +- standard error over the seeds, then the worst seed."
+)
+
+_GP_MPC = Entry(
+    "GP-MPC (this project)",
+    files=(
+        ("test", "gp_mpc/restaurant_test.json"),
+        ("val8", "gp_mpc/restaurant_val_seeds1-8.json"),
+        ("scen_test", "gp_mpc/scenarios/restaurant_test.json"),
+        ("scen_ood", "gp_mpc/scenarios/restaurant_ood.json"),
+    ),
+)
+_GP_MPC_TEACHER = Entry(
+    "GP-MPC with unsafe-plan recovery (the learned agents' MPC)",
+    files=(
+        ("test", "gp_mpc/restaurant_test_unsafe-recovery.json"),
+        ("val8", "gp_mpc/restaurant_val_seeds1-8_unsafe-recovery.json"),
+    ),
+)
+_HEADLINE = "restaurant/mpc-pearl-eps0.2"
+_NO_CURVE = frozenset({"val_end"})
+_NO_VAL = frozenset({"val8"})
+_NO_SCEN = frozenset({"scen_test", "scen_ood"})
+
+README_QUALITY: tuple[Entry, ...] = (
+    _GP_MPC,
+    Entry("MPC-PEARL 0.2 (`cpu-explore`), 60 min", (_HEADLINE,)),
+    Entry("PEARL (`cpu-explore`), 60 min", ("restaurant/pearl",)),
+    Entry("MPC-SAC 0.2 (`cpu-explore`), 60 min", ("restaurant/mpc-sac",)),
+    Entry(
+        "PEARL (`cpu-tuned`), 60 min, seeds 0 and 1",
+        ("restaurant/ablation/pearl-tuned-60min", "restaurant/ablation/pearl-seed1-60min"),
+    ),
+    Entry(
+        "MPC-PEARL 0.2 (`cpu-explore`) + auto entropy, 24 min, seeds 0 and 1",
+        ("restaurant/ablation/auto-entropy-24min", "restaurant/ablation/auto-entropy-seed1-24min"),
+    ),
+    Entry("MPC-PEARL 0.2 ext. (`cpu-tuned`), 60 min", ("restaurant/ablation/extended-60min",)),
+    Entry("MPC-SAC 0.2 ext. (`cpu-tuned`), 60 min", ("restaurant/ablation/mpc-sac-tuned-60min",)),
+    Entry("MPC-PEARL 0.2 paper alg. (`cpu-paper`), 60 min", ("restaurant/mpc-pearl-eps0.2-paper",)),
+    Entry(
+        "GrBAL, 16 min beside other jobs, paper's observation",
+        ("restaurant/grbal",),
+        absent=_NO_VAL | _NO_SCEN,
+    ),
+    Entry("main command (`default`), 5 min", ("restaurant/main-default",)),
+    Entry("paper MPC-PEARL 0.2", paper="MPC-PEARL 0.2"),
+    Entry("paper PEARL", paper="PEARL"),
+    Entry("paper MPC-SAC", paper="MPC-SAC"),
+)
+
+
+def render_quality(rec: Records, entries: Sequence[Entry] = README_QUALITY) -> str:
+    """README's table: one column per entry, one row per metric."""
+
+    def metric_row(m: str) -> Callable[[Entry], str]:
+        return lambda e: fmt_metric(entry_values(rec, e, "test", m), m)
+
+    rows: list[tuple[str, Callable[[Entry], str]]] = [(m, metric_row(m)) for m in METRICS]
+    rows += [
+        ("val SR, 192 tasks", lambda e: val8_cell(rec, e, cfr=False)),
+        ("SR / CFR, paper's 25 test scenarios", lambda e: pair_cell(rec, e, "scen_test")),
+        ("SR / CFR, paper's 25 OOD scenarios", lambda e: pair_cell(rec, e, "scen_ood")),
+    ]
+    lines = [
+        "| metric | " + " | ".join(e.label for e in entries) + " |",
+        "|---|" + "---|" * len(entries),
+    ]
+    lines += [f"| {name} | " + " | ".join(f(e) for e in entries) + " |" for name, f in rows]
+    notes = [
+        "",
+        "SR ... MGD: the 24 test tasks after two adaptation episodes; val SR: the 192 validation "
+        "tasks; the scenario rows: the paper's own 25 test and 25 OOD crowds (`--scenarios`). "
+        "Paper columns: the paper's table, measured on its 25 test scenarios "
+        "(`mpcpearl_jax.report.PAPER`). "
+        + SEEDS_NOTE
+        + " Records, under `results/`: "
+        + "; ".join(f"{e.label}: {run_ref(e)}" for e in entries if e.sources())
+        + ".",
+    ]
+    return "\n".join(lines + notes)
+
+
+def _r(label: str, *runs: str, absent: frozenset[str] = frozenset()) -> Entry:
+    return Entry(label, tuple(f"restaurant/{r}" for r in runs), absent=absent)
+
+
+RESTAURANT: tuple[Entry, ...] = (
+    _r(
+        "MPC-PEARL 0.2, the headline (`cpu-explore`): the paper's event-triggered infusion on "
+        "PEARL's configuration + exploring starts on half the posterior-phase episodes; seed 0",
+        "mpc-pearl-eps0.2",
+    ),
+    _r("PEARL (eps 0), the headline's preset (`cpu-explore --eps 0`); seed 0", "pearl"),
+    _r(
+        "MPC-SAC 0.2, the headline's preset (`cpu-explore --algo sac --eps 0.2`: no encoder); "
+        "seed 0",
+        "mpc-sac",
+    ),
+    _r(
+        "PEARL (eps 0), `cpu-tuned` (the MPC-based options are inactive without MPC); seed 0",
+        "ablation/pearl-tuned-60min",
+    ),
+    _r("PEARL (eps 0), `cpu-tuned`, seed 1", "ablation/pearl-seed1-60min"),
+    _r("PEARL (eps 0), `cpu-tuned`, seed 1, 25 minutes", "ablation/pearl-seed1-25min"),
+    _r(
+        "MPC-PEARL 0.2, the README's main command (`default`: `cpu-explore` with 2 x 64 "
+        "networks, 4 tasks per step, automatic entropy tuning; 75 iterations)",
+        "main-default",
+        absent=_NO_CURVE,
+    ),
+    _r(
+        "MPC-PEARL 0.2, `cpu-explore` + automatic entropy tuning "
+        "(`--set pearl.auto_entropy=true`), 24 minutes, seed 0",
+        "ablation/auto-entropy-24min",
+    ),
+    _r(
+        "MPC-PEARL 0.2, `cpu-explore` + automatic entropy tuning, 24 minutes, seed 1",
+        "ablation/auto-entropy-seed1-24min",
+    ),
+    _r(
+        "PEARL (eps 0), `cpu-explore` + automatic entropy tuning, 24 minutes, seed 0",
+        "ablation/pearl-auto-entropy-24min",
+    ),
+    _r(
+        "MPC-SAC 0.2, `cpu-explore` + automatic entropy tuning, 24 minutes, seed 0",
+        "ablation/mpc-sac-auto-entropy-24min",
+    ),
+    _r("MPC-PEARL 0.2, `cpu-explore`, seed 2, 20 minutes", "ablation/explore-starts-seed2-20min"),
+    _r(
+        "MPC-PEARL 0.2, the paper's event-triggered infusion only on PEARL's configuration "
+        "(`cpu-tuned` with warm start, MPC buffer and cloning off; no exploring starts), seed 0",
+        "ablation/event-infusion-60min",
+    ),
+    _r(
+        "MPC-PEARL 0.2, the same (event-triggered infusion only), seed 1",
+        "ablation/event-infusion-seed1-60min",
+    ),
+    _r(
+        "MPC-PEARL 0.2, the same (event-triggered infusion only), seed 2, 20 minutes",
+        "ablation/event-infusion-seed2-20min",
+    ),
+    _r(
+        "MPC-PEARL 0.2, extended (`cpu-tuned`: `cpu` + crowds re-drawn + velocity + sensing 3 m "
+        "+ BC weight 4 + clock + egocentric + people nearest first), the previous headline",
+        "ablation/extended-60min",
+    ),
+    _r("MPC-SAC 0.2, extended (`cpu-tuned`, no encoder)", "ablation/mpc-sac-tuned-60min"),
+    _r(
+        "MPC-PEARL 0.2, extended (`cpu-tuned`) with the MPC handed off early: warm start "
+        "annealed to zero by iteration 60 instead of 400, cloning Q-filtered",
+        "ablation/handoff-60min",
+    ),
+    _r(
+        "MPC-PEARL 0.2, extended (`cpu-tuned`) + collision penalty 50 (`env.w_collision`)",
+        "ablation/collision-penalty-60min",
+    ),
+    _r(
+        "MPC-PEARL 0.2, extended (`cpu-tuned`) + DAgger labels (`train.mpc_dagger_labels`)",
+        "ablation/dagger-labels-60min",
+    ),
+    _r(
+        "MPC-PEARL 0.2, extended without the egocentric entries and the sorting (the clock run, "
+        "an earlier headline)",
+        "ablation/clock-60min",
+    ),
+    _r(
+        "MPC-PEARL 0.2, the clock run's configuration + `pearl.policy_ema` 1e-4 (averaged "
+        "policy deployed)",
+        "ablation/policy-ema-60min",
+    ),
+    _r("MPC-SAC 0.2, the clock run's configuration (no encoder)", "ablation/mpc-sac-clock-60min"),
+    _r(
+        "MPC-PEARL 0.2, the clock run's configuration without the clock (the no-clock run)",
+        "ablation/sensing-bc4-60min",
+    ),
+    _r(
+        "PEARL (eps 0), the no-clock run's settings (MPC extensions inactive)",
+        "ablation/pearl-sensing-60min",
+    ),
+    _r("MPC-SAC 0.2, the no-clock run's configuration (no encoder)", "ablation/mpc-sac-30min"),
+    _r(
+        "MPC-PEARL 0.2, paper's algorithm (`cpu-paper`: no extension, no observation option)",
+        "mpc-pearl-eps0.2-paper",
+    ),
+    _r(
+        "MPC-PEARL 0.2, re-drawn + velocity + sensing 3 m, BC weight 1",
+        "ablation/redraw-sensing-24min",
+    ),
+    _r(
+        "MPC-PEARL 0.2, extended (`cpu` + 40 behaviours + velocity)",
+        "ablation/ext-40behaviours-25min",
+    ),
+    _r("MPC-PEARL 0.2, paper's algorithm (`cpu-paper`), first run", "ablation/paper-12min"),
+    _r("PEARL (`cpu`, eps 0)", "ablation/pearl-10min"),
+    _r("MPC-SAC 0.2 (`cpu`, no encoder)", "ablation/mpc-sac-10min"),
+    _r(
+        "MPC-PEARL 0.2, extended (`cpu`), val = train tasks",
+        "ablation/cpu-30min",
+        absent=_NO_VAL,
+    ),
+    _r("MPC-PEARL 0.2, extended (`cpu`) + mpc.r_safe 0.4", "ablation/cpu-rsafe0.4", absent=_NO_VAL),
+    Entry(
+        "GP-MPC, the paper's MPC at every step (no learning)",
+        files=_GP_MPC.files,
+    ),
+    _GP_MPC_TEACHER,
+    Entry("paper MPC-PEARL 0.2 (27 h on a GPU, 7 seeds)", paper="MPC-PEARL 0.2"),
+    Entry("paper PEARL", paper="PEARL"),
+    Entry("paper MPC-SAC", paper="MPC-SAC"),
+    Entry("paper GP-MPC", paper="GP-MPC"),
+)
+
+_RESTAURANT_COLUMNS: tuple[tuple[str, Callable[[Records, Entry], str]], ...] = (
+    ("budget (min)", lambda r, e: fmt_count(entry_values(r, e, "budget", ""), _minutes)),
+    ("grad steps", lambda r, e: fmt_count(entry_values(r, e, "grad_steps", ""), _steps)),
+    *(
+        (m, lambda r, e, m=m: fmt_metric(entry_values(r, e, "test", m), m))
+        for m in ("SR", "CFR", "TT", "SPL", "MGD")
+    ),
+    ("online SR / CFR", lambda r, e: pair_cell(r, e, "online")),
+    ("OOD SR / CFR", lambda r, e: pair_cell(r, e, "ood")),
+    ("val SR / CFR (end)", lambda r, e: pair_cell(r, e, "val_end")),
+    ("val SR, 192 tasks (CFR)", lambda r, e: val8_cell(r, e, cfr=True)),
+    ("25 test scenarios SR / CFR", lambda r, e: pair_cell(r, e, "scen_test")),
+    ("25 OOD scenarios SR / CFR", lambda r, e: pair_cell(r, e, "scen_ood")),
+)
+
+
+def render_restaurant(rec: Records, entries: Sequence[Entry] = RESTAURANT) -> str:
+    """results/README.md's table: one row per entry."""
+    head = ["run"] + [name for name, _ in _RESTAURANT_COLUMNS]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for e in entries:
+        label = f"{e.label} [{run_ref(e)}]" if e.sources() else e.label
+        lines.append(
+            "| " + " | ".join([label] + [f(rec, e) for _, f in _RESTAURANT_COLUMNS]) + " |"
+        )
+    notes = [
+        "",
+        "SR ... MGD: the 24 test tasks after two adaptation episodes; online: the same tasks with "
+        "online adaptation; OOD: the 24 out-of-distribution tasks; val (end): the run's last "
+        "validation point (24 tasks); the scenario columns: the paper's own 25 test and 25 OOD "
+        "crowds (`--scenarios`). Paper rows: the paper's table (`mpcpearl_jax.report.PAPER`), on "
+        "its own 25 test scenarios. " + SEEDS_NOTE,
+    ]
+    return "\n".join(lines + notes)
+
+
+# ---------------------------------------------------------------- blocks in the READMEs
+
+BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block name, renderer
+    ("README.md", "quality", render_quality),
+    ("results/README.md", "restaurant", render_restaurant),
+)
+
+
+def markers(name: str) -> tuple[str, str]:
+    return f"<!-- table:{name} -->", f"<!-- /table:{name} -->"
+
+
+def replace_block(text: str, name: str, body: str) -> str:
+    """`text` with the lines between the block's two markers replaced by `body` (ValueError if
+    the markers are not there exactly once each, in order)."""
+    start, end = markers(name)
+    if text.count(start) != 1 or text.count(end) != 1 or text.index(start) > text.index(end):
+        raise ValueError(f"expected one {start} ... {end} block")
+    head, rest = text.split(start, 1)
+    _, tail = rest.split(end, 1)
+    return f"{head}{start}\n{body}\n{end}{tail}"
+
+
+Block = tuple[str, str, Callable[[Records], str]]  # (file under the root, block name, renderer)
+
+
+def generate(
+    results: Path, blocks: Sequence[Block] | None = None
+) -> tuple[dict[Path, tuple[str, str]], list[str]]:
+    """{README path: (committed text, generated text)} and the missing records; the READMEs
+    are found beside `results` (README.md) and in it (results/README.md)."""
+    rec = Records(results)
+    root = results.parent
+    out: dict[Path, tuple[str, str]] = {}
+    for rel, name, render in BLOCKS if blocks is None else blocks:
+        path = root / rel
+        old = out[path][1] if path in out else path.read_text()
+        new = replace_block(old, name, render(rec))
+        out[path] = (out[path][0] if path in out else old, new)
+    return out, rec.missing
+
+
+# results/ paths as the READMEs write them: from the repository root, from results/, and run
+# folders from results/restaurant/ ("ablation/...")
+_REF_PREFIXES = ("results/", "restaurant/", "sidewalk/", "ablation/", "gp_mpc/", "earlier/")
+
+
+def referenced_paths(text: str) -> list[str]:
+    """The results/ paths a README names in `code`, [brackets] or link targets (outside fenced
+    code blocks), except the folder after --out in a command."""
+    text = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+    spans = re.findall(r"`([^`]+)`", text) + re.findall(r"\[([^\]\n]+)\]", text)
+    spans += re.findall(r"\]\(([^)\s]+)\)", text)
+    found: list[str] = []
+    for span in spans:
+        toks = span.replace(",", " ").replace("`", " ").split()
+        for i, tok in enumerate(toks):
+            tok = tok.rstrip(";:)")
+            if i and toks[i - 1] == "--out" or any(c in tok for c in "<>*{}"):
+                continue
+            if tok.startswith(_REF_PREFIXES) and tok not in found:
+                found.append(tok)
+    return found
+
+
+def missing_references(root: Path) -> list[str]:
+    """'README: path' for every results/ path the two READMEs name that does not exist."""
+    bases = (root, root / "results", root / "results" / "restaurant")
+    out = []
+    for rel in ("README.md", "results/README.md"):
+        for ref in referenced_paths((root / rel).read_text()):
+            if not any((b / ref).exists() for b in bases):
+                out.append(f"{rel}: {ref}")
+    return out
+
+
+def _paired_record(arg: str) -> dict:
+    p = Path(arg)
+    if p.is_dir():
+        p = p / VAL8
+    if not p.is_file():
+        raise FileNotFoundError(f"{arg}: no pooled validation record ({p})")
+    return json.loads(p.read_text())
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m experiments.table",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ap.add_argument("results", nargs="?", type=Path, default=Path("results"))
+    ap.add_argument("--check", action="store_true", help="compare only; exit 1 on a difference")
+    ap.add_argument("--paired", nargs=2, metavar=("A", "B"), help="run folders or pooled records")
+    args = ap.parse_args(argv)
+    if args.paired:
+        try:
+            a, b = (_paired_record(x) for x in args.paired)
+            print(f"SR, A - B: {paired_difference(a, b)}")
+        except (OSError, ValueError, KeyError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        return 0
+    files, missing = generate(args.results)
+    changed = [(p, old, new) for p, (old, new) in files.items() if old != new]
+    for p, old, new in changed:
+        if args.check:
+            sys.stdout.writelines(
+                difflib.unified_diff(
+                    old.splitlines(True), new.splitlines(True), f"{p} (committed)", f"{p} (records)"
+                )
+            )
+        else:
+            p.write_text(new)
+            print(f"wrote {p}")
+    for m in missing:
+        print(f"missing record: {m}", file=sys.stderr)
+    bad_refs = missing_references(args.results.parent) if args.check else []
+    for ref in bad_refs:
+        print(f"no such path: {ref}", file=sys.stderr)
+    if missing:
+        print(f"{len(missing)} record(s) missing: their cells read {MISSING}", file=sys.stderr)
+    if args.check and changed:
+        print(
+            "the tables differ from the records: run python -m experiments.table", file=sys.stderr
+        )
+    return 1 if missing or bad_refs or (args.check and changed) else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

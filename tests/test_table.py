@@ -1,0 +1,178 @@
+"""experiments.table: the READMEs' results tables are the committed records, rebuilt; seed groups,
+paired differences, missing records and the results/ paths the READMEs name."""
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from experiments import table
+from experiments.table import Entry, Records, Stat
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_committed_tables_are_the_records():
+    files, missing = table.generate(ROOT / "results")
+    assert not missing, "records missing:\n" + "\n".join(missing)
+    for path, (committed, generated) in files.items():
+        assert committed == generated, f"{path}: run python -m experiments.table"
+
+
+def test_every_results_path_the_readmes_name_exists():
+    assert table.missing_references(ROOT) == []
+
+
+def _run(results, name, sr, tt, val, scen=True, steps=1000):
+    """A synthetic run folder: results.json, curve.json, the pooled validation record (one task
+    set with the given per-task SR) and, if asked, the scenario records."""
+    run = results / "restaurant" / name
+    m = {"SR": sr, "TT": tt, "CFR": 1.0, "SPL": sr / 2, "MGD": tt / 2}
+    (run / "eval").mkdir(parents=True)
+    res = {"test_adapt": m, "test_online": m, "ood_adapt": m}
+    (run / "results.json").write_text(json.dumps(res))
+    point = {"val_SR": sr, "val_CFR": 1.0}
+    curve = {"budget_minutes": 60.0, "grad_steps": steps, "points": [point]}
+    (run / "curve.json").write_text(json.dumps(curve))
+    n = len(val)
+    mean = sum(val) / n
+    se = math.sqrt(sum((v - mean) ** 2 for v in val) / (n - 1) / n)
+    pooled = {"SR": {"mean": mean, "se": se}, "CFR": {"mean": 1.0, "se": 0.0}}
+    rec = {"task_seed": 1, "tasks": list(range(n)), "per_task": {"SR": [val]}}
+    val8 = run / table.VAL8
+    val8.parent.mkdir(parents=True)
+    val8.write_text(json.dumps({"pooled": pooled, "records": [rec]}))
+    for rel in table.SCENARIOS.values():
+        if scen:
+            (run / rel).parent.mkdir(parents=True)
+            (run / rel).write_text(json.dumps({"metrics": {"SR": sr, "CFR": 1.0}}))
+    return f"restaurant/{name}"
+
+
+def test_a_seed_group_is_mean_standard_error_over_seeds_and_worst_seed(tmp_path):
+    results = tmp_path / "results"
+    srs, tts = [0.5, 0.75, 1.0], [60.0, 50.0, 40.0]
+    runs = tuple(
+        _run(results, f"s{i}", sr, tt, [sr, sr], steps=1000 + 500 * i)
+        for i, (sr, tt) in enumerate(zip(srs, tts, strict=True))
+    )
+    rec = Records(results)
+    group = Entry("group", runs)
+    sr = table.entry_values(rec, group, "test", "SR")
+    assert [s.value for s in sr] == srs
+    se = math.sqrt(sum((v - 0.75) ** 2 for v in srs) / 2 / 3)  # ddof 1, over 3 seeds
+    assert table.seed_stats(srs, "SR") == pytest.approx((0.75, se, 0.5))
+    assert table.seed_stats(tts, "TT") == pytest.approx((50.0, se * 40, 60.0))  # worst = longest
+    assert table.fmt_metric(sr, "SR") == f"0.75 +- {se:.2f} (worst 0.50)"
+    tt = table.entry_values(rec, group, "test", "TT")
+    assert table.fmt_metric(tt, "TT") == f"50.00 +- {se * 40:.2f} (worst 60.00)"
+    # the validation cell of a group is over the seeds' pooled means, not over tasks
+    assert table.val8_cell(rec, group, cfr=True) == f"0.75 +- {se:.2f} (worst 0.50) (CFR 1.00)"
+    cfr = "1.00 +- 0.00 (worst 1.00)"
+    assert table.pair_cell(rec, group, "scen_test") == f"0.75 +- {se:.2f} (worst 0.50) / {cfr}"
+    # counts: the range over the seeds' records
+    steps = table.entry_values(rec, group, "grad_steps", "")
+    assert table.fmt_count(steps, table._steps) == "1000-2000"
+    assert table.fmt_count(table.entry_values(rec, group, "budget", ""), table._minutes) == "60"
+    one = Entry("one", runs[:1])
+    assert table.val8_cell(rec, one, cfr=False) == "0.50 +- 0.00"
+    assert table.fmt_metric([Stat(0.875)], "SR") == "0.88"  # the records' rounding
+    with pytest.raises(ValueError):
+        table.seed_stats([0.5], "SR")
+    assert not rec.missing
+
+
+def test_a_missing_record_is_named_and_never_filled_in(tmp_path, monkeypatch, capsys):
+    results = tmp_path / "results"
+    ok = _run(results, "ok", 0.5, 60.0, [0.0, 1.0])
+    gap = _run(results, "gap", 0.5, 60.0, [0.0, 1.0], scen=False)
+    entries = (
+        Entry("ok", (ok,)),
+        Entry("gap", (gap,)),
+        Entry("none", (gap,), absent=table._NO_SCEN),
+    )
+    (tmp_path / "README.md").write_text("text\n<!-- table:t -->\nold\n<!-- /table:t -->\nend\n")
+    (results / "README.md").write_text("no block here\n")
+    blocks = [("README.md", "t", lambda rec: table.render_restaurant(rec, entries))]
+    files, missing = table.generate(results, blocks)
+    new = files[tmp_path / "README.md"][1]
+    assert new.startswith("text\n<!-- table:t -->\n| run |") and new.endswith("\nend\n")
+    rows = {line.split(" [")[0].strip("| "): line for line in new.splitlines() if "[`" in line}
+    assert rows["ok"].endswith("| 0.50 / 1.00 | 0.50 / 1.00 |")
+    assert rows["gap"].endswith(
+        f"| {table.MISSING} / {table.MISSING} | {table.MISSING} / MISSING |"
+    )
+    assert rows["none"].endswith("| - / - | - / - |")
+    assert missing == [
+        "results/restaurant/gap/eval/policy-scenarios-test/results.json",
+        "results/restaurant/gap/eval/policy-scenarios-ood/results.json",
+    ]
+    monkeypatch.setattr(table, "BLOCKS", tuple(blocks))
+    monkeypatch.setattr(table, "missing_references", lambda root: [])
+    assert table.main([str(results), "--check"]) == 1
+    out = capsys.readouterr()
+    assert "missing record: results/restaurant/gap/eval/policy-scenarios-test" in out.err
+    assert "(committed)" in out.out and "+| run |" in out.out  # the diff
+    assert (tmp_path / "README.md").read_text().count("old") == 1  # --check writes nothing
+
+
+def test_check_passes_once_the_tables_are_written(tmp_path, monkeypatch, capsys):
+    results = tmp_path / "results"
+    entries = (Entry("ok", (_run(results, "ok", 0.5, 60.0, [0.0, 1.0]),)),)
+    (tmp_path / "README.md").write_text("<!-- table:t -->\n<!-- /table:t -->\n")
+    (results / "README.md").write_text("")
+    monkeypatch.setattr(
+        table, "BLOCKS", (("README.md", "t", lambda r: table.render_restaurant(r, entries)),)
+    )
+    monkeypatch.setattr(table, "missing_references", lambda root: [])
+    assert table.main([str(results), "--check"]) == 1
+    assert table.main([str(results)]) == 0
+    assert table.main([str(results), "--check"]) == 0
+    assert "0.50 +- 0.50 (CFR 1.00)" in (tmp_path / "README.md").read_text()
+    capsys.readouterr()
+
+
+def test_block_markers_must_be_there_once():
+    assert table.replace_block("a\n<!-- table:x -->\nb\n<!-- /table:x -->\n", "x", "c") == (
+        "a\n<!-- table:x -->\nc\n<!-- /table:x -->\n"
+    )
+    for text in ("none", "<!-- /table:x --><!-- table:x -->", "<!-- table:x -->" * 2):
+        with pytest.raises(ValueError, match="table:x"):
+            table.replace_block(text, "x", "c")
+
+
+def _pooled(per_task: list[list[float]], seeds=(1, 2)) -> dict:
+    return {
+        "records": [
+            {"task_seed": s, "tasks": list(range(len(t))), "per_task": {"SR": [t]}}
+            for s, t in zip(seeds, per_task, strict=True)
+        ]
+    }
+
+
+def test_paired_difference_is_over_the_same_tasks():
+    a = _pooled([[1, 1, 0, 0], [1, 1, 1, 0]])
+    b = _pooled([[1, 0, 0, 1], [0, 1, 1, 0]])
+    p = table.paired_difference(a, b)
+    d = [0, 1, 0, -1, 1, 0, 0, 0]
+    se = math.sqrt(sum((x - 0.125) ** 2 for x in d) / 7 / 8)
+    assert (p.mean, p.tasks, p.both, p.only_a, p.only_b) == (0.125, 8, 3, 2, 1)
+    assert p.se == pytest.approx(se)
+    assert str(p).startswith(f"+0.12 +- {se:.2f} over 8 tasks")
+    with pytest.raises(ValueError, match="same tasks"):
+        table.paired_difference(a, _pooled([[1, 1, 0, 0], [1, 1, 1, 0]], seeds=(1, 3)))
+
+
+def test_referenced_paths_reads_code_brackets_and_links_but_not_outputs():
+    text = (
+        "see `results/restaurant/pearl` and [`ablation/x`, `restaurant/y`] or [a](earlier/z.png);"
+        " `python -m benchmarks.imitation --out results/new/folder` `runs/<run>` `docs/a.md`\n"
+        "```bash\npython -m x results/in/code\n```\n"
+    )
+    assert table.referenced_paths(text) == [
+        "results/restaurant/pearl",
+        "ablation/x",
+        "restaurant/y",
+        "earlier/z.png",
+    ]
