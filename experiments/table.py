@@ -547,9 +547,48 @@ def render_restaurant(rec: Records, entries: Sequence[Entry] = RESTAURANT) -> st
 
 # ---------------------------------------------------------------- blocks in the READMEs
 
+# crowd perturbations (docs/method.md §8a) on the 192 validation tasks: folder suffix, label
+PERTURBATIONS = (
+    ("", "none"),
+    ("-delay3", "delay 3"),
+    ("-delay6", "delay 6"),
+    ("-delay12", "delay 12"),
+    ("-speed0.7", "speed 0.7"),
+    ("-speed1.3", "speed 1.3"),
+)
+ROBUSTNESS = (
+    ("MPC-PEARL 0.2 (`cpu-explore`), 60 min", _HEADLINE),
+    ("PEARL (`cpu-explore`), 60 min", "restaurant/pearl"),
+    ("MPC-SAC 0.2 (`cpu-explore`), 60 min", "restaurant/mpc-sac"),
+)
+
+
+def render_robustness(rec: Records, rows: Sequence[tuple[str, str]] = ROBUSTNESS) -> str:
+    """SR / CFR of each run on the 192 validation tasks with the people's timing perturbed
+    (`experiments.evaluate RUN --split val --task-seeds 1-8 --perturb ...`)."""
+    head = ["run", *(f"{label}" for _, label in PERTURBATIONS)]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for label, run in rows:
+        cells = []
+        for suffix, _ in PERTURBATIONS:
+            rel = f"{run}/eval/policy-val{suffix}-seeds1-8/results.json"
+            pair = [_pooled(rec, rel, m) for m in ("SR", "CFR")]
+            cells.append(MISSING if None in pair else " / ".join(f2(p.value) for p in pair))
+        lines.append(f"| {label} [`{run}`] | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "SR / CFR on the 192 validation tasks (task seeds 1-8) with every person's timing "
+        "perturbed on an unchanged path: delay K holds everyone at the start K more steps, speed "
+        "S follows the paths S times as fast (docs/method.md §8a). Records: "
+        "`RUN/eval/policy-val[-PERTURBATION]-seeds1-8/results.json`.",
+    ]
+    return "\n".join(lines)
+
+
 BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block name, renderer
     ("README.md", "quality", render_quality),
     ("results/README.md", "restaurant", render_restaurant),
+    ("results/README.md", "robustness", render_robustness),
 )
 
 
