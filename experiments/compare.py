@@ -57,10 +57,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--gp-mpc", type=Path, help="JSON written by experiments.gp_mpc")
+    ap.add_argument(
+        "--labels",
+        help="comma-separated names of the runs in the figure and tables (default: each run's "
+        "method label)",
+    )
     ap.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = ap.parse_args(argv)
     try:
         loaded = [(r, *_load(r)) for r in args.runs]
+        names = [run_label(c) for _, c, _, _ in loaded]
+        if args.labels is not None:
+            names = [x.strip() for x in args.labels.split(",")]
+            if len(names) != len(loaded) or not all(names):
+                raise NotARun(f"--labels: give {len(loaded)} non-empty names, one per run")
         args.out.mkdir(parents=True, exist_ok=True)
     except (NotARun, OSError) as e:
         if args.debug:
@@ -70,9 +80,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error_line(e)}", file=sys.stderr)
         return 2
     plot_learning_curves(
-        [(run_label(c), rows) for _, c, rows, _ in loaded], args.out / "curves.png"
+        [(name, rows) for name, (_, _, rows, _) in zip(names, loaded, strict=True)],
+        args.out / "curves.png",
     )
-    finished = [(run_label(c), res) for _, c, _, res in loaded if res is not None]
+    finished = [
+        (name, res) for name, (_, _, _, res) in zip(names, loaded, strict=True) if res is not None
+    ]
     paper = finished[0][1].get("paper", {}) if finished else {}
     text = comparison_table(finished, paper)
     if args.gp_mpc and args.gp_mpc.is_file():
@@ -88,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         "runs": [
             {
                 "run": str(r),
-                "label": run_label(c),
+                "label": name,
                 "iterations": rows[-1]["iteration"] if rows else 0,
                 "gradient_steps_per_seed": (rows[-1]["iteration"] if rows else 0)
                 * c.get("train", c.get("grbal", {}))["updates_per_iteration"],
@@ -96,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
                 "wall_s": rows[-1].get("wall_s") if rows else None,
                 "results": res,
             }
-            for r, c, rows, res in loaded
+            for name, (r, c, rows, res) in zip(names, loaded, strict=True)
         ]
     }
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))

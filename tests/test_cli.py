@@ -48,3 +48,21 @@ def test_gp_mpc_cli(tmp_path):
     rec = json.loads((tmp_path / "restaurant_test.json").read_text())
     assert set(rec["metrics"]) >= {"SR", "TT", "CFR", "SPL", "MGD"}
     assert rec["status"].get("solved", 0) > 0
+
+
+def test_compare_names_the_runs_with_labels(tmp_path, capsys):
+    """`experiments.compare --labels`: one name per run in the figure and summary; a wrong count
+    is a one-line error."""
+    from experiments import compare
+
+    runs = ["results/restaurant/mpc-pearl-eps0.2", "results/restaurant/mpc-pearl-eps0.2-paper"]
+    out = tmp_path / "cmp"
+    assert compare.main([*runs, "--out", str(out), "--labels", "headline, paper alg."]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert [r["label"] for r in summary["runs"]] == ["headline", "paper alg."]
+    assert "| headline" in (out / "table.md").read_text()
+    assert (out / "curves.png").is_file()
+    capsys.readouterr()
+    assert compare.main([*runs, "--out", str(out), "--labels", "only one"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--labels" in err and "\n" not in err

@@ -226,25 +226,29 @@ def test_gp_mpc_cli_on_scenarios(tmp_path, synthetic, capsys):
     assert "no such directory" in capsys.readouterr().err
 
 
-def test_a_run_trained_on_scenarios_resumes_and_evaluates(tmp_path, synthetic, capsys):
-    """One smoke iteration on the synthetic scenarios with the val hold-out: the run records its
-    source, `load_policy` and `experiments.evaluate` work on it (val allowed: held out)."""
+def test_a_run_trained_on_scenarios_records_its_source_and_evaluates(tmp_path, capsys):
+    """One smoke iteration on synthetic scenarios (no OOD file) with the val hold-out: the run
+    records its source, its final evaluation says the OOD file is missing (not scoring the
+    generated OOD tasks), `load_policy` and `experiments.evaluate` work on it (val allowed: held
+    out), and a resume on a changed file is refused by its recorded sha256."""
     from experiments import evaluate
     from experiments.common import main
     from mpcpearl_jax import load_policy
 
+    scen = write_scenarios(tmp_path / "scen", with_ood=False)
     out = tmp_path / "run"
-    argv = ["--preset", "smoke", "--iterations", "1", "--no-progress", "--out", str(out)]
-    argv += ["--scenarios", str(synthetic), "--hold-out-val"]
+    argv = ["--preset", "smoke", "--eps", "0", "--no-progress", "--out", str(out)]
+    argv += ["--scenarios", str(scen), "--hold-out-val"]
     argv += ["--set", "train.tasks_per_iteration=2", "--set", "train.eval_interval=0"]
-    assert main("restaurant", argv) == 0
+    assert main("restaurant", [*argv, "--iterations", "1"]) == 0
     cfg = json.loads((out / "config.json").read_text())
-    assert cfg["task_options"]["scenario_sha256"] == sc.scenario_digests(synthetic)
+    assert cfg["task_options"]["scenario_sha256"] == sc.scenario_digests(scen)
     res = json.loads((out / "results.json").read_text())
-    assert set(res["ood_adapt"]) >= {"SR", "CFR"}
+    # the run's OOD split is the scenarios' (here absent), never the generated crowds' OOD tasks
+    assert sc.OOD_FILE in res["ood_adapt"]["skipped"] and set(res["test_adapt"]) >= {"SR"}
     policy = load_policy(out)
     assert policy.config.task_options == cfg["task_options"]
-    tasks = make_tasks("restaurant", "test", scenarios=synthetic)
+    tasks = make_tasks("restaurant", "test", scenarios=scen)
     env = make_env("restaurant", **policy.config.env_overrides)
     task0 = jax.tree_util.tree_map(lambda x: x[0], tasks)
     obs, _ = env.reset(jax.random.PRNGKey(0), task0)
@@ -254,3 +258,9 @@ def test_a_run_trained_on_scenarios_resumes_and_evaluates(tmp_path, synthetic, c
     assert evaluate.main([str(out), "--split", "val", "--figures", "none"]) == 0
     rec = json.loads((out / "eval" / "policy-scenarios-val" / "results.json").read_text())
     assert len(rec["tasks"]) == 30
+    # the file changes under the run: its tasks are no longer the recorded ones
+    np.save(scen / sc.MAIN_FILE, _people(205, 9))
+    capsys.readouterr()
+    assert main("restaurant", [*argv, "--iterations", "2", "--resume"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "sha256" in err and "\n" not in err

@@ -389,15 +389,16 @@ def final_evaluation(
     online.pop("_raw")
     results["test_adapt"] = adapt
     results["test_online"] = online
-    try:
+    try:  # the OOD split of the run's own task source (its task options: e.g. the scenarios)
         kw = {"data": trainer.cfg.data} if trainer.cfg.data else {}
+        kw.update(trainer.cfg.task_options)
         ood = make_tasks(
             trainer.cfg.env, "ood", trainer.cfg.task_seed, config=trainer.env.config, **kw
         )
         res = trainer.evaluate(state, tasks=ood)
         res.pop("_raw")
         results["ood_adapt"] = res
-    except ValueError as e:  # a family without an OOD split
+    except (ValueError, FileNotFoundError) as e:  # no OOD split (or no OOD scenario file)
         results["ood_adapt"] = {"skipped": str(e)}
     results["paper"] = PAPER.get(trainer.cfg.env, {})
     if not is_primary():  # every process evaluates its seeds; process 0 writes

@@ -228,7 +228,7 @@ def final_evaluation(trainer: GrbalTrainer, state: GrbalState, out: str | Path) 
         res = trainer.evaluate(state, tasks=ood)
         res.pop("_raw")
         results["ood_adapt"] = res
-    except ValueError as e:  # a family without an OOD split
+    except (ValueError, FileNotFoundError) as e:  # no OOD split (or no OOD scenario file)
         results["ood_adapt"] = {"skipped": str(e)}
     results["paper"] = PAPER.get(cfg.env, {})
     no_result = "no GrBAL result in the paper"
