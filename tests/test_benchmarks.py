@@ -68,6 +68,7 @@ def test_all_lists_every_script() -> None:
         assert (root / f"{name}.py").is_file()
 
 
+@pytest.mark.slow  # a diagnostic outside the README's commands (~30-50 s)
 def test_imitation_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     """`benchmarks.imitation` (a diagnostic, not part of the speed suite) on the committed
     headline run: errors on the MPC's states, the BC curve and its closed-loop metrics."""
@@ -86,6 +87,7 @@ def test_imitation_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     assert list(seeds) == [1] and 0.0 <= seeds[1]["SR"] <= seeds[1]["CFR"] <= 1.0
 
 
+@pytest.mark.slow  # a diagnostic outside the README's commands (~30-50 s)
 def test_dagger_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     """`benchmarks.dagger` (a diagnostic) with the egocentric, sorted observation: labelled
     states accumulate over the rounds (round 0 is the MPC alone, every later round executes the

@@ -670,6 +670,7 @@ def test_learning_run_stops_on_ctrl_c_and_resumes_exactly(tmp_path, monkeypatch,
     assert json.loads((run / "curve.json").read_text())["resumed_at_iteration"] == 4
 
 
+@pytest.mark.slow  # the Ctrl-C resume of the same harness is tested exactly above (~35 s)
 def test_learning_run_ctrl_c_then_kill9_then_resume(tmp_path, monkeypatch):
     """The command line: Ctrl-C gives exit 130 and one line within seconds, with the checkpoint,
     config.json and curve saved; a --resume killed with SIGKILL loses at most the iteration under
