@@ -305,6 +305,13 @@ def test_kill9_at_random_points_of_the_command_line(tmp_path, eps):
 
 
 # ------------------------------------------------------------------------------ Ctrl-C
+def _interrupted_at(text: str) -> int:
+    """The iteration of the one 'interrupted at iteration N; continue with --resume' line."""
+    lines = [x for x in text.splitlines() if x.startswith("interrupted at iteration")]
+    assert len(lines) == 1 and lines[0].endswith("; continue with --resume"), text
+    return int(lines[0].split()[3].rstrip(";"))
+
+
 def _sigint_when(proc: subprocess.Popen, cond, timeout: float = 240.0) -> float:
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
@@ -328,9 +335,7 @@ def test_ctrl_c_then_kill9_in_a_checkpoint_write_then_resume_is_exact(tmp_path, 
     assert proc.wait(timeout=60) == 130
     assert time.monotonic() - t_sig < 10
     text = log.read_text()
-    lines = [x for x in text.splitlines() if x.startswith("interrupted at iteration")]
-    assert len(lines) == 1 and lines[0].endswith("; continue with --resume"), text
-    n = int(lines[0].split()[3].rstrip(";"))
+    n = _interrupted_at(text)
     assert 2 <= n < ITERATIONS - 1 and (run / "checkpoints" / str(n)).is_dir()
     assert "Traceback" not in text and len(read_log(run / LOG_FILE)) == n
     proc = spawn([*args, "--resume"], log)
@@ -686,10 +691,8 @@ def test_learning_run_ctrl_c_then_kill9_then_resume(tmp_path, monkeypatch):
     assert proc.wait(timeout=60) == 130
     assert time.monotonic() - t_sig < 15
     text = log.read_text()
-    lines = [x for x in text.splitlines() if x.startswith("interrupted at iteration")]
-    assert len(lines) == 1 and lines[0].endswith("; continue with --resume"), text
+    n = _interrupted_at(text)
     assert "Traceback" not in text
-    n = int(lines[0].split()[3].rstrip(";"))
     assert n >= 2 and (run / "checkpoints" / str(n)).is_dir()
     assert json.loads((run / "curve.json").read_text())["stopped"] == "interrupted"
     assert json.loads((run / "config.json").read_text())["train"]["iterations"] == n
