@@ -132,3 +132,57 @@ def test_shield_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
             assert p["shield_rate"]["mean"] == 0.0
     # the goal-seeking control alone drives into the first table
     assert rows[0]["pooled"]["collision_free"]["mean"] == 0.0
+
+
+def test_crowd_cause_interventions_change_only_what_they_name() -> None:
+    """`benchmarks.crowd_cause`'s observation interventions: the clock reads max(t - K, 0) and
+    nothing else moves; blind hides every person (as the env shows an absent one) and keeps the
+    pose, static and goal parts; no intervention is the env's own observation."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from benchmarks.crowd_cause import intervened_env
+    from mpcpearl_jax import make_env, make_tasks
+    from mpcpearl_jax.envs.types import EnvState
+
+    env = make_env("restaurant", observe_time=True, observe_velocity=True)
+    task = jax.tree_util.tree_map(lambda x: x[0], make_tasks("restaurant", "test"))
+    horizon = env.config.horizon
+    for t in (0, 5, 30):
+        state = EnvState(pose=task.start, t=jnp.asarray(t, jnp.int32))
+        own = np.asarray(env.observe(state, task))
+        np.testing.assert_array_equal(intervened_env(env.config).observe(state, task), own)
+        lag = np.asarray(intervened_env(env.config, clock_lag=12).observe(state, task))
+        np.testing.assert_array_equal(lag[:-1], own[:-1])
+        assert lag[-1] == pytest.approx(2 * max(t - 12, 0) / horizon - 1)
+        blind = np.asarray(intervened_env(env.config, blind=True).observe(state, task))
+        gone = task.replace(human_mask=jnp.zeros_like(task.human_mask))
+        np.testing.assert_array_equal(blind, env.observe(state, gone))
+        np.testing.assert_array_equal(blind[:3], own[:3])
+        assert not np.array_equal(blind, own)  # people are present in this task
+
+
+@pytest.mark.slow
+def test_crowd_cause_runs_tiny(tmp_path: Path, clean_environ) -> None:
+    """`benchmarks.crowd_cause` on the committed headline run: every condition once per delay,
+    the as-trained rows equal to experiments.evaluate's numbers on the same tasks."""
+    from benchmarks import crowd_cause
+
+    run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "mpc-pearl-eps0.2"
+    res = crowd_cause.main(["--tiny", "--runs", str(run), "--out", str(tmp_path), "--delay", "6"])
+    rows = res["rows"]
+    assert [(r["condition"], r["delay"]) for r in rows] == [
+        ("as trained", 0),
+        ("blind", 0),
+        ("zero-shot", 0),
+        ("as trained", 6),
+        ("clock follows the crowd", 6),
+        ("blind", 6),
+        ("zero-shot", 6),
+    ]
+    for r in rows:
+        p = r["pooled"]
+        assert 0.0 <= p["success"]["mean"] <= p["collision_free"]["mean"] <= 1.0
+        assert (r["path_shift_m"] is None) == (r["delay"] == 0)
+    assert json.loads((tmp_path / "crowd_cause.json").read_text())["config"]["delay"] == 6

@@ -246,6 +246,7 @@ def test_paper_presets_have_every_extension_off(name):
     assert cfg.pearl.policy_ema == 0 and not cfg.train.mpc_dagger_labels
     assert not cfg.pearl.auto_entropy and cfg.pearl.target_entropy is None
     assert not cfg.mpc.unsafe_recovery and cfg.train.explore_start_share == 0
+    assert cfg.train.crowd_delay_max == 0
     for field in (
         "observe_velocity",
         "observe_relative",
@@ -589,6 +590,60 @@ def test_redraw_behaviours_changes_only_the_visited_tasks_and_needs_a_family_tha
     from mpcpearl_jax.envs import can_redraw
 
     assert can_redraw("restaurant") and not can_redraw("sidewalk")
+
+
+def _delays_of(orig: np.ndarray, got: np.ndarray, top: int) -> np.ndarray:
+    """The per-person delay d with got[t] = orig[max(t - d, 0)] for one task [T + 1, H, 2]."""
+    out = []
+    for k in range(orig.shape[1]):
+        fits = [
+            d
+            for d in range(top + 1)
+            if np.array_equal(got[:, k], orig[np.maximum(np.arange(len(orig)) - d, 0), k])
+        ]
+        assert fits, f"person {k}: not its own path delayed by 0..{top} steps"
+        out.append(fits[0])
+    return np.asarray(out)
+
+
+@pytest.mark.parametrize("redraw", [False, True])
+def test_crowd_delays_shift_only_the_visited_paths_and_never_accumulate(redraw):
+    from mpcpearl_jax.trainer import Trainer
+    from tests.test_training import TINY
+
+    top = 20
+    tc = dataclasses.replace(TINY.train, crowd_delay_max=top, redraw_behaviours=redraw)
+    tr = Trainer(TINY.replace(train=tc))
+    state = tr.init_state()
+    orig = np.asarray(tr.train_tasks.human_pos)
+    seen = set()
+    for visit in range(3):  # the same tasks visited again: delays drawn afresh from the paths
+        ids = jnp.asarray([[0, 1], [1, 2]])
+        before = np.asarray(state.tasks.human_pos)
+        if redraw:
+            state = tr._redraw(state, ids, visit + 1)
+        fresh = np.asarray(state.tasks.human_pos)
+        state = tr._delay_crowds(state, ids)
+        after = np.asarray(state.tasks.human_pos)
+        for s in range(2):
+            changed = np.flatnonzero(np.any(after[s] != before[s], axis=(1, 2, 3)))
+            assert set(changed) <= set(np.asarray(ids[s]).tolist())
+            for i in np.asarray(ids[s]):
+                base = fresh[s, i] if redraw else orig[i]
+                seen.update(_delays_of(base, after[s, i], top).tolist())
+    assert len(seen) > 5 and max(seen) <= top  # delays vary, within the bound
+    # a resumed run (same state, same key) draws the same delays
+    again = tr._delay_crowds(tr.init_state(), jnp.asarray([[0, 1], [1, 2]]))
+    first = tr._delay_crowds(tr.init_state(), jnp.asarray([[0, 1], [1, 2]]))
+    np.testing.assert_array_equal(np.asarray(again.tasks.human_pos), first.tasks.human_pos)
+    state, log = tr.iteration(tr.init_state())
+    assert np.isfinite(log["train_return"])
+    state, log = tr.iteration(state)
+    assert np.isfinite(log["train_return"])
+    with pytest.raises(ConfigError, match="crowd_delay_max"):
+        TrainConfig(crowd_delay_max=-1)
+    with pytest.raises(ConfigError, match="crowd_delay_max"):
+        TrainConfig(crowd_delay_max=2.5)
 
 
 def _ego_ref(pose, points, scale):

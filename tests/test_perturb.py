@@ -11,7 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mpcpearl_jax import make_tasks
-from mpcpearl_jax.envs.perturb import Perturbation, parse_perturbation, perturb_tasks
+from mpcpearl_jax.envs.perturb import (
+    Perturbation,
+    delay_people,
+    parse_perturbation,
+    perturb_tasks,
+)
 from mpcpearl_jax.envs.types import TaskParams
 
 RUN = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "main-default"
@@ -90,6 +95,39 @@ def test_single_task_and_jit():
     got = jax.jit(lambda t: perturb_tasks(t, p))(one)
     stacked = perturb_tasks(tasks, p)
     np.testing.assert_allclose(got.human_pos, stacked.human_pos[1], atol=1e-6)
+
+
+def delay_reference(pos: np.ndarray, mask: np.ndarray, delays: np.ndarray):
+    """One task, a plain loop: person k stands at its step-0 entry for delays[k] more steps."""
+    out_pos, out_mask = np.zeros_like(pos), np.zeros_like(mask)
+    for t in range(pos.shape[0]):
+        for k in range(pos.shape[1]):
+            src = max(t - int(delays[k]), 0)
+            out_pos[t, k], out_mask[t, k] = pos[src, k], mask[src, k]
+    return out_pos, out_mask
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 10_000), top=st.integers(0, 40))
+def test_per_person_delays_match_the_numpy_loop(seed, top):
+    tasks = _tasks(seed=seed % 7)
+    delays = np.random.default_rng(seed).integers(0, top + 1, size=(3, 4))
+    got = jax.jit(delay_people)(tasks, delays)
+    for i in range(3):
+        want_pos, want_mask = delay_reference(
+            np.asarray(tasks.human_pos[i]), np.asarray(tasks.human_mask[i]), delays[i]
+        )
+        np.testing.assert_array_equal(got.human_pos[i], want_pos)
+        np.testing.assert_array_equal(got.human_mask[i], want_mask)
+    for f in ("static_lo", "static_hi", "static_radius", "start", "goal"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(tasks, f))
+    # one delay for everyone is the evaluation's delay=K; a single task works unstacked
+    k = int(delays[0, 0])
+    same = delay_people(tasks, np.full((3, 4), k))
+    want = perturb_tasks(tasks, Perturbation(delay=k))
+    np.testing.assert_array_equal(same.human_pos, want.human_pos)
+    one = delay_people(jax.tree_util.tree_map(lambda x: x[2], tasks), delays[2])
+    np.testing.assert_array_equal(one.human_pos, got.human_pos[2])
 
 
 def test_parse_and_bad_values():

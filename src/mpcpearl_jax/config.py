@@ -69,6 +69,12 @@ class TrainConfig:
     # start, so the critic sees the goal and the ways round the tables early; the encoder's
     # context episodes and every evaluation start from the task's start as in the paper
     explore_start_share: float = 0.0
+    # randomised crowd timing: each time a training task is visited (after the initial
+    # collection), every one of its people waits an independent uniform number of steps in
+    # {0, ..., crowd_delay_max} at its start before following its path (envs.perturb.
+    # delay_people), drawn afresh per visit, so no timetable of the crowd can be learned by
+    # heart; the task's own paths are kept (0 = off, the paper)
+    crowd_delay_max: int = 0
 
     def __post_init__(self) -> None:
         v.ints(
@@ -85,7 +91,14 @@ class TrainConfig:
             "eval_adapt_episodes",
             "mpc_buffer_capacity",
         )
-        v.ints(self, "posterior_episodes", "eval_interval", "mpc_demo_iterations", lo=0)
+        v.ints(
+            self,
+            "posterior_episodes",
+            "eval_interval",
+            "mpc_demo_iterations",
+            "crowd_delay_max",
+            lo=0,
+        )
         unit = (
             "eps",
             "mpc_demo_share",
@@ -239,71 +252,26 @@ def mpc_config(fields: dict) -> MPCConfig:
     return MPCConfig(**fields)
 
 
-def _small_pearl() -> PearlConfig:
-    # reward_scale 5 (temperature 0.2) instead of the paper's 100 (0.01): Q values 20x smaller
-    # are fitted within the few thousand gradient steps a CPU affords per hour.
-    return PearlConfig(
-        reward_scale=5.0,
-        hidden=(128, 128, 128),
-        encoder_hidden=(128, 128, 128),
-        meta_batch=8,
-        batch_size=128,
-        context_size=64,
-    )
+# ------------------------------------------------------------------------------ presets
+# Every preset is the paper's configuration (method §7: `PearlConfig()`, `TrainConfig()`,
+# `MPCConfig()`) with the differences listed here, section by section, in one place. The blocks
+# below are shared by several presets; docs/extensions.md describes each option and
+# results/README.md measures it.
 
-
-def _extended(cfg: ExperimentConfig, demo_iterations: int) -> ExperimentConfig:
-    """The extensions of docs/extensions.md switched on (MPC warm start with DAgger-style mixing,
-    MPC buffer at half of every batch, behaviour cloning, LayerNorm critics, unsafe-plan
-    recovery). With eps = 0 (PEARL) the MPC-based ones are inactive."""
-    train = dataclasses.replace(
-        cfg.train,
-        mpc_demo_share=1.0,
-        mpc_demo_iterations=demo_iterations,
-        mpc_demo_step_prob=0.5,
-        mpc_buffer_fraction=0.5,
-    )
-    pearl = cfg.pearl.replace(bc_weight=1.0, bc_q_filter=False, layer_norm=True)
-    return cfg.replace(
-        pearl=pearl, train=train, mpc=cfg.mpc.replace(unsafe_recovery=True, n_workers=2)
-    )
-
-
-def _tuned(cfg: ExperimentConfig) -> ExperimentConfig:
-    """The options chosen over the extended `cpu` preset on the restaurant's validation split
-    (results/README.md, docs/extensions.md): crowds re-drawn for every training episode, behaviour
-    cloning weight 4, and the observation options (people's velocities, 3 m sensing range, the
-    clock, egocentric entries, people listed nearest first)."""
-    return cfg.replace(
-        pearl=cfg.pearl.replace(bc_weight=4.0),
-        train=dataclasses.replace(cfg.train, redraw_behaviours=True),
-        env_overrides={
-            "observe_velocity": True,
-            "sensing_radius": 3.0,
-            "observe_time": True,
-            "observe_relative": True,
-            "observe_sorted": True,
-        },
-    )
-
-
-def _exploring(cfg: ExperimentConfig) -> ExperimentConfig:
-    """`cpu-tuned` with the MPC-based extensions off (no warm start, no MPC buffer, no cloning:
-    the paper's event-triggered infusion with probability eps only) and exploring starts on half
-    the posterior-phase episodes, chosen on the validation split (results/README.md)."""
-    train = dataclasses.replace(
-        cfg.train,
-        mpc_demo_share=0.0,
-        mpc_demo_iterations=0,
-        mpc_buffer_fraction=0.0,
-        explore_start_share=0.5,
-    )
-    return cfg.replace(pearl=cfg.pearl.replace(bc_weight=0.0), train=train)
-
-
+# the CPU networks and batches; reward_scale 5 (temperature 0.2) instead of the paper's 100
+# (0.01): Q values 20x smaller are fitted within the few thousand gradient steps a CPU affords
+# per hour
+_CPU_NETS: dict[str, Any] = dict(
+    reward_scale=5.0,
+    hidden=(128, 128, 128),
+    encoder_hidden=(128, 128, 128),
+    meta_batch=8,
+    batch_size=128,
+    context_size=64,
+)
 # the CPU schedule: 8 tasks x (1 prior + 1 posterior) episodes and 500 gradient steps per
-# iteration (about 12 s on a 2-core CPU with the MPC warm start on)
-_CPU_TRAIN = TrainConfig(
+# iteration
+_CPU_SCHEDULE: dict[str, Any] = dict(
     iterations=3000,
     initial_episodes=1,
     tasks_per_iteration=8,
@@ -314,30 +282,36 @@ _CPU_TRAIN = TrainConfig(
     eval_interval=25,
     checkpoint_interval=25,
 )
-
-# the CPU schedule with the extensions, shared by the `cpu` and `cpu-tuned` presets
-_CPU_EXTENDED = _extended(ExperimentConfig(pearl=_small_pearl(), train=_CPU_TRAIN), 400)
-_CPU_EXPLORE = _exploring(_tuned(_CPU_EXTENDED))
-
-# `cpu-explore` with 2 x 64 networks and 4 tasks per gradient step (a step ~4x cheaper than
-# 3 x 128 and 8 tasks), automatic entropy tuning, 75 iterations; chosen on the validation split at a
-# 5-minute budget (results/README.md)
-_DEFAULT = _CPU_EXPLORE.replace(
-    pearl=_CPU_EXPLORE.pearl.replace(
-        hidden=(64, 64), encoder_hidden=(64, 64), meta_batch=4, auto_entropy=True
-    ),
-    train=dataclasses.replace(
-        _CPU_EXPLORE.train, iterations=75, eval_interval=25, checkpoint_interval=25
-    ),
+# the MPC-based extensions: warm start with DAgger-style mixing (falling to 0 at iteration 400),
+# MPC buffer at half of every batch (with eps = 0 they are inactive)
+_MPC_BUNDLE: dict[str, Any] = dict(
+    mpc_demo_share=1.0,
+    mpc_demo_iterations=400,
+    mpc_demo_step_prob=0.5,
+    mpc_buffer_fraction=0.5,
 )
+# the observation options chosen on the restaurant's validation split: people's velocities,
+# 3 m sensing range, the clock, egocentric entries, people listed nearest first
+_OBSERVATION: dict[str, Any] = dict(
+    observe_velocity=True,
+    sensing_radius=3.0,
+    observe_time=True,
+    observe_relative=True,
+    observe_sorted=True,
+)
+# unsafe-plan recovery, and two host processes for the MPC solves
+_MPC_RECOVERY: dict[str, Any] = dict(unsafe_recovery=True, n_workers=2)
 
-PRESETS: dict[str, ExperimentConfig] = {
+# name -> {section: {field: value}}: the differences from `paper`
+PRESET_CHANGES: dict[str, dict[str, dict[str, Any]]] = {
+    # method §7 exactly
+    "paper": {},
     # a couple of minutes on a laptop CPU: proves the whole pipeline end to end
-    "smoke": ExperimentConfig(
-        pearl=PearlConfig(
+    "smoke": {
+        "pearl": dict(
             hidden=(64, 64), encoder_hidden=(64, 64), meta_batch=4, batch_size=64, context_size=32
         ),
-        train=TrainConfig(
+        "train": dict(
             iterations=4,
             initial_episodes=1,
             tasks_per_iteration=4,
@@ -348,22 +322,77 @@ PRESETS: dict[str, ExperimentConfig] = {
             eval_interval=2,
             checkpoint_interval=2,
         ),
-    ),
-    # the README's main command: about five minutes on a 2-core CPU
-    "default": _DEFAULT,
-    # the CPU schedule with the extensions (docs/extensions.md); stop it any time (--iterations)
-    "cpu": _CPU_EXTENDED,
-    # the restaurant headline (results/README.md): `cpu` plus the options chosen on the validation
-    # split; restaurant only (the sidewalk cannot re-draw its crowds: add
-    # --set train.redraw_behaviours=false there)
-    "cpu-tuned": _tuned(_CPU_EXTENDED),
-    # the MPC-PEARL headline (results/README.md): `cpu-tuned` with the paper's event-triggered
-    # infusion instead of the MPC-based extensions, plus exploring starts; restaurant only
-    "cpu-explore": _CPU_EXPLORE,
-    # the same CPU schedule and networks with the paper's algorithm (no extension)
-    "cpu-paper": ExperimentConfig(pearl=_small_pearl(), train=_CPU_TRAIN),
-    # method §7 exactly
-    "paper": ExperimentConfig(pearl=PearlConfig(), train=TrainConfig()),
+    },
+    # the paper's algorithm (no extension) on the CPU schedule and networks
+    "cpu-paper": {"pearl": _CPU_NETS, "train": _CPU_SCHEDULE},
+    # the CPU schedule with the extensions (docs/extensions.md): the MPC bundle, behaviour
+    # cloning without Q filter, LayerNorm critics, unsafe-plan recovery
+    "cpu": {
+        "pearl": {**_CPU_NETS, "bc_weight": 1.0, "bc_q_filter": False, "layer_norm": True},
+        "train": {**_CPU_SCHEDULE, **_MPC_BUNDLE},
+        "mpc": _MPC_RECOVERY,
+    },
+    # `cpu` plus the options chosen on the validation split: crowds re-drawn per visit,
+    # cloning weight 4, the observation options; restaurant only (the sidewalk cannot re-draw
+    # its crowds: add --set train.redraw_behaviours=false there)
+    "cpu-tuned": {
+        "pearl": {**_CPU_NETS, "bc_weight": 4.0, "bc_q_filter": False, "layer_norm": True},
+        "train": {**_CPU_SCHEDULE, **_MPC_BUNDLE, "redraw_behaviours": True},
+        "mpc": _MPC_RECOVERY,
+        "env_overrides": _OBSERVATION,
+    },
+    # the MPC-PEARL headline (results/README.md): the paper's event-triggered infusion only (no
+    # MPC bundle, no cloning), LayerNorm critics, re-drawn crowds, the observation options and
+    # exploring starts on half the posterior-phase episodes; restaurant only
+    "cpu-explore": {
+        "pearl": {**_CPU_NETS, "bc_q_filter": False, "layer_norm": True},
+        "train": {
+            **_CPU_SCHEDULE,
+            "redraw_behaviours": True,
+            "explore_start_share": 0.5,
+            # inactive without the warm start; kept so the committed runs' configs rebuild
+            "mpc_demo_step_prob": 0.5,
+        },
+        "mpc": _MPC_RECOVERY,
+        "env_overrides": _OBSERVATION,
+    },
+    # the README's main command, about five minutes on a 2-core CPU: `cpu-explore` with 2 x 64
+    # networks, 4 tasks per gradient step (a step ~4x cheaper), automatic entropy tuning and 75
+    # iterations; chosen on the validation split at a 5-minute budget (results/README.md)
+    "default": {
+        "pearl": {
+            **_CPU_NETS,
+            "hidden": (64, 64),
+            "encoder_hidden": (64, 64),
+            "meta_batch": 4,
+            "auto_entropy": True,
+            "bc_q_filter": False,
+            "layer_norm": True,
+        },
+        "train": {
+            **_CPU_SCHEDULE,
+            "iterations": 75,
+            "redraw_behaviours": True,
+            "explore_start_share": 0.5,
+            "mpc_demo_step_prob": 0.5,  # inactive without the warm start (as in cpu-explore)
+        },
+        "mpc": _MPC_RECOVERY,
+        "env_overrides": _OBSERVATION,
+    },
+}
+
+
+def _build_preset(changes: dict[str, dict[str, Any]]) -> ExperimentConfig:
+    return ExperimentConfig(
+        pearl=PearlConfig(**changes.get("pearl", {})),
+        train=TrainConfig(**changes.get("train", {})),
+        mpc=MPCConfig(**changes.get("mpc", {})),
+        env_overrides=dict(changes.get("env_overrides", {})),
+    )
+
+
+PRESETS: dict[str, ExperimentConfig] = {
+    name: _build_preset(changes) for name, changes in PRESET_CHANGES.items()
 }
 
 

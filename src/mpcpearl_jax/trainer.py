@@ -28,6 +28,7 @@ from mpcpearl_jax import evaluate as eval_lib
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.distributed import constrain, first_local, make_mesh, sum_over_processes, to_host
 from mpcpearl_jax.envs import can_redraw, make_env, make_tasks, redraw_tasks
+from mpcpearl_jax.envs.perturb import delay_people
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.errors import ConfigError, TrainingDiverged
 from mpcpearl_jax.pearl import buffers
@@ -143,6 +144,7 @@ class Trainer:
         self.update_chunk = UPDATE_CHUNK
         self._init_state_jit = jax.jit(self._init_state)
         self._update_steps_jit = jax.jit(self._update_steps, donate_argnums=0)
+        self._delay_crowds_jit = jax.jit(self._delay_crowds_impl)
         self.evaluate_adapt = eval_lib.make_evaluator(
             self.env, self.nets, tc.eval_adapt_episodes, online=False
         )
@@ -287,6 +289,31 @@ class Trainer:
         )
         return state.replace(tasks=tasks)
 
+    def _delay_crowds(self, state: TrainState, ids: Array) -> TrainState:
+        """Extension `crowd_delay_max`: the visited tasks ids [S, k] get their people's paths
+        with a fresh random delay per person (`envs.perturb.delay_people`), applied to the
+        task's own crowd (the one just re-drawn with `redraw_behaviours`, else the original
+        training task), so delays never accumulate over visits. Keys come from the run's stream
+        in `TrainState`, so a resumed run draws the same delays."""
+        return self._delay_crowds_jit(state, ids)
+
+    def _delay_crowds_impl(self, state: TrainState, ids: Array) -> TrainState:
+        keys, sub = _split_keys(state.key, 1)
+        if self.cfg.train.redraw_behaviours:  # the crowds just re-drawn
+            visited = jax.vmap(collect_lib.rows_of)(state.tasks, ids)  # [S, k, ...]
+        else:  # the original training tasks
+            visited = collect_lib.rows_of(self.train_tasks, ids)
+        people = visited.human_pos.shape[-2]
+        top = self.cfg.train.crowd_delay_max
+        draw = lambda key: jax.random.randint(key, (ids.shape[1], people), 0, top + 1)  # noqa: E731
+        delays = jax.vmap(draw)(sub[:, 0])  # [S, k, H]
+        new = jax.vmap(delay_people)(visited, delays)
+        seed_ix = jnp.arange(ids.shape[0])[:, None]
+        tasks = jax.tree_util.tree_map(
+            lambda x, y: x.at[seed_ix, ids].set(y.astype(x.dtype)), state.tasks, new
+        )
+        return constrain(state.replace(tasks=tasks, key=keys), self.mesh)
+
     # ---------------------------------------------------------------- updates
     def _update_phase(self, state: TrainState) -> tuple[TrainState, dict]:
         """All N_train gradient steps in one scan; -> (state, mean losses [S])."""
@@ -393,6 +420,8 @@ class Trainer:
         state, ids = self._choose_tasks(state, tc.tasks_per_iteration)
         if tc.redraw_behaviours:
             state = self._redraw(state, ids, it + 1)
+        if tc.crowd_delay_max > 0:
+            state = self._delay_crowds(state, ids)
         state, prior = self.collect_phase(state, ids, tc.prior_episodes, False, True, True, share)
         post = None
         if tc.posterior_episodes > 0:

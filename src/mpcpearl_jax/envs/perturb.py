@@ -107,3 +107,22 @@ def perturb_tasks(tasks: TaskParams, p: Perturbation) -> TaskParams:
         fn = jax.vmap(fn)
     pos, mask = fn(tasks.human_pos, tasks.human_mask)
     return tasks.replace(human_pos=pos, human_mask=mask)
+
+
+def delay_people(tasks: TaskParams, delays: Array) -> TaskParams:
+    """Every person h holds its step-0 position (and presence) `delays[..., h]` more steps, then
+    follows its path: new[t, h] = old[max(t - d_h, 0), h]. `delays` is [H] for a single task or
+    [N, H] for a stacked task set (non-negative ints). The training-side counterpart of the
+    evaluation's `delay=K` (which is this with every d_h = K), used by the extension
+    `TrainConfig.crowd_delay_max`; pure JAX, jit- and vmap-friendly."""
+
+    def one(pos: Array, mask: Array, d: Array) -> tuple[Array, Array]:
+        t = jnp.arange(pos.shape[0])[:, None]
+        src = jnp.clip(t - d[None, :], 0, pos.shape[0] - 1)  # [T + 1, H]
+        new_pos = jnp.take_along_axis(pos, src[..., None], axis=0)
+        return new_pos, jnp.take_along_axis(mask, src, axis=0)
+
+    delays = jnp.asarray(delays, jnp.int32)
+    fn = jax.vmap(one) if tasks.human_pos.ndim == 4 else one
+    pos, mask = fn(tasks.human_pos, tasks.human_mask, delays)
+    return tasks.replace(human_pos=pos, human_mask=mask)

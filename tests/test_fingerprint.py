@@ -1,0 +1,108 @@
+"""Fingerprint of what training computes: a redesign must not change the algorithm.
+
+Two iterations of the `paper`, `cpu-explore` and `default` presets, shrunk to test sizes (small
+networks, two tasks per iteration, three gradient steps; every algorithmic option of the preset
+kept, the MPC infusion included), on the restaurant tasks; the training metrics of each iteration
+and a checksum of the trained parameters are compared with `tests/data/fingerprint.json`,
+recorded before any restructuring of the training code. Floating-point results can differ in the
+last bits between CPUs (vectorisation, fused multiply-add), so values are compared to 1e-4
+relative; a changed algorithm (another key split, loss term, update order) moves them by far
+more than that.
+
+Regenerate only when a change of the computed values is intended and stated:
+    MPCPEARL_WRITE_FINGERPRINT=1 pytest tests/test_fingerprint.py
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from mpcpearl_jax.config import preset
+
+FILE = Path(__file__).parent / "data" / "fingerprint.json"
+PRESETS = ("paper", "cpu-explore", "default")
+ITERATIONS = 2
+
+
+def tiny(name: str):
+    """The preset with test sizes; its algorithm (every option, eps 0.2) unchanged."""
+    cfg = preset(name)
+    pearl = cfg.pearl.replace(
+        hidden=(16, 16),
+        encoder_hidden=(16,),
+        latent_dim=3,
+        meta_batch=2,
+        batch_size=16,
+        context_size=8,
+    )
+    train = dataclasses.replace(
+        cfg.train,
+        eps=0.2,
+        iterations=ITERATIONS,
+        initial_episodes=1,
+        tasks_per_iteration=2,
+        prior_episodes=1,
+        posterior_episodes=1,
+        updates_per_iteration=3,
+        rl_capacity=400,
+        mpc_buffer_capacity=200,
+        eval_interval=0,
+        checkpoint_interval=1,
+    )
+    mpc = cfg.mpc.replace(num_samples=20, qp_tail_samples=5, n_workers=1)
+    return cfg.replace(pearl=pearl, train=train, mpc=mpc, seeds=1)
+
+
+def fingerprint(name: str) -> dict:
+    from mpcpearl_jax.trainer import Trainer
+
+    tr = Trainer(tiny(name))
+    state = tr.init_state()
+    logs = []
+    for _ in range(ITERATIONS):
+        state, log = tr.iteration(state)
+        logs.append(
+            {
+                k: float(np.mean(v))
+                for k, v in sorted(log.items())
+                # every computed number the iteration logs (wall times, "*_s", are not)
+                if not k.endswith("_s") and np.asarray(v).dtype.kind in "fiub"
+            }
+        )
+    leaves = jax.tree_util.tree_leaves(state.learner.params)
+    checksum = {
+        "abs_sum": float(sum(np.abs(np.asarray(x, np.float64)).sum() for x in leaves)),
+        "sum": float(sum(np.asarray(x, np.float64).sum() for x in leaves)),
+    }
+    return {"iterations": logs, "params": checksum}
+
+
+@pytest.mark.parametrize(
+    "name",
+    # the paper's algorithm in every run of the suite; the extended presets (about a minute
+    # each) with the slow tests: run them with `pytest -m slow tests/test_fingerprint.py`
+    [PRESETS[0], *(pytest.param(n, marks=pytest.mark.slow) for n in PRESETS[1:])],
+)
+def test_training_computes_what_it_computed(name):
+    got = fingerprint(name)
+    if os.environ.get("MPCPEARL_WRITE_FINGERPRINT") == "1":
+        data = json.loads(FILE.read_text()) if FILE.exists() else {}
+        data[name] = got
+        FILE.parent.mkdir(parents=True, exist_ok=True)
+        FILE.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+        pytest.skip(f"fingerprint of {name!r} written to {FILE.name}")
+    want = json.loads(FILE.read_text())[name]
+    assert len(got["iterations"]) == len(want["iterations"])
+    for i, (g, w) in enumerate(zip(got["iterations"], want["iterations"], strict=True)):
+        assert sorted(g) == sorted(w), f"iteration {i + 1}: logged metrics changed"
+        for k in w:
+            assert g[k] == pytest.approx(w[k], rel=1e-4, abs=1e-5), f"iteration {i + 1}: {k}"
+    for k, v in want["params"].items():
+        assert got["params"][k] == pytest.approx(v, rel=1e-4, abs=1e-5), f"parameters: {k}"
