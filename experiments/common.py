@@ -11,7 +11,7 @@ import time
 import typing
 from pathlib import Path
 
-from mpcpearl_jax.config import PRESETS, ExperimentConfig, TrainConfig, preset
+from mpcpearl_jax.config import PRESETS, ExperimentConfig, TrainConfig, preset, validate
 from mpcpearl_jax.envs import can_redraw, mpc_defaults
 from mpcpearl_jax.envs.types import NavConfig
 from mpcpearl_jax.errors import ConfigError
@@ -248,7 +248,7 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
     line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (resumable)."""
     args = parser(env).parse_args(argv)
     from mpcpearl_jax.errors import CheckpointError, RunDirError
-    from mpcpearl_jax.run import check_config, prepare
+    from mpcpearl_jax.run import prepare
 
     def fail(e: BaseException, code: int = 2) -> int:
         if args.debug:
@@ -266,8 +266,7 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
     try:  # everything up to training: each check names the field, file or folder
         # before any JAX work
         initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
-        cfg = build_config(args, env, **extra)
-        check_config(cfg)
+        cfg = validate(build_config(args, env, **extra))
         out = args.out or Path("runs") / f"{env}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"
         print(
             f"[{env}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "

@@ -163,8 +163,8 @@ def test_generator_options_are_refused_with_scenarios(synthetic):
 # ------------------------------------------------------------------------ command lines
 def test_config_records_the_source_and_refuses_redraw(synthetic):
     from experiments.common import build_config, parser
+    from mpcpearl_jax.config import validate
     from mpcpearl_jax.errors import ConfigError
-    from mpcpearl_jax.run import check_config
 
     args = parser("restaurant").parse_args(["--scenarios", str(synthetic), "--hold-out-val"])
     cfg = build_config(args, "restaurant")
@@ -172,12 +172,12 @@ def test_config_records_the_source_and_refuses_redraw(synthetic):
     assert cfg.task_options["hold_out_val"] is True
     assert cfg.task_options["scenario_sha256"] == sc.scenario_digests(synthetic)
     assert cfg.train.redraw_behaviours is False  # the default preset keeps the fixed crowds
-    check_config(cfg)
+    validate(cfg)
     explicit = parser("restaurant").parse_args(
         ["--preset", "cpu-explore", "--scenarios", str(synthetic)]
     )
     with pytest.raises(ConfigError, match="redraw_behaviours"):
-        check_config(build_config(explicit, "restaurant"))
+        validate(build_config(explicit, "restaurant"))
     with pytest.raises(ConfigError, match="--hold-out-val"):
         build_config(parser("restaurant").parse_args(["--hold-out-val"]), "restaurant")
 

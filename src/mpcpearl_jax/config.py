@@ -242,6 +242,34 @@ class ExperimentConfig(SerializableConfig):
         )
 
 
+def validate(cfg: ExperimentConfig) -> ExperimentConfig:
+    """The checks of a config that need its task family, run once before a command touches
+    anything (`run.prepare`, the learning harness; `Trainer` runs them too, for callers that build
+    one directly). Each section's own fields were checked when it was built (`__post_init__`):
+    here the env overrides' values on the family's own NavConfig, and whether the family can
+    re-draw its training crowds when `train.redraw_behaviours` asks for it (not the sidewalk's
+    recorded windows, not the paper's fixed scenarios). Returns `cfg`; ConfigError naming the
+    field."""
+    from mpcpearl_jax.envs import can_redraw, make_env
+
+    try:
+        make_env(cfg.env, **cfg.env_overrides)
+    except ValueError as e:
+        msg = str(e) if isinstance(e, ConfigError) else f"ExperimentConfig.env: {e}"
+        raise ConfigError(msg) from e
+    if cfg.train.redraw_behaviours and not can_redraw(cfg.env):
+        raise ConfigError(
+            f"TrainConfig.redraw_behaviours: env {cfg.env!r} cannot redraw its training "
+            "behaviours (add --set train.redraw_behaviours=false)"
+        )
+    if cfg.train.redraw_behaviours and cfg.task_options.get("scenarios"):
+        raise ConfigError(
+            "TrainConfig.redraw_behaviours: the paper's scenarios are fixed crowds and cannot be "
+            "re-drawn (add --set train.redraw_behaviours=false)"
+        )
+    return cfg
+
+
 def mpc_config(fields: dict) -> MPCConfig:
     """An MPCConfig from a dict of its fields (the defaults for the others); ConfigError naming
     any unknown field."""

@@ -33,14 +33,14 @@ from mpcpearl_jax.checkpoint import (
     save_network,
     write_json,
 )
-from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.config import ExperimentConfig, validate
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
-from mpcpearl_jax.errors import CheckpointError, ConfigError, RunDirError
+from mpcpearl_jax.errors import CheckpointError, RunDirError
 from mpcpearl_jax.pearl.learner import deployed_params
 from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.resources import check_state_fits
 from mpcpearl_jax.runlock import RunLock
-from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState, check_redraw
+from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState
 
 LOG_FILE = "metrics.jsonl"
 
@@ -126,21 +126,6 @@ def check_writable(run_dir: Path) -> None:
             ) from e
 
 
-def check_config(cfg: ExperimentConfig) -> None:
-    """Validate what needs the task family: the env overrides' values on the family's own
-    NavConfig (their names, and every other field, were checked when the config was built), and
-    whether it can re-draw its crowds when `train.redraw_behaviours` asks for it.
-    ConfigError naming the field."""
-    from mpcpearl_jax.envs import make_env
-
-    try:
-        make_env(cfg.env, **cfg.env_overrides)
-    except ValueError as e:
-        msg = str(e) if isinstance(e, ConfigError) else f"ExperimentConfig.env: {e}"
-        raise ConfigError(msg) from e
-    check_redraw(cfg)
-
-
 def _eval_row(trainer: Trainer, state: TrainState) -> dict[str, Any]:
     online = trainer.cfg.online_eval
     ev = trainer.evaluate(state, online=online)
@@ -174,7 +159,7 @@ def prepare(
     Only then is config.json written and metrics.jsonl cut back to the restored iteration. The
     session holds the lock: `sess.lock.release()` once the run's last file is written."""
     run_dir = Path(out)
-    check_config(cfg)
+    validate(cfg)
     if resume:
         load_config(run_dir)  # a run folder at all, before the lock creates anything
     lock = RunLock(run_dir, enabled=is_primary())

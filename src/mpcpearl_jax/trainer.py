@@ -25,9 +25,9 @@ from jax import Array
 
 from mpcpearl_jax import collect as collect_lib
 from mpcpearl_jax import evaluate as eval_lib
-from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.config import ExperimentConfig, validate
 from mpcpearl_jax.distributed import constrain, first_local, make_mesh, sum_over_processes, to_host
-from mpcpearl_jax.envs import can_redraw, make_env, make_tasks, redraw_tasks
+from mpcpearl_jax.envs import make_env, make_tasks, redraw_tasks
 from mpcpearl_jax.envs.perturb import delay_people
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.errors import ConfigError, TrainingDiverged
@@ -75,20 +75,6 @@ def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
     return both[:, 0], both[:, 1:]
 
 
-def check_redraw(cfg: ExperimentConfig) -> None:
-    """Extension `redraw_behaviours` needs a family that can re-draw its training crowds."""
-    if cfg.train.redraw_behaviours and not can_redraw(cfg.env):
-        raise ConfigError(
-            f"TrainConfig.redraw_behaviours: env {cfg.env!r} cannot redraw its training "
-            "behaviours (add --set train.redraw_behaviours=false)"
-        )
-    if cfg.train.redraw_behaviours and cfg.task_options.get("scenarios"):
-        raise ConfigError(
-            "TrainConfig.redraw_behaviours: the paper's scenarios are fixed crowds and cannot be "
-            "re-drawn (add --set train.redraw_behaviours=false)"
-        )
-
-
 class Trainer:
     """Builds everything for an experiment; see module docstring."""
 
@@ -110,7 +96,7 @@ class Trainer:
             raise ConfigError(f"ExperimentConfig.task_options: {e}") from e
         self.num_train = int(self.train_tasks.start.shape[0])
         self._task_kw = dict(cfg.task_options)
-        check_redraw(cfg)
+        validate(cfg)
         self.mesh = make_mesh(cfg.seeds, cfg.devices)  # None: one device, no sharding
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         self.action_dim = self.env.action_dim
