@@ -70,7 +70,6 @@ OUTPUTS = (
     "metrics.jsonl",
     "config.json",
     "policy.msgpack",
-    "policy-trained.msgpack",  # with pearl.policy_ema: the trained parameters
     "network.json",
     "curve-points.jsonl",
     "results.json",
@@ -238,15 +237,11 @@ def _loadavg() -> list[float] | None:
 
 # -------------------------------------------------------------------------- running
 def _evaluate(trainer, state, val_tasks, online: bool) -> dict[str, float]:
-    """test_* and val_* metrics of the deployed parameters; with a Polyak average kept
-    (`pearl.policy_ema`) also trained_test_* and trained_val_*, the trained parameters side by
-    side on the same tasks."""
+    """test_* and val_* metrics of the policy."""
     row: dict[str, float] = {}
-    averaged = trainer.cfg.pearl.policy_ema > 0
-    for prefix, kw in (("", {}), ("trained_", {"trained": True}))[: 1 + averaged]:
-        for split, tasks in (("test", None), ("val", val_tasks)):
-            ev = trainer.evaluate(state, tasks=tasks, online=online, **kw)
-            row.update({f"{prefix}{split}_{k}": ev[k] for k in METRICS})
+    for split, tasks in (("test", None), ("val", val_tasks)):
+        ev = trainer.evaluate(state, tasks=tasks, online=online)
+        row.update({f"{split}_{k}": ev[k] for k in METRICS})
     return row
 
 
@@ -277,9 +272,6 @@ def plot_curve(points: Sequence[dict[str, Any]], path: Path, title: str) -> Path
         for ax, metric in zip(axes[row], ("SR", "CFR", "return"), strict=True):
             for split, style in (("test", "-o"), ("val", "--s")):
                 ax.plot(x, [p[f"{split}_{metric}"] for p in points], style, ms=3, label=split)
-                if f"trained_{split}_{metric}" in points[-1]:  # pearl.policy_ema: both
-                    y = [p.get(f"trained_{split}_{metric}", math.nan) for p in points]
-                    ax.plot(x, y, style, ms=3, alpha=0.35, label=f"{split}, trained params")
             ax.set_title(metric)
             ax.set_xlabel(xlabel)
             ax.grid(alpha=0.3)
@@ -579,10 +571,8 @@ def _run_session(
     import jax
 
     from benchmarks.harness import available_cores, machine_info, print_table
-    from mpcpearl_jax.checkpoint import POLICY_FILE, TRAINED_POLICY_FILE, save_config, save_params
-    from mpcpearl_jax.distributed import to_host
+    from mpcpearl_jax.checkpoint import POLICY_FILE, save_config, save_params
     from mpcpearl_jax.envs import make_tasks
-    from mpcpearl_jax.pearl.learner import acting_params
     from mpcpearl_jax.run import (
         LOG_FILE,
         RunInterrupted,
@@ -718,11 +708,6 @@ def _run_session(
         return 1
 
     t = time.perf_counter()  # the last checkpoint was saved with the last evaluation
-    if stopped == "budget" and cfg.pearl.policy_ema > 0:  # the trained parameters beside them
-        trained = to_host(acting_params(state.learner.params))
-        save_params(out / TRAINED_POLICY_FILE, trained)
-    record["timing"]["save_s"] = time.perf_counter() - t
-    t = time.perf_counter()
     if stopped == "budget":
         final_evaluation(trainer, state, out, label)
     record["timing"]["final_evaluation_s"] = time.perf_counter() - t

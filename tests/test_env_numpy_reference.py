@@ -47,18 +47,14 @@ def _with_boxes_and_absent_people(params):
     )
 
 
-@pytest.fixture(
-    scope="module", params=["restaurant", "r_safe_0.125", "boxes_and_mask", "w_collision"]
-)
+@pytest.fixture(scope="module", params=["restaurant", "r_safe_0.125", "boxes_and_mask"])
 def setup(request):
-    """(env, stacked params) for four variants of the restaurant family."""
+    """(env, stacked params) for three variants of the restaurant family."""
     env = make_env("restaurant")
     tasks = make_tasks("restaurant", "train", seed=0)
     tasks = _take(tasks, np.arange(0, 120, 6))  # 20 tasks: every configuration, many behaviours
     if request.param == "r_safe_0.125":
         env = make_env("restaurant", r_safe=0.125)
-    elif request.param == "w_collision":
-        env = make_env("restaurant", w_collision=30.0)
     elif request.param == "boxes_and_mask":
         tasks = _with_boxes_and_absent_people(tasks)
     return env, tasks

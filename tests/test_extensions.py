@@ -3,6 +3,7 @@ inserts, Q-filtered behaviour cloning, LayerNorm critics, least-violation MPC mo
 default and in the `paper` preset."""
 
 import dataclasses
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -209,25 +210,6 @@ def test_demo_share_schedule():
             "explore_start_share",
         ),
         (lambda: PearlConfig(bc_q_filter=1), "bc_q_filter"),
-        (lambda: TrainConfig(mpc_dagger_labels=True), "mpc_dagger_labels"),
-        (
-            lambda: TrainConfig(
-                mpc_dagger_labels=True, mpc_demo_share=1.0, mpc_demo_iterations=5
-            ),  # step prob 1: the MPC drives every warm-start step, no policy step to label
-            "mpc_dagger_labels",
-        ),
-        (
-            lambda: ExperimentConfig(
-                train=TrainConfig(
-                    mpc_dagger_labels=True,
-                    mpc_demo_share=1.0,
-                    mpc_demo_iterations=5,
-                    mpc_demo_step_prob=0.5,
-                    mpc_buffer_fraction=0.5,
-                )
-            ),
-            "mpc_dagger_labels",
-        ),
     ],
 )
 def test_invalid_extension_settings_name_the_field(make, field):
@@ -243,7 +225,6 @@ def test_paper_presets_have_every_extension_off(name):
     assert cfg.train.mpc_demo_share == 0 and cfg.train.mpc_buffer_fraction == 0
     assert cfg.train.mpc_demo_step_prob == 1.0
     assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
-    assert cfg.pearl.policy_ema == 0 and not cfg.train.mpc_dagger_labels
     assert not cfg.pearl.auto_entropy and cfg.pearl.target_entropy is None
     assert not cfg.mpc.unsafe_recovery and cfg.train.explore_start_share == 0
     assert cfg.train.crowd_delay_max == 0
@@ -253,7 +234,6 @@ def test_paper_presets_have_every_extension_off(name):
         "sensing_radius",
         "observe_time",
         "observe_sorted",
-        "w_collision",
     ):
         assert not cfg.env_overrides.get(field), field
     from mpcpearl_jax.envs import make_env
@@ -408,91 +388,6 @@ def test_warm_start_rows_fill_the_mpc_buffer_with_exactly_the_mpc_transitions():
     state, losses = tr.update_phase(state)
     # only the MPC rows of tasks 0 and 1 are cloned: kept share > 0, finite error
     assert 0 < float(losses["bc_kept"][0]) < 1 and np.isfinite(float(losses["bc_error"][0]))
-
-
-def test_dagger_labels_are_the_mpc_actions_on_exactly_the_policy_steps_of_warm_start_rows():
-    """`train.mpc_dagger_labels`: in warm-start rows the MPC is solved on every step; where the
-    policy acts, the MPC's action is stored with the observation in the label buffer (not in the
-    MPC buffer, whose rows stay exactly the MPC-driven transitions), and the update clones it."""
-    from mpcpearl_jax.trainer import Trainer
-
-    cfg = _warm_start_config(mpc_demo_step_prob=0.5, mpc_dagger_labels=True)
-    tc = cfg.train
-    tr = Trainer(cfg)
-    assert tr.use_labels and tr.label_capacity == 200
-    state = tr.init_state()
-    ids = jnp.array([[0, 1]])
-    ep_state, stats = tr.collect_phase(state, ids, 1, False, True, True, jnp.float32(1.0))
-    share, labelled = float(stats["mpc_share"][0]), float(stats["labelled"][0])
-    # about half of the steps each, and together (nearly) all: every step was solved
-    assert 0.3 < share < 0.7 and 0.3 < labelled < 0.7 and share + labelled > 0.9
-    n_lab = int(jnp.sum(ep_state.labels.size[0]))
-    assert n_lab == round(labelled * 2 * tr.horizon)
-    assert int(jnp.sum(ep_state.mpc.size[0])) == round(share * 2 * tr.horizon)
-    # a label row is a policy step: its observation is in the RL buffer, its action is not the
-    # executed one (the MPC's answer differs from the sampled policy action)
-    rl = np.asarray(ep_state.rl.data.obs[0, 0, : tr.horizon])
-    rl_act = np.asarray(ep_state.rl.data.action[0, 0, : tr.horizon])
-    size0 = int(ep_state.labels.size[0, 0])
-    for o, a in zip(
-        np.asarray(ep_state.labels.data.obs[0, 0, :size0]),
-        np.asarray(ep_state.labels.data.action[0, 0, :size0]),
-        strict=True,
-    ):
-        j = int(np.argmin(np.abs(rl - o).sum(-1)))
-        assert np.abs(rl[j] - o).sum() < 1e-6 and np.abs(rl_act[j] - a).sum() > 1e-6
-    new_state, losses_ = tr.update_phase(ep_state)
-    assert np.isfinite(float(losses_["bc_label_error"][0]))
-    # without the extension the same collection stores no label and behaves as before
-    plain = Trainer(cfg.replace(train=dataclasses.replace(tc, mpc_dagger_labels=False)))
-    assert not plain.use_labels and plain.label_capacity == 1
-    _, stats0 = plain.collect_phase(plain.init_state(), ids, 1, False, True, True, 1.0)
-    assert float(stats0["labelled"][0]) == 0.0
-
-
-def test_dagger_label_rows_enter_the_bc_term_as_hand_computed():
-    cfg, nets, params, obs, z, demo = _bc_setup(0.5)
-    cfg = dataclasses.replace(cfg, bc_q_filter=False)
-    mask = jnp.zeros((2, 8)).at[:, :3].set(1.0)
-    d_obs = obs[:, ::-1] * 0.5 + 0.1  # [2, 8, O] other states
-    d_label = -demo
-    d_mask = jnp.zeros((2, 8)).at[:, 5:].set(1.0)
-    zb = jnp.broadcast_to(z[:, :1], z.shape)  # one z per task, as in the update
-
-    def loss_with(dagger):
-        return losses.policy_loss(
-            params["policy"],
-            nets,
-            params["q"],
-            obs,
-            zb,
-            jax.random.PRNGKey(3),
-            cfg.policy_mean_reg,
-            cfg.policy_std_reg,
-            demo,
-            mask,
-            cfg.bc_weight,
-            False,
-            dagger,
-        )
-
-    base, aux0 = loss_with(None)
-    loss, aux = loss_with((d_obs, d_label, d_mask))
-    mean, log_std = nets.policy_out(params["policy"], obs, zb)
-    from mpcpearl_jax.pearl.networks import tanh_gaussian
-
-    a, _ = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=jax.random.PRNGKey(3))
-    q_scale = jnp.mean(jnp.abs(jnp.minimum(*nets.q_values(params["q"], obs, a, zb))))
-    err = jnp.sum((jnp.tanh(mean) - demo) ** 2, -1)
-    d_err = jnp.sum((jnp.tanh(nets.policy_out(params["policy"], d_obs, zb)[0]) - d_label) ** 2, -1)
-    n = jnp.sum(mask) + jnp.sum(d_mask)
-    bc_plain = 0.5 * q_scale * jnp.sum(mask * err) / jnp.sum(mask)
-    want = 0.5 * q_scale * (jnp.sum(mask * err) + jnp.sum(d_mask * d_err)) / n
-    np.testing.assert_allclose(float(loss - base), float(want - bc_plain), rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(
-        float(aux["bc_label_error"]), float(jnp.sum(d_mask * d_err) / jnp.sum(d_mask)), rtol=1e-5
-    )
-    assert float(aux["bc_error"]) == float(aux0["bc_error"]) and float(aux["bc_kept"]) == 1.0
 
 
 def test_pearl_baseline_never_builds_the_mpc_even_with_extensions_set():
@@ -795,45 +690,9 @@ def test_grbal_refuses_env_options_its_model_or_planner_cannot_handle():
         ("sensing_radius", 2.0),
         ("observe_time", True),
         ("observe_sorted", True),
-        ("w_collision", 10.0),
     ):
         with pytest.raises(ConfigError, match=f"env.{field}"):
             layout_of(make_env("restaurant", **{field: value}), tasks)
-
-
-def test_collision_penalty_is_paid_exactly_on_blocked_steps():
-    """`env.w_collision` subtracts w on every step whose attempted move is a real collision and
-    changes nothing else (pose, info, observation); the MPC never sees it (env reward only)."""
-    from mpcpearl_jax.envs import make_env, make_tasks
-    from mpcpearl_jax.envs.types import EnvState
-
-    plain, pen = make_env("restaurant"), make_env("restaurant", w_collision=30.0)
-    task = jax.tree_util.tree_map(lambda x: x[0], make_tasks("restaurant", "train", 0))
-    centre = np.asarray(task.static_center[0])
-    rng = np.random.default_rng(0)
-    hits = 0
-    for i in range(40):
-        # half the poses 0.55-0.9 m from a table centre facing it (full speed: contact), half
-        # anywhere in the arena
-        if i % 2 == 0:
-            ang = rng.uniform(-np.pi, np.pi)
-            xy = centre + rng.uniform(0.55, 0.9) * np.array([np.cos(ang), np.sin(ang)])
-            pose = np.array([*xy, ang + np.pi])
-        else:
-            pose = np.array([*rng.uniform(-4.5, 4.5, 2), rng.uniform(-np.pi, np.pi)])
-        state = EnvState(pose=jnp.asarray(pose, jnp.float32), t=jnp.asarray(int(i), jnp.int32))
-        action = jnp.asarray([1.0, rng.uniform(-0.2, 0.2)], jnp.float32)
-        key = jax.random.PRNGKey(i)
-        o1, s1, r1, _, info1 = plain.step(key, state, action, task)
-        o2, s2, r2, _, info2 = pen.step(key, state, action, task)
-        np.testing.assert_array_equal(np.asarray(o1), np.asarray(o2))
-        np.testing.assert_array_equal(np.asarray(s1.pose), np.asarray(s2.pose))
-        assert bool(info1.collision) == bool(info2.collision)
-        hits += int(info1.collision)
-        np.testing.assert_allclose(float(r2), float(r1) - 30.0 * float(info1.collision), atol=1e-4)
-    assert 5 <= hits <= 35  # both kinds of step were exercised
-    with pytest.raises(ConfigError, match="w_collision"):
-        make_env("restaurant", w_collision=-1.0)
 
 
 def _restaurant_task():
@@ -921,3 +780,46 @@ def test_exploring_starts_change_only_the_marked_rows_and_never_the_encoder_cont
             )
     state, log = tr.iteration(state)
     assert np.isfinite(log["train_return"]) and 0.0 < log["train_explore_rows"] <= 1.0
+
+
+@pytest.mark.parametrize(
+    "folder, option",
+    [
+        ("dagger-labels-60min", "train.mpc_dagger_labels"),
+        ("policy-ema-60min", "pearl.policy_ema"),
+        ("collision-penalty-60min", "env_overrides.w_collision"),
+    ],
+)
+def test_runs_of_removed_options_evaluate_but_do_not_resume(tmp_path, folder, option):
+    """docs/extensions.md, Removed options: a committed run that switched one on loads with the
+    option dropped (its policy acts), resuming it is refused naming the option, and the option
+    can no longer be set; a config.json with the option at its off value resumes as before."""
+    import json
+
+    from mpcpearl_jax import load_policy
+    from mpcpearl_jax.checkpoint import load_config
+    from mpcpearl_jax.config import REMOVED_OPTIONS, removed_options_on
+    from mpcpearl_jax.errors import CheckpointError
+
+    run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "ablation" / folder
+    raw = json.loads((run / "config.json").read_text())
+    assert removed_options_on(raw) == [option]
+    cfg = load_config(run)
+    section, field = option.split(".")
+    part = getattr(cfg, section)
+    assert field not in (part if isinstance(part, dict) else part.__dict__)
+    policy = load_policy(run)
+    act = policy.act(jnp.zeros((policy.obs_dim,)), policy.prior_z())
+    assert act.shape == (2,) and bool(jnp.all(jnp.isfinite(act)))
+    with pytest.raises(CheckpointError, match=option):
+        load_config(run, resume=True)
+    off = json.loads(json.dumps(raw))
+    off[section][field] = REMOVED_OPTIONS[section][field]
+    (tmp_path / "config.json").write_text(json.dumps(off))
+    assert load_config(tmp_path, resume=True) == cfg
+    from mpcpearl_jax.envs import make_env
+
+    build = {"train": TrainConfig, "pearl": PearlConfig}.get(section)
+    build = build or (lambda **kw: make_env("restaurant", **kw))
+    with pytest.raises((TypeError, ValueError)):
+        build(**{field: 1})

@@ -189,7 +189,6 @@ def test_smoke_run_writes_curve_policy_and_results(tmp_path, fast_compile, capsy
 
     out = tmp_path / "curve"
     argv = ["--preset", "smoke", "--eps", "0", "--minutes", "0.3", "--eval-minutes", "0.1"]
-    argv += ["--set", "pearl.policy_ema=0.05"]  # the averaged policy beside the trained one
     assert learning.main(argv + ["--out", str(out)]) == 0
     stdout = capsys.readouterr().out
     assert "time to target" in stdout and "| metric |" in stdout
@@ -207,21 +206,18 @@ def test_smoke_run_writes_curve_policy_and_results(tmp_path, fast_compile, capsy
     assert minutes[0] == 0.0 and all(b > a for a, b in zip(minutes, minutes[1:], strict=False))
     assert points[-1]["iteration"] == rec["iterations"] >= 1
     for p in points:
-        for split in ("test", "val", "trained_test", "trained_val"):
+        for split in ("test", "val"):
             for m in ("SR", "CFR", "TT", "SPL", "MGD", "return"):
                 assert math.isfinite(p[f"{split}_{m}"]), (split, m)
         assert p["grad_steps"] == p["iteration"] * rec["updates_per_iteration"]
     assert {"train_success", "train_mpc_share", "env_steps"} <= set(points[-1])
     rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == rec["iterations"] and "test_SR" in rows[-1] and "val_SR" in rows[-1]
-    assert rows[-1]["trained_val_SR"] == points[-1]["trained_val_SR"]
+    assert rows[-1]["val_SR"] == points[-1]["val_SR"]
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["train"]["iterations"] == rec["iterations"] and cfg["train"]["eps"] == 0
     for name in ("curve.png", "results.json", "policy.msgpack", "trajectory_test0.png"):
         assert (out / name).is_file(), name
-    trained = (out / "policy-trained.msgpack").read_bytes()  # beside the average, not it
-    assert len(trained) == len((out / "policy.msgpack").read_bytes())
-    assert trained != (out / "policy.msgpack").read_bytes()
     assert (out / "checkpoints").is_dir()
     policy = load_policy(out)
     import jax.numpy as jnp

@@ -10,7 +10,6 @@ from mpcpearl_jax.envs.types import ConfigError
 from mpcpearl_jax.pearl import (
     PearlConfig,
     Transitions,
-    deployed_params,
     init_learner,
     losses,
     make_update,
@@ -192,45 +191,6 @@ def test_sac_mode_uses_constant_latent():
 def test_invalid_pearl_config_names_field(field, value):
     with pytest.raises(ConfigError, match=field):
         PearlConfig(**{field: value})
-
-
-def test_policy_average_follows_its_recursion_and_leaves_training_alone():
-    """Extension `policy_ema`: after step n the deployed {policy, encoder} equal the NumPy
-    recursion avg += max(rate, 1 / n) (theta_n - avg) over the trained parameters, and the
-    trained parameters are exactly those of a run without the average."""
-    rate, steps = 0.3, 6
-    runs = {}
-    for r in (0.0, rate):
-        nets = Networks(SMALL.replace(policy_ema=r), OBS, A)
-        state = init_learner(jax.random.PRNGKey(0), nets)
-        update = make_update(nets)
-        trained = [deployed_params(state)]
-        for i in range(steps):
-            state, _ = update(
-                state,
-                _batch(jax.random.PRNGKey(i)),
-                _context(jax.random.PRNGKey(10 + i)),
-                jax.random.PRNGKey(20 + i),
-            )
-            trained.append({"policy": state.params["policy"], "encoder": state.params["encoder"]})
-        runs[r] = (state, trained)
-    off, trained_off = runs[0.0]
-    on, trained_on = runs[rate]
-    assert off.average is None and on.average is not None
-    chex.assert_trees_all_equal(deployed_params(off), trained_off[-1])
-    chex.assert_trees_all_equal(trained_on, trained_off)  # the average never feeds back
-    avg = jax.tree_util.tree_map(np.asarray, trained_on[0])
-    for n in range(1, steps + 1):
-        w = max(rate, 1.0 / n)
-        avg = jax.tree_util.tree_map(
-            lambda a, p, w=w: a + w * (np.asarray(p) - a), avg, trained_on[n]
-        )
-    chex.assert_trees_all_close(deployed_params(on), avg, rtol=1e-5, atol=1e-6)
-    # the first step's weight is 1 (a running mean): the average moved away from both ends
-    gap = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(a - b))), avg, trained_on[-1])
-    assert max(jax.tree_util.tree_leaves(gap)) > 0
-    with pytest.raises(ConfigError, match="PearlConfig.policy_ema"):
-        SMALL.replace(policy_ema=1.5)
 
 
 @pytest.mark.parametrize("target", [100.0, -100.0])

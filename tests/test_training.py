@@ -96,25 +96,6 @@ def test_resume_equals_uninterrupted(tmp_path):
     assert [r["iteration"] for r in log] == [1, 2, 3]
 
 
-def test_policy_average_resumes_exactly_and_is_what_is_exported(tmp_path):
-    """Extension `pearl.policy_ema`: the average is part of the checkpointed state (resume is
-    exact) and policy.msgpack / load_policy hold it, not the trained parameters."""
-    cfg = TINY.replace(pearl=TINY.pearl.replace(policy_ema=0.2))
-    _, full = train(cfg, tmp_path / "full", progress=False)
-    short = cfg.replace(train=TrainConfig(**{**cfg.train.__dict__, "iterations": 2}))
-    train(short, tmp_path / "cut", progress=False)
-    _, resumed = train(cfg, tmp_path / "cut", resume=True, progress=False)
-    _leaves_equal(full, resumed)
-    avg = jax.tree_util.tree_map(lambda x: x[1], full.learner.average)
-    trained = jax.tree_util.tree_map(lambda x: x[1], full.learner.params["policy"])
-    pol = load_policy(tmp_path / "full", seed_index=1)
-    _leaves_equal(pol.params, avg)
-    gap = jax.tree_util.tree_map(
-        lambda a, b: float(jnp.max(jnp.abs(a - b))), avg["policy"], trained
-    )
-    assert max(jax.tree_util.tree_leaves(gap)) > 0
-
-
 def test_learned_entropy_weight_resumes_exactly(tmp_path):
     """Extension `pearl.auto_entropy`: log alpha and its optimizer state are part of the
     checkpointed learner state (resume is exact), each seed has its own, and the log has it."""

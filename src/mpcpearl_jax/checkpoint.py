@@ -43,8 +43,6 @@ from mpcpearl_jax.pearl.networks import Networks
 
 CONFIG_FILE = "config.json"
 POLICY_FILE = "policy.msgpack"
-# benchmarks.learning with pearl.policy_ema: the trained parameters beside the averaged ones
-TRAINED_POLICY_FILE = "policy-trained.msgpack"
 NETWORK_FILE = "network.json"
 
 
@@ -129,7 +127,12 @@ def save_network(run_dir: Path, nets: Networks) -> None:
     atomic_write(Path(run_dir) / NETWORK_FILE, json.dumps(nets.spec(), indent=2, sort_keys=True))
 
 
-def load_config(run_dir: str | Path) -> ExperimentConfig:
+def load_config(run_dir: str | Path, resume: bool = False) -> ExperimentConfig:
+    """The run's config.json. A run trained with an option since removed
+    (`config.REMOVED_OPTIONS`) loads for evaluation with the option dropped; with `resume` it is
+    refused, since continuing it would train without the option."""
+    from mpcpearl_jax.config import removed_options_on
+
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
         raise CheckpointError(f"{path}: no config.json; is this a run directory?")
@@ -141,6 +144,12 @@ def load_config(run_dir: str | Path) -> ExperimentConfig:
                 "policy): load_policy and experiments.evaluate do not apply; python -m "
                 "experiments.grbal evaluates it when training ends (results.json; the same "
                 "command with --resume evaluates a finished run again)"
+            )
+        on = removed_options_on(raw) if isinstance(raw, dict) else []
+        if resume and on:
+            raise CheckpointError(
+                f"{run_dir}: trained with {', '.join(on)}, option(s) since removed "
+                "(docs/extensions.md, Removed options); the run can be evaluated, not resumed"
             )
         return ExperimentConfig.from_dict(raw)
     except (json.JSONDecodeError, TypeError, ValueError) as e:

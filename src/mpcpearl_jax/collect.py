@@ -30,10 +30,6 @@ class Episodes(NamedTuple):
     in_goal: Array
     event: Array
     used_mpc: Array
-    # extension `TrainConfig.mpc_dagger_labels`: the MPC's action on steps where it was solved
-    # but the policy acted [S, R, T, A], and where that is so [S, R, T] (all False without it)
-    label: Array
-    labelled: Array
 
 
 def rows_of(tasks: TaskParams, task_ids: Array) -> TaskParams:
@@ -49,7 +45,6 @@ def make_collector(
     deterministic: bool = False,
     demo_prob: float = 1.0,
     mesh=None,
-    dagger_labels: bool = False,
 ) -> Callable:
     """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R], demo=None) -> Episodes`.
 
@@ -61,11 +56,7 @@ def make_collector(
     extension, `TrainConfig.explore_start_share`) starts those rows at `env.random_start` instead
     of the task's start pose. `mesh` (`mpcpearl_jax.distributed`): the
     seed axis, hence the flat rows, is split over its devices; the bridge then runs per shard
-    (`MPCBridge.on_mesh`). `dagger_labels` (extension `TrainConfig.mpc_dagger_labels`): on the
-    `demo` rows the MPC is solved on every step, its action executed with probability
-    `demo_prob` as before, and on the other steps (the policy acts) kept as a label
-    (`Episodes.label` / `labelled`) for behaviour cloning on the policy's own states (DAgger,
-    Ross et al. 2011).
+    (`MPCBridge.on_mesh`).
     """
     horizon = env.config.horizon
     use_mpc = bridge is not None
@@ -112,14 +103,12 @@ def make_collector(
                     fire = jnp.zeros_like(fire)
                 act_demo = demo_flat & (jax.random.uniform(k_demo, (s * r,)) < demo_prob)
                 execute = fire | act_demo
-                solve = execute | demo_flat if dagger_labels else execute
-                a_mpc, used, _ = bridge(k_mpc, solve, state, flat, a_pi, stamp)
+                a_mpc, used, _ = bridge(k_mpc, execute, state, flat, a_pi, stamp)
                 action = jnp.where(execute[:, None], a_mpc, a_pi)
-                labelled = used & ~execute  # solved where the policy acts: a DAgger label
                 used = used & execute
             else:
-                a_mpc, action = a_pi, a_pi
-                used = labelled = jnp.zeros((s * r,), bool)
+                action = a_pi
+                used = jnp.zeros((s * r,), bool)
             nobs, nstate, rew, _, info = jax.vmap(env.step)(
                 jax.random.split(k, s * r), state, action, flat
             )
@@ -130,12 +119,10 @@ def make_collector(
                 info.in_goal,
                 info.event,
                 used,
-                a_mpc,
-                labelled,
             )
             return (nobs, nstate), out
 
-        _, (tr, pos, col, goal, ev, used, label, labelled) = jax.lax.scan(
+        _, (tr, pos, col, goal, ev, used) = jax.lax.scan(
             body, (obs0, state0), jax.random.split(key, horizon)
         )
         pos = jnp.concatenate([state0.pose[None, :, :2], pos], axis=0)
@@ -147,8 +134,6 @@ def make_collector(
             to_rows(goal),
             to_rows(ev),
             to_rows(used),
-            to_rows(label),
-            to_rows(labelled),
         )
 
     return collect

@@ -48,12 +48,6 @@ class TrainConfig:
     # policy on the others (DAgger-style mixing: the MPC also acts from states the policy leads
     # to, so its transitions cover the policy's mistakes); 1 = the MPC drives the whole episode
     mpc_demo_step_prob: float = 1.0
-    # DAgger labels: in a warm-start row the MPC is solved on every step, also where the policy
-    # acts (probability 1 - mpc_demo_step_prob); there its action is kept as a label, stored with
-    # the observation in a per-task label buffer (mpc_buffer_capacity), and behaviour cloning
-    # (pearl.bc_weight) clones as many label rows per task as the batch has MPC rows: the MPC's
-    # action on the policy's own states (Ross et al. 2011), not only where the MPC drove
-    mpc_dagger_labels: bool = False
     # MPC transitions kept apart: every transition the MPC produced (solved, not a fallback) is
     # also stored in a per-task MPC buffer of mpc_buffer_capacity, and this fraction of every
     # RL batch is drawn from it (symmetric sampling as in RLPD when 0.5).
@@ -108,7 +102,7 @@ class TrainConfig:
         )
         v.interval(self, *unit, lo=0.0, hi=1.0)
         v.check(self.mpc_buffer_fraction < 1.0, self, "mpc_buffer_fraction", "must be below 1")
-        v.flags(self, "redraw_behaviours", "mpc_dagger_labels")
+        v.flags(self, "redraw_behaviours")
         v.check(
             self.explore_start_share < 1.0,
             self,
@@ -123,21 +117,6 @@ class TrainConfig:
                 "explore_start_share",
                 "exploring starts apply to the posterior-phase episodes: set "
                 "posterior_episodes > 0",
-            )
-        if self.mpc_dagger_labels:
-            v.check(
-                self.mpc_demo_share > 0 and self.mpc_demo_iterations > 0,
-                self,
-                "mpc_dagger_labels",
-                "labels come from the MPC warm-start rows: set mpc_demo_share > 0 and "
-                "mpc_demo_iterations > 0",
-            )
-            v.check(
-                self.mpc_demo_step_prob < 1.0,
-                self,
-                "mpc_dagger_labels",
-                "with mpc_demo_step_prob = 1 the MPC acts on every warm-start step and no "
-                "policy step is left to label: set it below 1",
             )
 
     @property
@@ -221,15 +200,14 @@ class ExperimentConfig(SerializableConfig):
                 "PearlConfig.bc_weight: behaviour cloning needs MPC samples in the batch "
                 "(set train.mpc_buffer_fraction > 0)"
             )
-        if self.train.mpc_dagger_labels and self.pearl.bc_weight == 0:
-            raise ConfigError(
-                "TrainConfig.mpc_dagger_labels: the labels are used only by behaviour cloning "
-                "(set pearl.bc_weight > 0)"
-            )
 
     @classmethod
     def from_dict(cls, d: dict) -> ExperimentConfig:
-        d = dict(d)
+        """The config of a dict (config.json). Options since removed (`REMOVED_OPTIONS`) are
+        dropped: at their off value they changed nothing; switched on, they shaped only how the
+        run trained, never the policy's inputs or networks, so the policy still loads and
+        evaluates (`removed_options_on` names them; resuming such a run is refused)."""
+        d = _without_removed(d)
         pearl = dict(d.pop("pearl", {}))
         for f in ("hidden", "encoder_hidden"):
             if f in pearl:
@@ -240,6 +218,34 @@ class ExperimentConfig(SerializableConfig):
             mpc=mpc_config(d.pop("mpc", {})),
             **d,
         )
+
+
+# Options removed after they measured no gain (docs/extensions.md, "Removed options"), with
+# their off value: section -> {field: off value}. Every one of them acted on training only.
+REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
+    "train": {"mpc_dagger_labels": False},
+    "pearl": {"policy_ema": 0.0},
+    "env_overrides": {"w_collision": 0.0},
+}
+
+
+def removed_options_on(d: dict) -> list[str]:
+    """The removed options (`REMOVED_OPTIONS`) a config dict switches on, as 'section.field'."""
+    on = []
+    for section, fields in REMOVED_OPTIONS.items():
+        part = d.get(section) or {}
+        for field, off in fields.items():
+            if field in part and part[field] != off:
+                on.append(f"{section}.{field}")
+    return on
+
+
+def _without_removed(d: dict) -> dict:
+    d = dict(d)
+    for section, fields in REMOVED_OPTIONS.items():
+        if isinstance(d.get(section), dict):
+            d[section] = {k: v for k, v in d[section].items() if k not in fields}
+    return d
 
 
 def validate(cfg: ExperimentConfig) -> ExperimentConfig:

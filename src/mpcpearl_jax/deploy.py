@@ -341,8 +341,7 @@ def reward(config: NavConfig, frame: Frame, action: Array, next_frame: Frame, sc
     n_d, n_s (every person present at t + 1, all of them, not only those the policy sees) and
     the contact test use the position the bicycle model of eq. (1) predicts from the pose and
     input, i.e. the attempted move, which is the measured next position unless a contact
-    stopped the robot; the goal bonus uses the measured next position. With the extension
-    `w_collision` a contact costs that much more.
+    stopped the robot; the goal bonus uses the measured next position.
     """
     pose, goal = frame.pose, scene.goal
     u = command(config, action, pose, goal)
@@ -353,7 +352,7 @@ def reward(config: NavConfig, frame: Frame, action: Array, next_frame: Frame, sc
     n_d, n_s = physics.safety_violations(p, people, present, scene, config)
     collision = physics.collides(p, people, present, scene, config)
     r = physics.reward(pose[:2], u, n_d, n_s, next_frame.pose[:2], goal, config)
-    return r - config.w_collision * collision, collision
+    return r, collision
 
 
 # ------------------------------------------------------------------------------ adapter

@@ -36,7 +36,7 @@ from mpcpearl_jax.checkpoint import (
 from mpcpearl_jax.config import ExperimentConfig, validate
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, RunDirError
-from mpcpearl_jax.pearl.learner import deployed_params
+from mpcpearl_jax.pearl.learner import acting_params
 from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.resources import check_state_fits
 from mpcpearl_jax.runlock import RunLock
@@ -174,7 +174,7 @@ def _prepare_locked(
     cfg: ExperimentConfig, run_dir: Path, resume: bool, until_budget: bool, lock: RunLock
 ) -> Session:
     if resume:
-        check_resumable(load_config(run_dir), cfg, run_dir)
+        check_resumable(load_config(run_dir, resume=True), cfg, run_dir)
         folder = run_dir / "checkpoints"
         if not (folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())):
             check_nothing_lost(run_dir)
@@ -353,7 +353,7 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
 
 
 def _policy_params(state: TrainState) -> dict:
-    return to_host(deployed_params(state.learner))
+    return to_host(acting_params(state.learner.params))
 
 
 def final_evaluation(

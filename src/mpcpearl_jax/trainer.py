@@ -35,7 +35,6 @@ from mpcpearl_jax.pearl import buffers
 from mpcpearl_jax.pearl.learner import (
     LearnerState,
     acting_params,
-    deployed_params,
     init_learner,
     make_update,
 )
@@ -61,9 +60,6 @@ class TrainState(struct.PyTreeNode):
     rl: buffers.TaskBuffer
     enc: buffers.TaskBuffer
     mpc: buffers.TaskBuffer  # MPC transitions kept apart (extension; capacity 1 when unused)
-    # MPC actions on the policy's own steps of warm-start rows, as (obs, label) rows for behaviour
-    # cloning (extension `TrainConfig.mpc_dagger_labels`; capacity 1 when unused)
-    labels: buffers.TaskBuffer
     tasks: TaskParams  # [S, N, ...] training tasks as collected (redraw_behaviours changes them)
     key: Array  # [S, 2] PRNG keys
     iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
@@ -116,7 +112,6 @@ class Trainer:
             tc.eps,
             demo_prob=tc.mpc_demo_step_prob,
             mesh=self.mesh,
-            dagger_labels=tc.mpc_dagger_labels,
         )
         self._update_body = make_update(self.nets, jit=False)
         self.collect_phase = jax.jit(
@@ -124,8 +119,6 @@ class Trainer:
         )
         self.use_mpc_buffer = tc.mpc_buffer_fraction > 0 and tc.uses_mpc
         self.mpc_capacity = tc.mpc_buffer_capacity if self.use_mpc_buffer else 1
-        self.use_labels = tc.mpc_dagger_labels and self.use_mpc_buffer
-        self.label_capacity = tc.mpc_buffer_capacity if self.use_labels else 1
         self.update_phase = jax.jit(self._update_phase, donate_argnums=0)
         self.update_chunk = UPDATE_CHUNK
         self._init_state_jit = jax.jit(self._init_state)
@@ -156,12 +149,11 @@ class Trainer:
         rl = buffers.init_buffer(n, cfg.train.rl_capacity, od, ad, lead)
         enc = buffers.init_buffer(n, self.enc_capacity, od, ad, lead)
         mpc = buffers.init_buffer(n, self.mpc_capacity, od, ad, lead)
-        labels = buffers.init_buffer(n, self.label_capacity, od, ad, lead)
         tasks = jax.tree_util.tree_map(
             lambda x: jnp.array(jnp.broadcast_to(x, (cfg.seeds, *x.shape))), self.train_tasks
         )
         iteration = jnp.zeros((cfg.seeds,), jnp.int32)
-        state = TrainState(learner, rl, enc, mpc, labels, tasks, keys, iteration)
+        state = TrainState(learner, rl, enc, mpc, tasks, keys, iteration)
         return constrain(state, self.mesh)
 
     # ------------------------------------------------------------- collection
@@ -221,10 +213,6 @@ class Trainer:
         mpc = state.mpc
         if self.use_mpc_buffer:
             mpc = jax.vmap(buffers.insert_masked)(mpc, task_ids, per_task, to_task(ep.used_mpc))
-        labels = state.labels
-        if self.use_labels:  # extension: (obs, MPC label) of the policy's steps
-            rows_l = per_task._replace(action=to_task(ep.label))
-            labels = jax.vmap(buffers.insert_masked)(labels, task_ids, rows_l, to_task(ep.labelled))
         success = jnp.any(ep.in_goal, -1) & ~jnp.any(ep.collision, -1)  # [S, R]
         # episode statistics are over the rows that start at the task's start (all without
         # exploring starts); the exploring ones are counted apart
@@ -238,12 +226,11 @@ class Trainer:
             "event_rate": jnp.mean(ep.event, axis=(-1, -2)),
             "mpc_share": jnp.mean(ep.used_mpc, axis=(-1, -2)),
             "demo_rows": jnp.mean(demo, axis=-1) if demo is not None else jnp.zeros(s),
-            "labelled": jnp.mean(ep.labelled, axis=(-1, -2)),
             "explore_rows": jnp.mean(x_rows, axis=-1),
             "explore_success": mean_over(x_rows, success),
             "steps": jnp.asarray(ep.transitions.reward[0].size),
         }
-        new = state.replace(rl=rl, enc=enc, mpc=mpc, labels=labels, key=keys)
+        new = state.replace(rl=rl, enc=enc, mpc=mpc, key=keys)
         return constrain(new, self.mesh), stats
 
     def _choose_tasks(self, state: TrainState, k: int) -> tuple[TrainState, Array]:
@@ -304,9 +291,7 @@ class Trainer:
     def _update_phase(self, state: TrainState) -> tuple[TrainState, dict]:
         """All N_train gradient steps in one scan; -> (state, mean losses [S])."""
         keys, step_keys = self._update_keys(state)
-        learner, ms = self._update_steps(
-            state.learner, state.rl, state.enc, state.mpc, state.labels, step_keys
-        )
+        learner, ms = self._update_steps(state.learner, state.rl, state.enc, state.mpc, step_keys)
         return state.replace(learner=learner, key=keys), jax.tree_util.tree_map(
             lambda x: jnp.mean(x, axis=1), ms
         )
@@ -329,14 +314,12 @@ class Trainer:
             if stop is not None and stop():
                 raise IterationAbandoned
             chunk = step_keys[:, lo : lo + self.update_chunk]
-            learner, ms = self._update_steps_jit(
-                learner, state.rl, state.enc, state.mpc, state.labels, chunk
-            )
+            learner, ms = self._update_steps_jit(learner, state.rl, state.enc, state.mpc, chunk)
             parts.append(jax.block_until_ready(ms))  # a stop request waits one chunk at most
         ms = jax.tree_util.tree_map(lambda *x: jnp.mean(jnp.concatenate(x, axis=1), axis=1), *parts)
         return state.replace(learner=learner, key=keys), ms
 
-    def _update_steps(self, learner, rl, enc, mpc, labels, step_keys: Array) -> tuple[Any, dict]:
+    def _update_steps(self, learner, rl, enc, mpc, step_keys: Array) -> tuple[Any, dict]:
         """Gradient steps with keys [S, n, 2] (one scan, vmapped over seeds); -> (learner,
         per-step losses [S, n])."""
         cfg, n = self.cfg.pearl, self.num_train
@@ -344,7 +327,7 @@ class Trainer:
         frac = self.cfg.train.mpc_buffer_fraction
         n_mpc = int(round(cfg.batch_size * frac)) if self.use_mpc_buffer else 0
 
-        def per_seed(learner, rl, enc, mpc, labels, keys):
+        def per_seed(learner, rl, enc, mpc, keys):
             def body(learner, k):
                 k_t, k_b, k_c, k_u = jax.random.split(k, 4)
                 tids = jax.random.choice(k_t, n, (cfg.meta_batch,), replace=cfg.meta_batch > n)
@@ -364,17 +347,11 @@ class Trainer:
                 batch = jax.tree_util.tree_map(mix, batch, demo)
                 col = jnp.arange(cfg.batch_size)[None, :] >= cfg.batch_size - n_mpc
                 demo_mask = (col & has).astype(jnp.float32)
-                if not self.use_labels:
-                    return self._update_body(learner, batch, ctx, k_u, demo_mask)
-                # extension: as many (obs, MPC label) rows of the policy's own steps per task
-                lab = buffers.sample(labels, jax.random.fold_in(k_b, 2), tids, n_mpc)
-                has_l = jnp.broadcast_to((labels.size[tids] > 0)[:, None], (len(tids), n_mpc))
-                dagger = (lab.obs, lab.action, has_l.astype(jnp.float32))
-                return self._update_body(learner, batch, ctx, k_u, demo_mask, dagger)
+                return self._update_body(learner, batch, ctx, k_u, demo_mask)
 
             return jax.lax.scan(body, learner, keys)
 
-        out = jax.vmap(per_seed)(learner, rl, enc, mpc, labels, step_keys)
+        out = jax.vmap(per_seed)(learner, rl, enc, mpc, step_keys)
         return constrain(out, self.mesh)
 
     # -------------------------------------------------------------- iteration
@@ -437,7 +414,6 @@ class Trainer:
             "event_rate",
             "mpc_share",
             "demo_rows",
-            "labelled",
             "explore_rows",
             "explore_success",
         )
@@ -475,15 +451,14 @@ class Trainer:
         tasks: TaskParams | None = None,
         online: bool = False,
         key: Array | None = None,
-        trained: bool = False,
     ) -> dict:
         """method §8 metrics on `tasks` (default: test tasks), mean and per seed, of the deployed
-        parameters (`deployed_params`), or of the trained ones when `trained`."""
+        policy and encoder parameters (`acting_params`)."""
         tasks = self.test_tasks if tasks is None else tasks
         key = jax.random.PRNGKey(12345) if key is None else key
         fn = self.evaluate_online if online else self.evaluate_adapt
         learner = state.learner
-        params = acting_params(learner.params) if trained else deployed_params(learner)
+        params = acting_params(learner.params)
         result = to_host(fn(key, params, tasks))
         return eval_lib.summarize(result, tasks, self.env.config.robot_radius) | {"_raw": result}
 

@@ -100,7 +100,6 @@ class NavEnv:
         collision = physics.collides(cand[:2], humans_next, mask_next, params, cfg)
         next_pose = jnp.where(collision, state.pose, cand)
         r = physics.reward(pos, u, n_d, n_s, next_pose[:2], params.goal, cfg)
-        r = r - cfg.w_collision * collision  # extension `w_collision` (0 in the paper)
 
         next_state = EnvState(pose=next_pose, t=t + 1)
         done = next_state.t >= cfg.horizon

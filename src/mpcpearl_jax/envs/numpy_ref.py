@@ -150,7 +150,6 @@ class NumpyNavEnv:
         in_goal = math.hypot(xn - goal[0], yn - goal[1]) <= cfg.goal_radius
         r = -cost / cfg.cost_scale - cfg.w_dynamic * n_d - cfg.w_static * n_s
         r += cfg.w_goal * float(in_goal)
-        r -= cfg.w_collision * float(collision)
 
         self.pose = np.array([xn, yn, thn])
         self.t += 1

@@ -76,10 +76,6 @@ class NavConfig:
     # slot means "the k-th nearest person" whoever it is (as in crowd-navigation policies such as
     # CADRL); the MPC, the reward and the events are unchanged
     observe_sorted: bool = False
-    # extension (off in the paper): a further penalty on every step whose attempted move is a
-    # real collision (the move is blocked). In eq. (2) a contact costs what a near miss inside
-    # r_safe costs (w_d or w_s), while SR counts a single contact as a failure.
-    w_collision: float = 0.0
 
     def __post_init__(self) -> None:
         validate.positive(
@@ -104,7 +100,6 @@ class NavConfig:
             "w_dynamic",
             "w_static",
             "w_goal",
-            "w_collision",
         )
         validate.nonnegative(self, "sensing_radius")
         validate.ints(self, "horizon")

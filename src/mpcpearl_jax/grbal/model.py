@@ -69,7 +69,6 @@ def layout_of(env, tasks) -> ObsLayout:
         "sensing_radius": cfg.sensing_radius > 0,
         "observe_time": cfg.observe_time,
         "observe_sorted": cfg.observe_sorted,
-        "w_collision": cfg.w_collision > 0,  # its planner scores eq. (2) only
     }
     for field, on in unsupported.items():
         if on:

@@ -3,7 +3,7 @@
 from mpcpearl_jax.pearl.config import PearlConfig
 from mpcpearl_jax.pearl.learner import (
     LearnerState,
-    deployed_params,
+    acting_params,
     init_learner,
     make_update,
     target_entropy,
@@ -16,8 +16,8 @@ __all__ = [
     "Networks",
     "PearlConfig",
     "Transitions",
+    "acting_params",
     "context_from",
-    "deployed_params",
     "init_learner",
     "make_update",
     "target_entropy",

@@ -39,12 +39,6 @@ class PearlConfig:
     bc_weight: float = 0.0
     bc_q_filter: bool = True  # False: clone every MPC sample (no Q filter)
     layer_norm: bool = False  # LayerNorm after every hidden layer of the Q and V networks
-    # Polyak average of the policy and encoder parameters, deployed for evaluation and export
-    # (collection keeps acting with the trained parameters): after each gradient step
-    # avg += max(policy_ema, 1 / n) (theta - avg), n the steps taken, i.e. a running mean for the
-    # first 1 / policy_ema steps, then an exponential average over about 1 / policy_ema steps.
-    # 0 = off: the trained parameters are deployed.
-    policy_ema: float = 0.0
     # automatic entropy tuning (Haarnoja et al. 2018b, "SAC algorithms and applications"): the
     # entropy weight alpha of the actor loss and the V target (1 in the paper, whose temperature
     # is 1 / reward_scale) becomes a learned exp(log_alpha), starting at 1 (the paper's
@@ -72,7 +66,6 @@ class PearlConfig:
             "target_entropy",
             "only used with auto_entropy: set pearl.auto_entropy=true",
         )
-        v.interval(self, "policy_ema", lo=0.0, hi=1.0)
         v.check(
             v.is_number(self.log_std_min)
             and v.is_number(self.log_std_max)

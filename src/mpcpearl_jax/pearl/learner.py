@@ -22,7 +22,6 @@ __all__ = [
     "acting_params",
     "Transitions",
     "context_from",
-    "deployed_params",
     "init_learner",
     "make_update",
     "target_entropy",
@@ -37,8 +36,6 @@ class LearnerState:
     target_v: dict
     opt_state: dict  # {q_enc, policy, v}
     steps: Array  # int32 gradient steps taken
-    # {policy, encoder} Polyak average (extension `PearlConfig.policy_ema`); None when off
-    average: dict | None = None
     # log of the learned entropy weight (extension `PearlConfig.auto_entropy`); None when off
     log_alpha: Array | None = None
 
@@ -46,22 +43,6 @@ class LearnerState:
 def acting_params(params: dict) -> dict:
     """The {policy, encoder} part of the parameters: what acting and adaptation need."""
     return {"policy": params["policy"], "encoder": params["encoder"]}
-
-
-def deployed_params(state: LearnerState) -> dict:
-    """The {policy, encoder} parameters to evaluate and export: the Polyak average when the
-    `policy_ema` extension keeps one, else the trained parameters."""
-    return acting_params(state.params) if state.average is None else state.average
-
-
-def _averaged(state: LearnerState, params: dict, rate: float) -> dict | None:
-    """The average after one more step: avg + max(rate, 1 / n) (theta - avg), n steps taken."""
-    if state.average is None:
-        return None
-    w = jnp.maximum(rate, 1.0 / (state.steps + 1).astype(jnp.float32))
-    return jax.tree_util.tree_map(
-        lambda a, p: a + w * (p - a), state.average, acting_params(params)
-    )
 
 
 def _optimizer(cfg: PearlConfig) -> optax.GradientTransformation:
@@ -80,14 +61,11 @@ def init_learner(key: Array, nets: Networks) -> LearnerState:
         "policy": opt.init(params["policy"]),
         "v": opt.init(params["v"]),
     }
-    average = acting_params(params) if nets.cfg.policy_ema > 0 else None
     log_alpha = None
     if nets.cfg.auto_entropy:
         log_alpha = jnp.zeros((), jnp.float32)  # alpha = 1: the paper's temperature at first
         opt_state["alpha"] = opt.init(log_alpha)
-    return LearnerState(
-        params, params["v"], opt_state, jnp.zeros((), jnp.int32), average, log_alpha
-    )
+    return LearnerState(params, params["v"], opt_state, jnp.zeros((), jnp.int32), log_alpha)
 
 
 def target_entropy(nets: Networks) -> float:
@@ -106,14 +84,11 @@ def _update(
     context: Array,
     key: Array,
     demo_mask: Array | None = None,
-    dagger: tuple[Array, Array, Array] | None = None,
 ) -> tuple[LearnerState, dict]:
     """One PEARL gradient step (order as in the authors' code: Q+encoder, then V, policy).
 
     demo_mask [MB, B] marks the batch rows drawn from the MPC buffer (only used by the
-    behaviour-cloning extension, `PearlConfig.bc_weight`). dagger = (obs [MB, D, O], MPC label
-    [MB, D, A], mask [MB, D]): further rows for that cloning, the MPC's action on the policy's
-    own states (extension `TrainConfig.mpc_dagger_labels`).
+    behaviour-cloning extension, `PearlConfig.bc_weight`).
     """
     k_z, k_pi = jax.random.split(key)
     p = state.params
@@ -141,7 +116,6 @@ def _update(
         demo_mask,
         cfg.bc_weight,
         cfg.bc_q_filter,
-        dagger,
         alpha,
     )
     upd, os_pi = opt.update(g_pi, state.opt_state["policy"], p["policy"])
@@ -168,7 +142,6 @@ def _update(
         target_v,
         opt_state,
         state.steps + 1,
-        _averaged(state, params, cfg.policy_ema),
         log_alpha,
     )
     metrics = {
@@ -182,14 +155,14 @@ def _update(
     }
     if alpha is not None:
         metrics["alpha"] = alpha
-    for k in ("bc_kept", "bc_error", "bc_label_error"):
+    for k in ("bc_kept", "bc_error"):
         if k in pi_aux:
             metrics[k] = pi_aux[k]
     return new_state, metrics
 
 
 def make_update(nets: Networks, jit: bool = True):
-    """`update(state, batch [MB, B], context [MB, C, D], key, demo_mask=None, dagger=None) ->
+    """`update(state, batch [MB, B], context [MB, C, D], key, demo_mask=None) ->
     (state, metrics)`: one gradient step of the agent `nets`; jit=False gives the plain
     function, for composing into scans (see `trainer`)."""
     cfg, opt = nets.cfg, _optimizer(nets.cfg)
@@ -200,8 +173,7 @@ def make_update(nets: Networks, jit: bool = True):
         context: Array,
         key: Array,
         demo_mask: Array | None = None,
-        dagger: tuple[Array, Array, Array] | None = None,
     ):
-        return _update(nets, cfg, opt, state, batch, context, key, demo_mask, dagger)
+        return _update(nets, cfg, opt, state, batch, context, key, demo_mask)
 
     return jax.jit(update) if jit else update

@@ -62,7 +62,6 @@ def policy_loss(
     demo_mask=None,
     bc_weight: float = 0.0,
     bc_q_filter: bool = True,
-    dagger=None,
     alpha=None,
 ):
     """Paper's actor loss L_theta = KL(pi || exp(Q)/Z) = E[log pi - min_i Q_i] + regularisers.
@@ -73,9 +72,6 @@ def policy_loss(
     bc_weight * mean|Q| * sum_demo 1[min Q(s, a_mpc) > min Q(s, tanh mu(s))] |tanh mu(s) - a_mpc|^2
     / n_demo, with mean|Q| detached so that bc_weight is free of the reward scale (as TD3+BC's
     lambda = alpha / mean|Q|; bc_weight 0.4 matches its alpha = 2.5). Extension
-    `TrainConfig.mpc_dagger_labels`: dagger = (obs [MB, D, O], label [MB, D, A], mask [MB, D])
-    adds the MPC's labels on the policy's own states to the same sums (Q-filtered alike, the
-    filter comparing Q(s, label) with Q(s, tanh mu(s))), n counting both. Extension
     `PearlConfig.auto_entropy`: alpha (a detached scalar) weighs log pi in the loss and in the V
     target, E[alpha log pi - min_i Q_i]; None = 1 as in the paper. Returns (loss, aux).
     """
@@ -100,14 +96,6 @@ def policy_loss(
         keep, err = clone(jnp.tanh(mean), obs, demo_action, demo_mask, z)
         kept, total, n = jnp.sum(keep * err), jnp.sum(keep), jnp.sum(demo_mask)
         aux["bc_error"] = jnp.sum(demo_mask * err) / jnp.maximum(n, 1.0)
-        if dagger is not None:
-            d_obs, d_label, d_mask = dagger
-            z_d = jnp.broadcast_to(z[:, :1], d_obs.shape[:2] + z.shape[-1:])
-            d_mean, _ = nets.policy_out(policy_params, d_obs, z_d)
-            keep_d, err_d = clone(jnp.tanh(d_mean), d_obs, d_label, d_mask, z_d)
-            n_d = jnp.sum(d_mask)
-            aux["bc_label_error"] = jnp.sum(d_mask * err_d) / jnp.maximum(n_d, 1.0)
-            kept, total, n = kept + jnp.sum(keep_d * err_d), total + jnp.sum(keep_d), n + n_d
         n = jnp.maximum(n, 1.0)
         q_scale = jax.lax.stop_gradient(jnp.mean(jnp.abs(min_q)))
         loss += bc_weight * q_scale * kept / n

@@ -447,13 +447,6 @@ def behaviours(seed: int, model: CrowdModel = CrowdModel()) -> list[Behaviour]:
     return [sample_behaviour(rng, model) for _ in range(NUM_TRAIN_BEHAVIOURS + NUM_TEST_BEHAVIOURS)]
 
 
-def extra_behaviours(seed: int, n: int, model: CrowdModel = CrowdModel()) -> list[Behaviour]:
-    """n further training behaviours, from their own random stream: the paper's 15 training and
-    the 3 held-out behaviours of the seed stay the same whatever n is."""
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 20231, 1]))
-    return [sample_behaviour(rng, model) for _ in range(n)]
-
-
 def val_behaviours(seed: int, model: CrowdModel = CrowdModel()) -> list[Behaviour]:
     """The validation behaviours: held out from training like the test ones, but from their own
     stream, so settings can be chosen without looking at the test tasks."""
@@ -461,23 +454,23 @@ def val_behaviours(seed: int, model: CrowdModel = CrowdModel()) -> list[Behaviou
     return [sample_behaviour(rng, model) for _ in range(NUM_TEST_BEHAVIOURS)]
 
 
-def split_behaviours(split: str, seed: int, train_behaviours: int) -> list[Behaviour]:
+def split_behaviours(split: str, seed: int) -> list[Behaviour]:
     """Behaviours indexed as in `task_pairs`: 0..14 the paper's training set, 15..17 held out
-    (test and OOD), 18.. the extra training behaviours; the val split uses its own three."""
-    if split == "val":
-        return val_behaviours(seed)
-    behs = behaviours(seed)
-    if split == "train" and train_behaviours > NUM_TRAIN_BEHAVIOURS:
-        behs += extra_behaviours(seed, train_behaviours - NUM_TRAIN_BEHAVIOURS)
-    return behs
+    (test and OOD); the val split uses its own three."""
+    return val_behaviours(seed) if split == "val" else behaviours(seed)
 
 
 def _train_indices(train_behaviours: int) -> list[int]:
-    if not (isinstance(train_behaviours, int) and train_behaviours >= 1):
-        raise ValueError(f"train_behaviours: must be a positive int, got {train_behaviours!r}")
-    held_out = NUM_TRAIN_BEHAVIOURS + NUM_TEST_BEHAVIOURS
-    first = list(range(min(train_behaviours, NUM_TRAIN_BEHAVIOURS)))
-    return first + list(range(held_out, held_out + train_behaviours - len(first)))
+    """The first `train_behaviours` of the paper's 15 training behaviours: a smaller training
+    split (8 x train_behaviours tasks) for tests and benchmarks. More than 15 per layout was an
+    extension, removed (docs/extensions.md, Removed options)."""
+    ok = isinstance(train_behaviours, int) and not isinstance(train_behaviours, bool)
+    if not (ok and 1 <= train_behaviours <= NUM_TRAIN_BEHAVIOURS):
+        raise ValueError(
+            f"train_behaviours: must be an int in 1..{NUM_TRAIN_BEHAVIOURS} (a subset of the "
+            f"paper's training behaviours), got {train_behaviours!r}"
+        )
+    return list(range(train_behaviours))
 
 
 def task_pairs(
@@ -485,9 +478,8 @@ def task_pairs(
 ) -> list[tuple[int, int, float]]:
     """(configuration, behaviour index, left shift) of each task of a split, in order.
 
-    `train_behaviours` (training split only; the paper: 15) > 15 adds behaviours drawn from a
-    separate stream (an extension against the train/test gap); the test and OOD tasks do not
-    change."""
+    `train_behaviours` (training split only; the paper: 15) < 15 keeps the first ones only; the
+    test and OOD tasks do not change."""
     if split == "train":
         idx = _train_indices(train_behaviours)
         return [(c, b, 0.0) for c in range(len(TABLE_CONFIGS)) for b in idx]
@@ -506,7 +498,7 @@ def task_plans(
     split: str, seed: int, cfg: NavConfig, train_behaviours: int = NUM_TRAIN_BEHAVIOURS
 ) -> list[Plan]:
     """The plans (endpoints, delays, speeds) behind `make_restaurant_tasks(split, seed, cfg)`."""
-    behs = split_behaviours(split, seed, train_behaviours)
+    behs = split_behaviours(split, seed)
     pairs = task_pairs(split, seed, train_behaviours)
     return [plan_task(behs[b], table_layout(c, s), cfg) for c, b, s in pairs]
 
@@ -539,7 +531,7 @@ def make_restaurant_tasks(
 ) -> TaskParams:
     """Stacked tasks of a split: train 8x15 = 120 (8 x train_behaviours), test 8x3 = 24,
     ood 8x3 = 24 (shifted tables), val 8x3 = 24 (three further held-out behaviours)."""
-    behs = split_behaviours(split, seed, train_behaviours)
+    behs = split_behaviours(split, seed)
     pairs = task_pairs(split, seed, train_behaviours)
     tasks = [build_task(table_layout(c, s), behs[b], cfg) for c, b, s in pairs]
     return stack_params(tasks)
