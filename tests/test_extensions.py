@@ -398,7 +398,7 @@ def test_pearl_baseline_never_builds_the_mpc_even_with_extensions_set():
         TINY.train, eps=0.0, mpc_demo_share=1.0, mpc_demo_iterations=5, mpc_buffer_fraction=0.5
     )
     tr = Trainer(TINY.replace(train=tc))
-    assert tr.bridge is None and not tr.use_mpc_buffer and tr.mpc_capacity == 1
+    assert tr.bridge is None and not tr.use_mpc_buffer and tr.init_state().mpc is None
 
 
 def test_task_options_reach_the_builder_and_bad_ones_name_the_field():

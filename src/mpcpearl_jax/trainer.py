@@ -59,7 +59,8 @@ class TrainState(struct.PyTreeNode):
     learner: LearnerState
     rl: buffers.TaskBuffer
     enc: buffers.TaskBuffer
-    mpc: buffers.TaskBuffer  # MPC transitions kept apart (extension; capacity 1 when unused)
+    # MPC transitions kept apart (extension `mpc_buffer_fraction`; None when it is off)
+    mpc: buffers.TaskBuffer | None
     tasks: TaskParams  # [S, N, ...] training tasks as collected (redraw_behaviours changes them)
     key: Array  # [S, 2] PRNG keys
     iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
@@ -118,7 +119,6 @@ class Trainer:
             self._collect_phase, static_argnums=(2, 3, 4, 5), donate_argnums=0
         )
         self.use_mpc_buffer = tc.mpc_buffer_fraction > 0 and tc.uses_mpc
-        self.mpc_capacity = tc.mpc_buffer_capacity if self.use_mpc_buffer else 1
         self.update_phase = jax.jit(self._update_phase, donate_argnums=0)
         self.update_chunk = UPDATE_CHUNK
         self._init_state_jit = jax.jit(self._init_state)
@@ -148,7 +148,9 @@ class Trainer:
         n, od, ad, lead = self.num_train, self.obs_dim, self.action_dim, (cfg.seeds,)
         rl = buffers.init_buffer(n, cfg.train.rl_capacity, od, ad, lead)
         enc = buffers.init_buffer(n, self.enc_capacity, od, ad, lead)
-        mpc = buffers.init_buffer(n, self.mpc_capacity, od, ad, lead)
+        mpc = None
+        if self.use_mpc_buffer:
+            mpc = buffers.init_buffer(n, cfg.train.mpc_buffer_capacity, od, ad, lead)
         tasks = jax.tree_util.tree_map(
             lambda x: jnp.array(jnp.broadcast_to(x, (cfg.seeds, *x.shape))), self.train_tasks
         )
