@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     try:
         from mpcpearl_jax import load_policy
     except ImportError:  # older layout: only in the checkpoint module
-        from mpcpearl_jax.checkpoint import load_policy
+        from mpcpearl_jax.policy import load_policy
 
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(args.run) if args.run else Path(tmp) / "run"

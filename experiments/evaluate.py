@@ -244,8 +244,9 @@ def _mpc_overrides(items: list[str], base: dict) -> dict:
 
 def setup(args: argparse.Namespace) -> Setup:
     """Resolve the command line; raises UsageError (and CheckpointError) with a one-line reason."""
-    from mpcpearl_jax.checkpoint import load_config, load_policy
+    from mpcpearl_jax.checkpoint import load_config
     from mpcpearl_jax.envs import mpc_defaults
+    from mpcpearl_jax.policy import load_policy
     from mpcpearl_jax.report import run_label
 
     ctrl = args.controller

@@ -18,11 +18,11 @@ import numpy as np
 import pytest
 
 import mpcpearl_jax.exported as exported_module
-from mpcpearl_jax.checkpoint import load_policy
 from mpcpearl_jax.deploy import Adapter, Frame, Scene
 from mpcpearl_jax.envs import make_env, make_tasks
 from mpcpearl_jax.export import export_policy
 from mpcpearl_jax.exported import ExportError, load_exported, sidecar_path
+from mpcpearl_jax.policy import load_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 HEADLINE = ROOT / "results/restaurant/mpc-pearl-eps0.2"

@@ -27,9 +27,10 @@ import numpy as np
 import pytest
 
 from experiments.common import build_config, main, parser
-from mpcpearl_jax.checkpoint import CheckpointError, load_policy
+from mpcpearl_jax.checkpoint import CheckpointError
 from mpcpearl_jax.envs.sidewalk.loader import DataFormatError, load_eth_ucy
 from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.policy import load_policy
 from mpcpearl_jax.run import LOG_FILE, RunDirError, check_writable, prepare, read_log, train
 from mpcpearl_jax.trainer import IterationAbandoned, Trainer
 

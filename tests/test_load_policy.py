@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import mpcpearl_jax.checkpoint as checkpoint
-from mpcpearl_jax.checkpoint import NETWORK_FILE, CheckpointError, load_policy, save_network
+from mpcpearl_jax.checkpoint import NETWORK_FILE, CheckpointError, save_network
+from mpcpearl_jax.policy import load_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 SIDEWALK_RUN = ROOT / "results" / "sidewalk" / "ablation" / "cpu-10min"  # no network.json

@@ -40,7 +40,7 @@ _LAZY = {
 
 def __getattr__(name: str) -> Any:
     if name == "load_policy":
-        from mpcpearl_jax.checkpoint import load_policy
+        from mpcpearl_jax.policy import load_policy
 
         return load_policy
     if name in _LAZY:

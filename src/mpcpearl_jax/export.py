@@ -22,10 +22,11 @@ import jax.numpy as jnp
 from jax import export as jax_export
 
 from mpcpearl_jax import __version__
-from mpcpearl_jax.checkpoint import CONFIG_FILE, POLICY_FILE, atomic_write, load_policy
+from mpcpearl_jax.checkpoint import CONFIG_FILE, POLICY_FILE, atomic_write
 from mpcpearl_jax.deploy import Layout
 from mpcpearl_jax.dynamics import DELTA_MAX
 from mpcpearl_jax.exported import FORMAT, FORMAT_VERSION, FUNCTIONS, MANIFEST, sha256, sidecar_path
+from mpcpearl_jax.policy import load_policy
 from mpcpearl_jax.report import run_label
 
 EXPORT_FILE = "policy.export"

@@ -108,7 +108,7 @@ def _checked(name: str, x: Any, expected: str, ok: Callable[[tuple], bool]) -> A
 
 
 class ExportedPolicy:
-    """A policy loaded from its export (see module doc). Mirrors `checkpoint.LoadedPolicy`:
+    """A policy loaded from its export (see module doc). Mirrors `policy.LoadedPolicy`:
 
     act(obs [O] or [B, O], z [L] or [B, L]) -> action [2] or [B, 2] in [-1, 1] (tanh of the mean)
     infer_z(context [C, D], mask [C] | None, key=None) -> z [L] (posterior mean if no key, else a
