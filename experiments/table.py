@@ -556,31 +556,99 @@ PERTURBATIONS = (
     ("-speed0.7", "speed 0.7"),
     ("-speed1.3", "speed 1.3"),
 )
+# the perturbations settings are chosen on (never the table's): `experiments.robustness
+# --perturb delay=9 --perturb delay=15 --perturb speed=0.85 --perturb speed=1.15`
+VALIDATION_PERTURBATIONS = (
+    ("", "none"),
+    ("-delay9", "delay 9"),
+    ("-delay15", "delay 15"),
+    ("-speed0.85", "speed 0.85"),
+    ("-speed1.15", "speed 1.15"),
+)
+# the first rows of the robustness table; every other single-run entry of RESTAURANT with a
+# 192-task validation record follows, then GP-MPC
 ROBUSTNESS = (
     ("MPC-PEARL 0.2 (`cpu-explore`), 60 min", _HEADLINE),
     ("PEARL (`cpu-explore`), 60 min", "restaurant/pearl"),
     ("MPC-SAC 0.2 (`cpu-explore`), 60 min", "restaurant/mpc-sac"),
 )
+GP_MPC_ROW = "GP-MPC"
 
 
-def render_robustness(rec: Records, rows: Sequence[tuple[str, str]] = ROBUSTNESS) -> str:
-    """SR / CFR of each run on the 192 validation tasks with the people's timing perturbed
-    (`experiments.evaluate RUN --split val --task-seeds 1-8 --perturb ...`)."""
-    head = ["run", *(f"{label}" for _, label in PERTURBATIONS)]
+def _perturbed_record(run: str, suffix: str) -> str:
+    if run == GP_MPC_ROW:
+        if not suffix:  # the unperturbed GP-MPC record of the main table
+            return "gp_mpc/restaurant_val_seeds1-8.json"
+        return f"gp_mpc/perturbed/val{suffix}-seeds1-8/results.json"
+    return f"{run}/eval/policy-val{suffix}-seeds1-8/results.json"
+
+
+def robustness_rows(rec: Records) -> list[tuple[str, str]]:
+    """The robustness table's rows: ROBUSTNESS, then every other single-run entry of the main
+    table and GP-MPC once evaluated under the perturbations (`experiments.robustness`; the
+    delay-12 record marks it): from then on each of its cells must have a record."""
+    rows, seen = list(ROBUSTNESS), {run for _, run in ROBUSTNESS}
+    for label, run in [(e.label, e.runs[0]) for e in RESTAURANT if len(e.runs) == 1] + [
+        (GP_MPC_ROW, GP_MPC_ROW)
+    ]:
+        if run not in seen and (rec.results / _perturbed_record(run, "-delay12")).is_file():
+            rows.append((label, run))
+            seen.add(run)
+    return rows
+
+
+def render_perturbed(
+    rec: Records, rows: Sequence[tuple[str, str]], perturbations: Sequence[tuple[str, str]]
+) -> list[str]:
+    head = ["run", *(f"{label}" for _, label in perturbations)]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for label, run in rows:
         cells = []
-        for suffix, _ in PERTURBATIONS:
-            rel = f"{run}/eval/policy-val{suffix}-seeds1-8/results.json"
+        for suffix, _ in perturbations:
+            rel = _perturbed_record(run, suffix)
             pair = [_pooled(rec, rel, m) for m in ("SR", "CFR")]
             cells.append(MISSING if None in pair else " / ".join(f2(p.value) for p in pair))
-        lines.append(f"| {label} [`{run}`] | " + " | ".join(cells) + " |")
+        ref = "" if run == GP_MPC_ROW else f" [`{run}`]"
+        lines.append(f"| {label}{ref} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def render_robustness(rec: Records, rows: Sequence[tuple[str, str]] | None = None) -> str:
+    """SR / CFR of each run on the 192 validation tasks with the people's timing perturbed
+    (`experiments.robustness`, i.e. `experiments.evaluate RUN --split val --task-seeds 1-8
+    --perturb ...`)."""
+    lines = render_perturbed(rec, robustness_rows(rec) if rows is None else rows, PERTURBATIONS)
     lines += [
         "",
         "SR / CFR on the 192 validation tasks (task seeds 1-8) with every person's timing "
         "perturbed on an unchanged path: delay K holds everyone at the start K more steps, speed "
         "S follows the paths S times as fast (docs/method.md §8a). Records: "
-        "`RUN/eval/policy-val[-PERTURBATION]-seeds1-8/results.json`.",
+        "`RUN/eval/policy-val[-PERTURBATION]-seeds1-8/results.json`, GP-MPC's "
+        "`gp_mpc/perturbed/`; produced by `python -m experiments.robustness --all --gp-mpc`.",
+    ]
+    return "\n".join(lines)
+
+
+# the runs compared on the validation-only perturbations (the randomised crowd timing against
+# the headline it modifies)
+ROBUSTNESS_CHOICE = (
+    ("MPC-PEARL 0.2 (`cpu-explore`), 60 min", _HEADLINE),
+    (
+        "MPC-PEARL 0.2, `cpu-explore` + randomised crowd timing (`train.crowd_delay_max` 20), "
+        "30 min",
+        "restaurant/ablation/crowd-delay20-30min",
+    ),
+)
+
+
+def render_robustness_choice(rec: Records) -> str:
+    """SR / CFR on the perturbations a training option is chosen on (never the table's)."""
+    lines = render_perturbed(rec, ROBUSTNESS_CHOICE, VALIDATION_PERTURBATIONS)
+    lines += [
+        "",
+        "SR / CFR on the 192 validation tasks (task seeds 1-8) under the perturbations used to "
+        "choose a training option (delays 9 and 15, speeds 0.85 and 1.15), none of which is in "
+        "the robustness table. Records: `RUN/eval/policy-val[-PERTURBATION]-seeds1-8/`.",
     ]
     return "\n".join(lines)
 
@@ -589,6 +657,7 @@ BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block
     ("README.md", "quality", render_quality),
     ("results/README.md", "restaurant", render_restaurant),
     ("results/README.md", "robustness", render_robustness),
+    ("results/README.md", "robustness-choice", render_robustness_choice),
 )
 
 

@@ -1,0 +1,112 @@
+"""The robustness records: runs (and GP-MPC) on the 192 validation tasks with the crowd re-timed.
+
+    python -m experiments.robustness results/restaurant/mpc-pearl-eps0.2 [RUN ...]
+    python -m experiments.robustness --all               # every committed restaurant policy
+    python -m experiments.robustness --gp-mpc            # the GP-MPC baseline
+    python -m experiments.robustness RUN --perturb delay=9 --perturb speed=0.85
+
+For every run and every perturbation (default: none and the robustness table's delay 3, 6, 12,
+speed 0.7, 1.3; `envs.perturb`, docs/method.md §8a) this is
+
+    python -m experiments.evaluate RUN --split val --task-seeds 1-8 --perturb P --figures none
+
+(GP-MPC: `--controller gp-mpc --env restaurant`, records under results/gp_mpc/perturbed/), all
+in one process so that each run's evaluator is compiled once. A record that exists is kept
+(`--overwrite` redoes it). `python -m experiments.table` turns the records into the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from mpcpearl_jax.envs.perturb import parse_perturbation
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLE_PERTURBATIONS = ("none", "delay=3", "delay=6", "delay=12", "speed=0.7", "speed=1.3")
+GP_MPC_OUT = Path("results") / "gp_mpc" / "perturbed"
+TASK_SEEDS = "1-8"
+
+
+def suffix(text: str) -> str:
+    """The folder suffix experiments.evaluate gives a perturbation ('' for none)."""
+    p = parse_perturbation(text)
+    return "" if p.is_identity else "-" + p.label.replace("=", "").replace(",", "-")
+
+
+def committed_runs(results: Path) -> list[Path]:
+    """Every committed restaurant run with a policy (GrBAL has none)."""
+    runs = sorted(p.parent for p in (results / "restaurant").rglob("policy.msgpack"))
+    return [r for r in runs if (r / "config.json").is_file()]
+
+
+def record_path(run: Path | None, text: str) -> Path:
+    if run is None:
+        return GP_MPC_OUT / f"val{suffix(text)}-seeds{TASK_SEEDS}" / "results.json"
+    return run / "eval" / f"policy-val{suffix(text)}-seeds{TASK_SEEDS}" / "results.json"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("runs", type=Path, nargs="*", help="run directories")
+    p.add_argument("--all", action="store_true", help="every committed restaurant policy")
+    p.add_argument("--gp-mpc", action="store_true", help="the GP-MPC baseline too")
+    p.add_argument(
+        "--perturb",
+        action="append",
+        default=None,
+        help="a perturbation (repeatable; default: none and the table's five)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="redo existing records")
+    args = p.parse_args(argv)
+    perturbations = args.perturb or list(TABLE_PERTURBATIONS)
+    try:
+        for text in perturbations:
+            parse_perturbation(text)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    runs: list[Path | None] = list(args.runs)
+    if args.all:
+        runs += [r for r in committed_runs(ROOT / "results") if r not in runs]
+    if args.gp_mpc:
+        runs.append(None)
+    if not runs:
+        print("error: give run directories, --all or --gp-mpc", file=sys.stderr)
+        return 2
+    for run in runs:
+        if run is not None and not (run / "config.json").is_file():
+            print(f"error: {run}: not a run directory (no config.json)", file=sys.stderr)
+            return 2
+
+    from experiments import evaluate
+
+    failed = []
+    for run in runs:
+        for text in perturbations:
+            out = record_path(run, text)
+            if out.is_file() and not args.overwrite:
+                print(f"[robustness] kept {out}", flush=True)
+                continue
+            argv_e = ["--split", "val", "--task-seeds", TASK_SEEDS, "--figures", "none"]
+            argv_e += ["--perturb", text, "--out", str(out.parent)]
+            if run is None:
+                argv_e = ["--controller", "gp-mpc", "--env", "restaurant", *argv_e]
+            else:
+                argv_e = [str(run), *argv_e]
+            t0 = time.perf_counter()
+            rc = evaluate.main(argv_e)
+            name = "GP-MPC" if run is None else str(run)
+            print(f"[robustness] {name} {text}: rc {rc}, {time.perf_counter() - t0:.0f} s")
+            if rc != 0:
+                failed.append(f"{name} {text}")
+    if failed:
+        print(f"error: {len(failed)} evaluation(s) failed: {failed}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
