@@ -1,0 +1,54 @@
+"""experiments.robustness: which evaluations it runs (experiments.evaluate's arguments), which
+records it keeps, and its errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from experiments import evaluate, robustness
+
+ROOT = Path(__file__).resolve().parents[1]
+HEADLINE = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"
+
+
+def test_runs_each_missing_record_once_in_order(tmp_path, monkeypatch, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text((HEADLINE / "config.json").read_text())
+    kept = run / "eval" / "policy-val-delay3-seeds1-8"
+    kept.mkdir(parents=True)
+    (kept / "results.json").write_text("{}")
+    calls = []
+    monkeypatch.setattr(evaluate, "main", lambda argv: calls.append(argv) or 0)
+    monkeypatch.chdir(tmp_path)
+    perturbs = ["--perturb", "none", "--perturb", "delay=3", "--perturb", "speed=1.3"]
+    assert robustness.main([str(run), *perturbs, "--gp-mpc"]) == 0
+    outs = [a[a.index("--out") + 1] for a in calls]
+    assert outs == [
+        str(run / "eval" / "policy-val-seeds1-8"),
+        str(run / "eval" / "policy-val-speed1.3-seeds1-8"),
+        str(Path("results") / "gp_mpc" / "perturbed" / "val-delay3-seeds1-8"),
+        str(Path("results") / "gp_mpc" / "perturbed" / "val-speed1.3-seeds1-8"),
+    ]
+    assert calls[0][:5] == [str(run), "--split", "val", "--task-seeds", "1-8"]
+    assert calls[2][:4] == ["--controller", "gp-mpc", "--env", "restaurant"]
+    out = (
+        capsys.readouterr().out
+    )  # the run's delay 3 exists; GP-MPC's unperturbed is the main table's
+    assert out.count("kept") == 2
+    calls.clear()
+    assert robustness.main([str(run), "--perturb", "delay=3", "--overwrite"]) == 0
+    assert len(calls) == 1
+
+
+def test_errors(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(evaluate, "main", lambda argv: 1)
+    assert robustness.main([str(HEADLINE), "--perturb", "delay=x"]) == 2
+    assert "delay must be an int" in capsys.readouterr().err
+    assert robustness.main([]) == 2
+    assert robustness.main([str(tmp_path)]) == 2
+    assert "not a run directory" in capsys.readouterr().err
+    out = tmp_path / "o"
+    monkeypatch.setattr(robustness, "record_path", lambda run, text: out / "results.json")
+    assert robustness.main([str(HEADLINE), "--perturb", "delay=1"]) == 1
+    assert "1 evaluation(s) failed" in capsys.readouterr().err
