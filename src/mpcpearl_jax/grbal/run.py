@@ -177,35 +177,61 @@ def _loop(
     progress: Callable[[str], None] | None,
     budget_s: float | None,
 ) -> GrbalState:
+    """`loop.train_loop` for `grbal.iterations` (or until `budget_s` wall seconds of this
+    process have passed): evaluation every `eval_interval` iterations and at the end,
+    checkpoints every `checkpoint_interval` and at the end."""
+    from mpcpearl_jax.loop import Progress, train_loop
+
     g = trainer.cfg.grbal
     done = int(np.asarray(state.iteration)[0])
     log_path = run_dir / LOG_FILE
     rows = read_log(log_path, done, report=lambda msg: None)
-    wall0 = rows[-1].get("wall_s", 0.0) if rows else 0.0
+    steps = ckpt.steps()
+    where = Progress(
+        iterations=done,
+        saved=steps[-1] if steps else -1,
+        train_s=rows[-1].get("train_s", 0.0) if rows else 0.0,
+        wall_s0=rows[-1].get("wall_s", 0.0) if rows else 0.0,
+    )
     t_start = time.perf_counter()
-    while done < g.iterations:
-        state, log = trainer.iteration(state)
-        done = log["iteration"]
-        out_of_time = budget_s is not None and time.perf_counter() - t_start >= budget_s
-        last = done == g.iterations or out_of_time
-        if (g.eval_interval and done % g.eval_interval == 0) or last:
-            t0 = time.perf_counter()
-            log.update(_eval_row(trainer, state))
-            log["eval_s"] = time.perf_counter() - t0
-        log["wall_s"] = wall0 + time.perf_counter() - t_start
-        try:
-            append_log(log_path, log)
-        except OSError as e:  # a full disk or an I/O error
-            steps = ckpt.steps()
-            raise write_error(e, steps[-1] if steps else -1) from e
-        if done % g.checkpoint_interval == 0 or last:
-            ckpt.save(done, state, trainer.model_params(state))
+
+    def out_of_time() -> bool:
+        return budget_s is not None and time.perf_counter() - t_start >= budget_s
+
+    decided: dict[int, bool] = {}  # the budget is read once per iteration
+
+    def until(p: Progress) -> bool:
+        if p.iterations not in decided:
+            more_time = p.iterations == done or not out_of_time()
+            decided[p.iterations] = p.iterations >= g.iterations or not more_time
+        return decided[p.iterations]
+
+    def evaluate(state: GrbalState, p: Progress) -> dict[str, Any]:
+        t0 = time.perf_counter()
+        return {**_eval_row(trainer, state), "eval_s": time.perf_counter() - t0}
+
+    def on_row(row: dict[str, Any]) -> None:
+        append_log(log_path, row)
         if progress is not None:
-            progress(_progress_line(log, g.iterations))
-        if out_of_time:
-            if progress is not None:
-                progress(f"time budget of {budget_s:.0f} s reached after iteration {done}")
-            break
+            progress(_progress_line(row, g.iterations))
+
+    try:
+        state = train_loop(
+            trainer,
+            state,
+            where,
+            until=until,
+            save=lambda it, s: ckpt.save(it, s, trainer.model_params(s)),
+            on_row=on_row,
+            evaluate_after=lambda p: g.eval_interval > 0 and p.iterations % g.eval_interval == 0,
+            evaluate=evaluate,
+            checkpoint_after=lambda p, _: p.iterations % g.checkpoint_interval == 0,
+        )
+    except OSError as e:  # a full disk or an I/O error
+        steps = ckpt.steps()
+        raise write_error(e, steps[-1] if steps else -1) from e
+    if where.iterations < g.iterations and progress is not None:
+        progress(f"time budget of {budget_s:.0f} s reached after iteration {where.iterations}")
     return state
 
 
