@@ -127,7 +127,7 @@ def _prepare(
     memory the state and the planner need, the checkpoint restore), then config.json and the
     log cut back to the restored iteration."""
     if resume:
-        check_resumable(load_config(run_dir, resume=True), cfg, run_dir)
+        check_resumable(load_config(run_dir), cfg, run_dir)
         folder = run_dir / "checkpoints"
         if not (folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())):
             check_nothing_lost(run_dir)

@@ -1,0 +1,181 @@
+"""A queue of learning runs, trained one at a time and resumable across sessions.
+
+    python -m experiments.campaign CAMPAIGN.json [--only NAME ...] [--dry-run]
+
+A campaign file lists runs of the learning-curve harness (`benchmarks.learning`) and what to do
+with each when it has finished:
+
+    {"runs": [{"name": "mpc-pearl-s0",
+               "argv": ["--preset", "cpu-explore", "--eps", "0.2", "--seed", "0",
+                        "--minutes", "24", "--eval-minutes", "3"],
+               "results": "results/restaurant/seeds/mpc-pearl-eps0.2-s0",
+               "evaluate": [["--split", "val", "--task-seeds", "1-8", "--figures", "none",
+                             "--out", "{results}/eval/policy-val-seeds1-8"]]},
+              ...]}
+
+For each run in order: a run whose results folder holds curve.json is done and skipped; a run
+whose work folder (`runs/campaign/<name>`) holds a finished curve (stopped on its budget) is
+copied into its results folder without checkpoints and then evaluated; a run with checkpoints
+is resumed (`--resume`); any other is started. Every evaluation is `python -m
+experiments.evaluate RESULTS ARGS...` on the copied folder; it must name its `--out` (`{results}`
+stands for the results folder) and is skipped where that folder holds results.json. One
+training at a time, each in its own process: stop the campaign with Ctrl-C (the run under way
+saves and exits 130) and start the same command again later to continue where it stopped.
+A run that fails (exit code other than 0) stops the campaign with its name and code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+WORK = Path("runs") / "campaign"
+NOT_COPIED = ("checkpoints", ".lock")
+
+
+@dataclass(frozen=True)
+class CampaignRun:
+    name: str
+    argv: tuple[str, ...]
+    results: Path
+    evaluate: tuple[tuple[str, ...], ...] = field(default_factory=tuple)
+
+    @property
+    def work(self) -> Path:
+        return WORK / self.name
+
+
+def load_campaign(path: Path) -> list[CampaignRun]:
+    """The runs of a campaign file; ValueError naming the file and the bad entry."""
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a readable JSON campaign ({e})") from e
+    runs = raw.get("runs") if isinstance(raw, dict) else None
+    if not isinstance(runs, list) or not runs:
+        raise ValueError(f"{path}: expected {{'runs': [...]}} with at least one run")
+    out, names = [], set()
+    for i, r in enumerate(runs):
+        where = f"{path}: runs[{i}]"
+        if not isinstance(r, dict) or not {"name", "argv", "results"} <= set(r):
+            raise ValueError(f"{where}: needs 'name', 'argv' and 'results'")
+        name = r["name"]
+        if not isinstance(name, str) or not name or "/" in name or name in names:
+            raise ValueError(f"{where}: 'name' must be a unique folder name, got {name!r}")
+        names.add(name)
+        argv = r["argv"]
+        if not isinstance(argv, list) or not all(isinstance(a, str) for a in argv):
+            raise ValueError(f"{where}: 'argv' must be a list of strings")
+        for flag in ("--out", "--resume", "--overwrite"):
+            if flag in argv:
+                raise ValueError(f"{where}: 'argv' must not hold {flag} (the campaign sets it)")
+        evals = r.get("evaluate", [])
+        if not isinstance(evals, list) or not all(
+            isinstance(e, list) and all(isinstance(a, str) for a in e) for e in evals
+        ):
+            raise ValueError(f"{where}: 'evaluate' must be a list of argument lists")
+        results = Path(r["results"])
+        evals = [tuple(a.replace("{results}", str(results)) for a in e) for e in evals]
+        for e in evals:
+            if "--out" not in e[:-1]:
+                raise ValueError(f"{where}: every 'evaluate' entry must give --out")
+        out.append(CampaignRun(name, tuple(argv), results, tuple(evals)))
+    return out
+
+
+def state_of(run: CampaignRun) -> str:
+    """'done', 'finished' (trained, not yet copied), 'resume', or 'new'."""
+    if (run.results / "curve.json").is_file():
+        return "done"
+    curve = run.work / "curve.json"
+    if curve.is_file():
+        try:
+            if json.loads(curve.read_text()).get("stopped") == "budget":
+                return "finished"
+        except (OSError, json.JSONDecodeError):
+            pass
+    ckpts = run.work / "checkpoints"
+    if ckpts.is_dir() and any(p.name.isdigit() for p in ckpts.iterdir()):
+        return "resume"
+    return "new"
+
+
+def copy_results(run: CampaignRun) -> None:
+    """The finished work folder into the results folder, without checkpoints (curve.json last,
+    so that a copy cut short is not taken for a finished one)."""
+    run.results.mkdir(parents=True, exist_ok=True)
+    for p in sorted(run.work.iterdir(), key=lambda p: p.name == "curve.json"):
+        if p.name in NOT_COPIED:
+            continue
+        dest = run.results / p.name
+        if p.is_dir():
+            shutil.copytree(p, dest, dirs_exist_ok=True)
+        else:
+            shutil.copy2(p, dest)
+
+
+def eval_out(args: tuple[str, ...]) -> Path:
+    """The record experiments.evaluate writes for these arguments."""
+    return Path(args[args.index("--out") + 1]) / "results.json"
+
+
+def commands(run: CampaignRun, state: str) -> list[list[str]]:
+    """The processes still to run for `run` in `state` (see module doc)."""
+    py = [sys.executable, "-m"]
+    cmds: list[list[str]] = []
+    if state in ("new", "resume"):
+        extra = ["--resume"] if state == "resume" else []
+        cmds.append(py + ["benchmarks.learning", *run.argv, "--out", str(run.work), *extra])
+    for args in run.evaluate:
+        if eval_out(args).is_file():
+            continue
+        cmds.append(py + ["experiments.evaluate", str(run.results), *args])
+    return cmds
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("campaign", type=Path)
+    p.add_argument("--only", nargs="*", default=None, help="these run names only")
+    p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
+    args = p.parse_args(argv)
+    try:
+        runs = load_campaign(args.campaign)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if args.only is not None:
+        unknown = sorted(set(args.only) - {r.name for r in runs})
+        if unknown:
+            print(f"error: --only: no run named {unknown} in {args.campaign}", file=sys.stderr)
+            return 2
+        runs = [r for r in runs if r.name in args.only]
+    for run in runs:
+        state = state_of(run)
+        if state == "done" and not run.evaluate:
+            print(f"[campaign] {run.name}: done", flush=True)
+            continue
+        if state == "finished" and not args.dry_run:
+            copy_results(run)  # trained earlier: the evaluations read the results folder
+        todo = commands(run, "done" if state in ("done", "finished") else state)
+        print(f"[campaign] {run.name}: {state}, {len(todo)} process(es) to run", flush=True)
+        for i, cmd in enumerate(todo):
+            print("[campaign] $ " + " ".join(cmd[1:]), flush=True)
+            if args.dry_run:
+                continue
+            rc = subprocess.call(cmd)
+            if rc != 0:
+                print(f"error: {run.name}: {cmd[2]} exited {rc}", file=sys.stderr)
+                return rc
+            if i == 0 and state in ("new", "resume"):
+                copy_results(run)  # trained: the evaluations read the results folder
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,105 @@
+"""experiments.campaign: a queue of learning runs, one at a time, continued across sessions."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from experiments import campaign
+
+
+def _write(tmp_path: Path, runs) -> Path:
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps({"runs": runs}))
+    return path
+
+
+def _run(name="a", results="res/a", evaluate=None):
+    r = {"name": name, "argv": ["--preset", "smoke", "--minutes", "0.05"], "results": results}
+    if evaluate is not None:
+        r["evaluate"] = evaluate
+    return r
+
+
+@pytest.mark.parametrize(
+    "runs, match",
+    [
+        ([], "at least one run"),
+        ([{"name": "a"}], r"runs\[0\]: needs"),
+        ([_run(), _run()], "unique"),
+        ([_run(name="x/y")], "unique folder name"),
+        ([{**_run(), "argv": ["--out", "d"]}], "--out"),
+        ([{**_run(), "argv": ["--resume"]}], "--resume"),
+        ([_run(evaluate=[["--split", "val"]])], "must give --out"),
+        ([_run(evaluate="--split val")], "list of argument lists"),
+    ],
+)
+def test_bad_campaign_files_name_the_entry(tmp_path, runs, match):
+    with pytest.raises(ValueError, match=match):
+        campaign.load_campaign(_write(tmp_path, runs))
+    with pytest.raises(ValueError, match="not a readable JSON"):
+        campaign.load_campaign(tmp_path / "missing.json")
+
+
+def test_states_commands_and_copy(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    ev = [["--split", "val", "--out", "{results}/eval/v"]]
+    (run,) = campaign.load_campaign(_write(tmp_path, [_run(evaluate=ev)]))
+    assert run.evaluate == (("--split", "val", "--out", "res/a/eval/v"),)
+    assert campaign.state_of(run) == "new"
+    cmds = campaign.commands(run, "new")
+    assert cmds[0][1:4] == ["-m", "benchmarks.learning", "--preset"]
+    assert cmds[0][-2:] == ["--out", str(campaign.WORK / "a")]
+    assert cmds[1][1:4] == ["-m", "experiments.evaluate", "res/a"]
+    # a checkpoint: resumed
+    (run.work / "checkpoints" / "5").mkdir(parents=True)
+    assert campaign.state_of(run) == "resume"
+    assert campaign.commands(run, "resume")[0][-1] == "--resume"
+    # interrupted runs write a curve too, but only one stopped on its budget is finished
+    (run.work / "curve.json").write_text(json.dumps({"stopped": "interrupted"}))
+    assert campaign.state_of(run) == "resume"
+    (run.work / "curve.json").write_text(json.dumps({"stopped": "budget"}))
+    (run.work / "policy.msgpack").write_bytes(b"p")
+    (run.work / ".lock").write_text("")
+    (run.work / "eval").mkdir()
+    (run.work / "eval" / "x.json").write_text("{}")
+    assert campaign.state_of(run) == "finished"
+    campaign.copy_results(run)
+    copied = sorted(p.relative_to(run.results).as_posix() for p in run.results.rglob("*"))
+    assert copied == ["curve.json", "eval", "eval/x.json", "policy.msgpack"]
+    assert campaign.state_of(run) == "done"
+    assert [c[2] for c in campaign.commands(run, "done")] == ["experiments.evaluate"]
+    (run.results / "eval" / "v").mkdir()
+    (run.results / "eval" / "v" / "results.json").write_text("{}")
+    assert campaign.commands(run, "done") == []
+
+
+def test_dry_run_prints_and_runs_nothing(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    path = _write(tmp_path, [_run("a"), _run("b", results="res/b")])
+    (tmp_path / "res" / "b").mkdir(parents=True)
+    (tmp_path / "res" / "b" / "curve.json").write_text("{}")
+    calls = []
+    monkeypatch.setattr(campaign.subprocess, "call", lambda cmd: calls.append(cmd) or 0)
+    assert campaign.main([str(path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "a: new, 1 process(es)" in out and "b: done" in out and not calls
+    assert campaign.main([str(path), "--only", "nosuch"]) == 2
+
+
+def test_a_failing_run_stops_the_campaign_with_its_code(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    path = _write(tmp_path, [_run("a"), _run("b", results="res/b")])
+    calls = []
+
+    def call(cmd):
+        calls.append(cmd)
+        return 130  # Ctrl-C in the run under way
+
+    monkeypatch.setattr(campaign.subprocess, "call", call)
+    assert campaign.main([str(path)]) == 130
+    assert len(calls) == 1 and calls[0][0] == sys.executable
+    assert "a: benchmarks.learning" in capsys.readouterr().err
