@@ -15,7 +15,14 @@ from typing import Any
 import jax
 import numpy as np
 
-from mpcpearl_jax.checkpoint import CONFIG_FILE, Checkpointer, atomic_write, write_json
+from mpcpearl_jax.checkpoint import (
+    CONFIG_FILE,
+    Checkpointer,
+    atomic_write,
+    check_resumable,
+    save_config,
+    write_json,
+)
 from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
@@ -33,11 +40,6 @@ PAPER_NOTE = (
 )
 
 
-def save_config(run_dir: Path, cfg: GrbalExperimentConfig) -> None:
-    run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write(run_dir / CONFIG_FILE, cfg.to_json())
-
-
 def load_config(run_dir: Path) -> GrbalExperimentConfig:
     path = run_dir / CONFIG_FILE
     if not path.is_file():
@@ -46,25 +48,6 @@ def load_config(run_dir: Path) -> GrbalExperimentConfig:
         return GrbalExperimentConfig.from_dict(json.loads(path.read_text()))
     except (json.JSONDecodeError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: not a GrBAL run config ({e})") from e
-
-
-def check_resumable(saved: GrbalExperimentConfig, cfg: GrbalExperimentConfig, run_dir) -> None:
-    """Resuming needs the same config except for the number of iterations."""
-    a, b = saved.to_dict(), cfg.to_dict()
-    a["grbal"].pop("iterations")
-    b["grbal"].pop("iterations")
-    a, b = json.loads(json.dumps(a)), json.loads(json.dumps(b))
-    diff = [
-        f"grbal.{k}"
-        for k in sorted(set(a["grbal"]) | set(b["grbal"]))
-        if a["grbal"].get(k) != b["grbal"].get(k)
-    ]
-    diff += [k for k in sorted(set(a) | set(b)) if k != "grbal" and a.get(k) != b.get(k)]
-    if diff:
-        raise CheckpointError(
-            f"{run_dir}: the saved config differs from the requested one in {diff}; "
-            "resume with the same settings (only --iterations may change) or use a new --out"
-        )
 
 
 def _eval_row(trainer: GrbalTrainer, state: GrbalState) -> dict[str, Any]:
@@ -127,7 +110,7 @@ def _prepare(
     memory the state and the planner need, the checkpoint restore), then config.json and the
     log cut back to the restored iteration."""
     if resume:
-        check_resumable(load_config(run_dir), cfg, run_dir)
+        check_resumable(load_config(run_dir), cfg, run_dir, iterations="grbal.iterations")
         folder = run_dir / "checkpoints"
         if not (folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())):
             check_nothing_lost(run_dir)
