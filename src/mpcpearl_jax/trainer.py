@@ -372,7 +372,7 @@ class Trainer:
 
         - data collection (lines 4-17), for `tasks_per_iteration` training tasks drawn at random:
           `prior_episodes` episodes with z ~ N(0, I) (line 5) that also fill the task's encoder
-          buffer, then `posterior_episodes` with z ~ q_phi(z | c) (lines 15-16), every step
+          buffer, then `posterior_episodes` with z ~ q_phi(z | c) (lines 16-17), every step
           acted by the MPC when an event fires and rand <= eps (lines 8-11; `collect`), else by
           pi_theta (line 13), and stored in the task's replay buffer H^i (line 15);
         - training (lines 18-23): N_train = `updates_per_iteration` gradient steps, each over a
