@@ -423,94 +423,87 @@ def train_for(
     under way was abandoned, and `saved` is the iteration a resume starts from).
     """
     from mpcpearl_jax.errors import TrainingDiverged
+    from mpcpearl_jax.loop import Progress, train_loop
     from mpcpearl_jax.run import append_log
     from mpcpearl_jax.trainer import IterationAbandoned
 
     start = start or {}
     ups = trainer.cfg.train.updates_per_iteration
     points: list[dict[str, Any]] = list(start.get("points", []))
-    info: dict[str, Any] = {
-        "iterations": start.get("iterations", 0),
-        "saved": start.get("saved", -1),
-        "train_s": start.get("train_s", 0.0),
-        "eval_s": sum(p["eval_s"] for p in points),
-        "first_iteration_s": start.get("first_iteration_s"),
-        "stopped": "budget",
-    }
-    t_loop0 = clock() - start.get("wall_s", 0.0)
-    log: dict[str, Any] | None = None
-    stopping = stop or (lambda: False)
-    kw = {"stop": stop} if stop is not None else {}
+    progress = Progress(
+        iterations=start.get("iterations", 0),
+        saved=start.get("saved", -1),
+        train_s=start.get("train_s", 0.0),
+        wall_s0=start.get("wall_s", 0.0),
+        first_iteration_s=start.get("first_iteration_s"),
+    )
+    info: dict[str, Any] = {"eval_s": sum(p["eval_s"] for p in points), "stopped": "budget"}
+    t_loop0 = clock() - progress.wall_s0
+    schedule = {"next_eval_s": (math.floor(progress.train_s / every_s) + 1) * every_s}
 
-    def evaluate() -> dict[str, Any]:
+    def evaluate(state, p: Progress) -> dict[str, Any]:
         t = clock()
         row = _evaluate(trainer, state, val_tasks, online)
         dt = clock() - t
         info["eval_s"] += dt
-        done = info["iterations"]
+        done = p.iterations
         point = {
-            "minutes": info["train_s"] / 60.0,
+            "minutes": p.train_s / 60.0,
             "wall_minutes": (clock() - t_loop0) / 60.0,
             "iteration": done,
             "grad_steps": done * ups,
             "env_steps": env_steps(trainer, done),
             "eval_s": dt,
             **row,
-            **_train_logs(log),
+            **_train_logs(p.log),
         }
         points.append(point)
         if points_path is not None:
             append_log(points_path, point)
         if on_point is not None:
             on_point(point)
-        return point
+        schedule["next_eval_s"] = (math.floor(p.train_s / every_s) + 1) * every_s
+        fields = {k: v for k, v in point.items() if k.startswith(("test_", "val_"))}
+        return {**fields, "eval_s": dt}
 
-    def checkpoint() -> None:
-        if save is not None and info["saved"] != info["iterations"]:
-            save(info["iterations"], state)
-            info["saved"] = info["iterations"]
-
-    if not points:
-        evaluate()  # the untrained policy at minute 0 (compiles the evaluator, off the clock)
-    next_eval_s = (math.floor(info["train_s"] / every_s) + 1) * every_s
-    while info["train_s"] < budget_s:
-        if stopping():  # Ctrl-C between iterations: the state is whole, keep it
-            checkpoint()
-            info["stopped"] = "interrupted"
-            break
-        t = clock()
-        try:
-            state, log = trainer.iteration(state, **kw)
-        except TrainingDiverged as e:
-            info["stopped"] = f"diverged: {e}"
-            print(f"error: {e}", file=sys.stderr, flush=True)
-            break
-        except IterationAbandoned:  # Ctrl-C inside an iteration: the state was consumed
-            info["stopped"], state = "interrupted", None
-            break
-        dt = clock() - t
-        info["train_s"] += dt
-        if info["first_iteration_s"] is None:
-            info["first_iteration_s"] = dt
-        info["iterations"] = done = log["iteration"]
-        row = dict(log, train_s=info["train_s"], wall_s=clock() - t_loop0)
-        last = info["train_s"] >= budget_s
-        evaluated = last or info["train_s"] >= next_eval_s
-        if evaluated:
-            point = evaluate()
-            row.update(
-                {k: v for k, v in point.items() if k.startswith(("test_", "val_", "trained_"))}
-            )
-            row["eval_s"] = point["eval_s"]
-            next_eval_s = (math.floor(info["train_s"] / every_s) + 1) * every_s
+    def on_row(row: dict[str, Any]) -> None:
         append_log(log_path, row)
         if tensorboard is not None:
             tensorboard.write(row)
-        if evaluated or (checkpoint_every and done % checkpoint_every == 0) or stopping():
-            checkpoint()
-    else:
-        if points[-1]["iteration"] != info["iterations"]:  # resumed at the end of the budget
-            evaluate()
+
+    if not points:
+        evaluate(state, progress)  # the untrained policy at minute 0 (compiles the evaluator)
+    try:
+        state = train_loop(
+            trainer,
+            state,
+            progress,
+            until=lambda p: p.train_s >= budget_s,
+            save=save,
+            on_row=on_row,
+            evaluate_after=lambda p: p.train_s >= schedule["next_eval_s"],
+            evaluate=evaluate,
+            checkpoint_after=lambda p, evaluated: (
+                evaluated or bool(checkpoint_every and p.iterations % checkpoint_every == 0)
+            ),
+            stop=stop,
+            clock=clock,
+        )
+        if progress.stopped == "interrupted":
+            info["stopped"] = "interrupted"
+        elif points[-1]["iteration"] != progress.iterations:  # resumed at the end of the budget
+            evaluate(state, progress)
+    except TrainingDiverged as e:
+        info["stopped"], state = f"diverged: {e}", None
+        print(f"error: {e}", file=sys.stderr, flush=True)
+    except IterationAbandoned:  # Ctrl-C inside an iteration: the state was consumed
+        info["stopped"], state = "interrupted", None
+    info.update(
+        iterations=progress.iterations,
+        saved=progress.saved,
+        train_s=progress.train_s,
+        first_iteration_s=progress.first_iteration_s,
+    )
     return state, points, info
 
 
@@ -576,9 +569,10 @@ def _run_session(
     from mpcpearl_jax.run import (
         LOG_FILE,
         RunInterrupted,
-        _policy_params,
         _sigint_flag,
         final_evaluation,
+        policy_params,
+        read_log,
         write_error,
     )
 
@@ -607,9 +601,9 @@ def _run_session(
 
     def save(step: int, state) -> None:
         if args.policy_only:  # no orbax checkpoint (no --resume): the policy only
-            save_params(out / POLICY_FILE, _policy_params(state))
+            save_params(out / POLICY_FILE, policy_params(state))
         else:  # exactly as run.train: orbax checkpoint of the TrainState + policy.msgpack
-            sess.ckpt.save(step, state, _policy_params(state))
+            sess.ckpt.save(step, state, policy_params(state))
 
     try:
         with _sigint_flag(True) as stop:
@@ -686,7 +680,7 @@ def _run_session(
         "time_to": time_to_targets(points),
         "points": points,
     }
-    rows = _read_rows(log_path)
+    rows = read_log(log_path)
     record["time_to"]["train"] = {
         "first_success": first_train_success(rows, tc.updates_per_iteration)
     }
@@ -733,10 +727,6 @@ def _run_session(
     )
     print(f"curve, policy and results in {out}", flush=True)
     return 0 if stopped == "budget" else 1
-
-
-def _read_rows(path: Path) -> list[dict[str, Any]]:
-    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
 
 
 if __name__ == "__main__":

@@ -113,7 +113,8 @@ def save_params(path: Path, params: Any) -> None:
     atomic_write(path, serialization.to_bytes(params))
 
 
-def save_config(run_dir: Path, cfg: ExperimentConfig) -> None:
+def save_config(run_dir: Path, cfg: Any) -> None:
+    """config.json of any run (a config with `to_json`), written atomically."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write(run_dir / CONFIG_FILE, cfg.to_json())
@@ -153,12 +154,16 @@ def load_config(run_dir: str | Path, resume: bool = False) -> ExperimentConfig:
         raise CheckpointError(f"{path}: unreadable or invalid config ({e})") from e
 
 
-def check_resumable(saved: ExperimentConfig, cfg: ExperimentConfig, run_dir: Path) -> None:
-    """Resuming needs the same config except for the number of iterations (and the number of
-    devices: per-seed results do not depend on it, orbax restores onto the new layout)."""
+def check_resumable(
+    saved: Any, cfg: Any, run_dir: Path, iterations: str = "train.iterations"
+) -> None:
+    """Resuming needs the same config except for the number of iterations (the field
+    `iterations`, e.g. 'grbal.iterations' for GrBAL) and the number of devices (per-seed results
+    do not depend on it, orbax restores onto the new layout)."""
     da, db = saved.to_dict(), cfg.to_dict()
+    section, field = iterations.split(".")
     for d in (da, db):
-        d["train"].pop("iterations")
+        d[section].pop(field)
         d.pop("devices", None)
     diff = _diff(json.loads(json.dumps(da)), json.loads(json.dumps(db)))
     if diff:

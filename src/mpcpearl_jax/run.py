@@ -36,6 +36,7 @@ from mpcpearl_jax.checkpoint import (
 from mpcpearl_jax.config import ExperimentConfig, validate
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, RunDirError
+from mpcpearl_jax.loop import Progress, train_loop
 from mpcpearl_jax.pearl.learner import acting_params
 from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.resources import check_state_fits
@@ -299,60 +300,68 @@ def train_session(
 
 
 def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=None) -> TrainState:
-    cfg, trainer, ckpt, state = sess.cfg, sess.trainer, sess.ckpt, sess.state
-    log_path = sess.run_dir / LOG_FILE
-    done, saved, total = sess.done, sess.saved, cfg.train.iterations
-    stopping = stop or (lambda: False)
+    """`loop.train_loop` for a number of iterations: evaluation every `eval_interval` iterations
+    and at the end, checkpoints every `checkpoint_interval`; Ctrl-C -> RunInterrupted."""
+    cfg, trainer, ckpt = sess.cfg, sess.trainer, sess.ckpt
+    tc, log_path, total = cfg.train, sess.run_dir / LOG_FILE, cfg.train.iterations
+    state_of = Progress(iterations=sess.done, saved=sess.saved)
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(
-            total=total, initial=done, desc=f"{cfg.env} eps={cfg.train.eps}", dynamic_ncols=True
+            total=total,
+            initial=sess.done,
+            desc=f"{cfg.env} eps={tc.eps}",
+            dynamic_ncols=True,
         )
-    t_start = time.perf_counter()
+
+    def evaluate(state: TrainState, p: Progress) -> dict[str, Any]:
+        t0 = time.perf_counter()
+        row = _eval_row(trainer, state)
+        return {**row, "eval_s": time.perf_counter() - t0}
+
+    def on_row(row: dict[str, Any]) -> None:
+        sess.rows.append(row)
+        if is_primary():
+            append_log(log_path, row)
+        if tb is not None:
+            tb.write(row)
+        if bar is not None:
+            post = {"ret": f"{row['train_return']:.0f}", "mpc": f"{row['train_mpc_share']:.2f}"}
+            if "test_SR" in row:
+                post.update(SR=f"{row['test_SR']:.2f}", CFR=f"{row['test_CFR']:.2f}")
+            bar.set_postfix(post)
+            bar.update(1)
+
     try:
-        while done < total:
-            if stopping():  # Ctrl-C between iterations: the state is whole, keep it
-                if saved != done:
-                    ckpt.save(done, state, _policy_params(state))
-                raise RunInterrupted(done)
-            try:
-                state, log = trainer.iteration(state, stop=stop)
-            except IterationAbandoned:
-                raise RunInterrupted(max(saved, 0), done - max(saved, 0)) from None
-            done = log["iteration"]
-            tc = cfg.train
-            if (tc.eval_interval and done % tc.eval_interval == 0) or done == total:
-                t0 = time.perf_counter()
-                log.update(_eval_row(trainer, state))
-                log["eval_s"] = time.perf_counter() - t0
-            log["wall_s"] = time.perf_counter() - t_start
-            sess.rows.append(log)
-            if is_primary():
-                append_log(log_path, log)
-            if tb is not None:
-                tb.write(log)
-            if done % tc.checkpoint_interval == 0 or done == total or stopping():
-                ckpt.save(done, state, _policy_params(state))
-                saved = done
-            if bar is not None:
-                post = {"ret": f"{log['train_return']:.0f}", "mpc": f"{log['train_mpc_share']:.2f}"}
-                if "test_SR" in log:
-                    post.update(SR=f"{log['test_SR']:.2f}", CFR=f"{log['test_CFR']:.2f}")
-                bar.set_postfix(post)
-                bar.update(1)
-            if stopping() and done < total:
-                raise RunInterrupted(done)
+        state = train_loop(
+            trainer,
+            sess.state,
+            state_of,
+            until=lambda p: p.iterations >= total,
+            save=lambda it, s: ckpt.save(it, s, policy_params(s)),
+            on_row=on_row,
+            evaluate_after=lambda p: tc.eval_interval > 0 and p.iterations % tc.eval_interval == 0,
+            evaluate=evaluate,
+            checkpoint_after=lambda p, _: p.iterations % tc.checkpoint_interval == 0,
+            stop=stop,
+        )
+    except IterationAbandoned:
+        saved = max(state_of.saved, 0)
+        raise RunInterrupted(saved, state_of.iterations - saved) from None
     except OSError as e:  # a full disk or an I/O error while logging
-        raise write_error(e, saved) from e
+        raise write_error(e, state_of.saved) from e
     finally:
         if bar is not None:
             bar.close()
+    if state_of.stopped == "interrupted":
+        raise RunInterrupted(state_of.iterations)
     return state
 
 
-def _policy_params(state: TrainState) -> dict:
+def policy_params(state: TrainState) -> dict:
+    """The {policy, encoder} parameters of every seed, on the host (what policy.msgpack holds)."""
     return to_host(acting_params(state.learner.params))
 
 

@@ -368,10 +368,22 @@ class Trainer:
     def iteration(
         self, state: TrainState, stop: Callable[[], bool] | None = None
     ) -> tuple[TrainState, dict]:
-        """One meta-training iteration: collect (prior, posterior), then N_train updates.
+        """One meta-training iteration, Algorithm 1 lines 3-23 (as in the authors' PEARL code):
 
-        stop (e.g. set by Ctrl-C) is polled before the updates and between update chunks; once
-        true the iteration is abandoned with IterationAbandoned (the state passed in is consumed).
+        - data collection (lines 4-17), for `tasks_per_iteration` training tasks drawn at random:
+          `prior_episodes` episodes with z ~ N(0, I) (line 5) that also fill the task's encoder
+          buffer, then `posterior_episodes` with z ~ q_phi(z | c) (lines 16-17), every step
+          acted by the MPC when an event fires and rand <= eps (lines 8-11; `collect`), else by
+          pi_theta (line 13), and stored in the task's replay buffer H^i (line 15);
+        - training (lines 18-23): N_train = `updates_per_iteration` gradient steps, each over a
+          meta-batch of tasks with a context c^i and a batch B^i (line 20), z^i ~ q_phi (line 21)
+          and the losses L_phi, L_theta, L_psi (lines 22-23; `pearl.learner`).
+
+        The extensions (docs/extensions.md) hook in where named: re-drawn or delayed crowds
+        before collection, warm-start and exploring-start rows in it, the MPC buffer in the
+        batches. stop (e.g. set by Ctrl-C) is polled before the updates and between update chunks;
+        once true the iteration is abandoned with IterationAbandoned (the state passed in is
+        consumed).
         """
         tc = self.cfg.train
         log: dict[str, Any] = {}

@@ -15,7 +15,14 @@ from typing import Any
 import jax
 import numpy as np
 
-from mpcpearl_jax.checkpoint import CONFIG_FILE, Checkpointer, atomic_write, write_json
+from mpcpearl_jax.checkpoint import (
+    CONFIG_FILE,
+    Checkpointer,
+    atomic_write,
+    check_resumable,
+    save_config,
+    write_json,
+)
 from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
@@ -33,11 +40,6 @@ PAPER_NOTE = (
 )
 
 
-def save_config(run_dir: Path, cfg: GrbalExperimentConfig) -> None:
-    run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write(run_dir / CONFIG_FILE, cfg.to_json())
-
-
 def load_config(run_dir: Path) -> GrbalExperimentConfig:
     path = run_dir / CONFIG_FILE
     if not path.is_file():
@@ -46,25 +48,6 @@ def load_config(run_dir: Path) -> GrbalExperimentConfig:
         return GrbalExperimentConfig.from_dict(json.loads(path.read_text()))
     except (json.JSONDecodeError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: not a GrBAL run config ({e})") from e
-
-
-def check_resumable(saved: GrbalExperimentConfig, cfg: GrbalExperimentConfig, run_dir) -> None:
-    """Resuming needs the same config except for the number of iterations."""
-    a, b = saved.to_dict(), cfg.to_dict()
-    a["grbal"].pop("iterations")
-    b["grbal"].pop("iterations")
-    a, b = json.loads(json.dumps(a)), json.loads(json.dumps(b))
-    diff = [
-        f"grbal.{k}"
-        for k in sorted(set(a["grbal"]) | set(b["grbal"]))
-        if a["grbal"].get(k) != b["grbal"].get(k)
-    ]
-    diff += [k for k in sorted(set(a) | set(b)) if k != "grbal" and a.get(k) != b.get(k)]
-    if diff:
-        raise CheckpointError(
-            f"{run_dir}: the saved config differs from the requested one in {diff}; "
-            "resume with the same settings (only --iterations may change) or use a new --out"
-        )
 
 
 def _eval_row(trainer: GrbalTrainer, state: GrbalState) -> dict[str, Any]:
@@ -127,7 +110,7 @@ def _prepare(
     memory the state and the planner need, the checkpoint restore), then config.json and the
     log cut back to the restored iteration."""
     if resume:
-        check_resumable(load_config(run_dir), cfg, run_dir)
+        check_resumable(load_config(run_dir), cfg, run_dir, iterations="grbal.iterations")
         folder = run_dir / "checkpoints"
         if not (folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())):
             check_nothing_lost(run_dir)
@@ -177,35 +160,61 @@ def _loop(
     progress: Callable[[str], None] | None,
     budget_s: float | None,
 ) -> GrbalState:
+    """`loop.train_loop` for `grbal.iterations` (or until `budget_s` wall seconds of this
+    process have passed): evaluation every `eval_interval` iterations and at the end,
+    checkpoints every `checkpoint_interval` and at the end."""
+    from mpcpearl_jax.loop import Progress, train_loop
+
     g = trainer.cfg.grbal
     done = int(np.asarray(state.iteration)[0])
     log_path = run_dir / LOG_FILE
     rows = read_log(log_path, done, report=lambda msg: None)
-    wall0 = rows[-1].get("wall_s", 0.0) if rows else 0.0
+    steps = ckpt.steps()
+    where = Progress(
+        iterations=done,
+        saved=steps[-1] if steps else -1,
+        train_s=rows[-1].get("train_s", 0.0) if rows else 0.0,
+        wall_s0=rows[-1].get("wall_s", 0.0) if rows else 0.0,
+    )
     t_start = time.perf_counter()
-    while done < g.iterations:
-        state, log = trainer.iteration(state)
-        done = log["iteration"]
-        out_of_time = budget_s is not None and time.perf_counter() - t_start >= budget_s
-        last = done == g.iterations or out_of_time
-        if (g.eval_interval and done % g.eval_interval == 0) or last:
-            t0 = time.perf_counter()
-            log.update(_eval_row(trainer, state))
-            log["eval_s"] = time.perf_counter() - t0
-        log["wall_s"] = wall0 + time.perf_counter() - t_start
-        try:
-            append_log(log_path, log)
-        except OSError as e:  # a full disk or an I/O error
-            steps = ckpt.steps()
-            raise write_error(e, steps[-1] if steps else -1) from e
-        if done % g.checkpoint_interval == 0 or last:
-            ckpt.save(done, state, trainer.model_params(state))
+
+    def out_of_time() -> bool:
+        return budget_s is not None and time.perf_counter() - t_start >= budget_s
+
+    decided: dict[int, bool] = {}  # the budget is read once per iteration
+
+    def until(p: Progress) -> bool:
+        if p.iterations not in decided:
+            more_time = p.iterations == done or not out_of_time()
+            decided[p.iterations] = p.iterations >= g.iterations or not more_time
+        return decided[p.iterations]
+
+    def evaluate(state: GrbalState, p: Progress) -> dict[str, Any]:
+        t0 = time.perf_counter()
+        return {**_eval_row(trainer, state), "eval_s": time.perf_counter() - t0}
+
+    def on_row(row: dict[str, Any]) -> None:
+        append_log(log_path, row)
         if progress is not None:
-            progress(_progress_line(log, g.iterations))
-        if out_of_time:
-            if progress is not None:
-                progress(f"time budget of {budget_s:.0f} s reached after iteration {done}")
-            break
+            progress(_progress_line(row, g.iterations))
+
+    try:
+        state = train_loop(
+            trainer,
+            state,
+            where,
+            until=until,
+            save=lambda it, s: ckpt.save(it, s, trainer.model_params(s)),
+            on_row=on_row,
+            evaluate_after=lambda p: g.eval_interval > 0 and p.iterations % g.eval_interval == 0,
+            evaluate=evaluate,
+            checkpoint_after=lambda p, _: p.iterations % g.checkpoint_interval == 0,
+        )
+    except OSError as e:  # a full disk or an I/O error
+        steps = ckpt.steps()
+        raise write_error(e, steps[-1] if steps else -1) from e
+    if where.iterations < g.iterations and progress is not None:
+        progress(f"time budget of {budget_s:.0f} s reached after iteration {where.iterations}")
     return state
 
 
