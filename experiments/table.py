@@ -426,6 +426,11 @@ RESTAURANT: tuple[Entry, ...] = (
     ),
     _r("MPC-PEARL 0.2, `cpu-explore`, seed 2, 20 minutes", "ablation/explore-starts-seed2-20min"),
     _r(
+        "MPC-PEARL 0.2, `cpu-explore` + randomised crowd timing (`train.crowd_delay_max` 20), "
+        "30 minutes, seed 0",
+        "ablation/crowd-delay20-30min",
+    ),
+    _r(
         "MPC-PEARL 0.2, the paper's event-triggered infusion only on PEARL's configuration "
         "(`cpu-tuned` with warm start, MPC buffer and cloning off; no exploring starts), seed 0",
         "ablation/event-infusion-60min",
