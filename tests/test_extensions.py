@@ -262,6 +262,7 @@ def test_cpu_presets_differ_only_in_the_extensions():
         ("cpu-explore", "0.2", "pearl", "mpc-pearl-eps0.2"),
         ("cpu-explore", "0", "pearl", "pearl"),
         ("cpu-explore", "0.2", "sac", "mpc-sac"),
+        ("cpu-robust", "0.2", "pearl", "ablation/crowd-delay20-30min"),
         ("cpu-tuned", "0.2", "pearl", "ablation/extended-60min"),
         ("cpu-tuned", "0", "pearl", "ablation/pearl-tuned-60min"),
         ("cpu-tuned", "0.2", "sac", "ablation/mpc-sac-tuned-60min"),

@@ -390,6 +390,21 @@ PRESET_CHANGES: dict[str, dict[str, dict[str, Any]]] = {
         "mpc": _MPC_RECOVERY,
         "env_overrides": _OBSERVATION,
     },
+    # `cpu-explore` with randomised crowd timing (every person of a visited training task waits
+    # 0-20 extra steps at its start), chosen on validation perturbations of its own
+    # (results/README.md, crowd perturbations); restaurant only
+    "cpu-robust": {
+        "pearl": {**_CPU_NETS, "bc_q_filter": False, "layer_norm": True},
+        "train": {
+            **_CPU_SCHEDULE,
+            "redraw_behaviours": True,
+            "explore_start_share": 0.5,
+            "mpc_demo_step_prob": 0.5,  # inactive without the warm start (as in cpu-explore)
+            "crowd_delay_max": 20,
+        },
+        "mpc": _MPC_RECOVERY,
+        "env_overrides": _OBSERVATION,
+    },
     # the README's main command, about five minutes on a 2-core CPU: `cpu-explore` with 2 x 64
     # networks, 4 tasks per gradient step (a step ~4x cheaper), automatic entropy tuning and 75
     # iterations; chosen on the validation split at a 5-minute budget (results/README.md)
