@@ -40,9 +40,12 @@ def suffix(text: str) -> str:
 
 
 def committed_runs(results: Path) -> list[Path]:
-    """Every committed restaurant run with a policy (GrBAL has none)."""
+    """Every committed restaurant run with a policy (GrBAL has none), relative to the working
+    directory where it lies below it (the records name the run: no machine paths in them)."""
     runs = sorted(p.parent for p in (results / "restaurant").rglob("policy.msgpack"))
-    return [r for r in runs if (r / "config.json").is_file()]
+    runs = [r for r in runs if (r / "config.json").is_file()]
+    here = Path.cwd().resolve()
+    return [r.resolve().relative_to(here) if r.resolve().is_relative_to(here) else r for r in runs]
 
 
 def record_path(run: Path | None, text: str) -> Path:

@@ -52,3 +52,11 @@ def test_errors(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(robustness, "record_path", lambda run, text: out / "results.json")
     assert robustness.main([str(HEADLINE), "--perturb", "delay=1"]) == 1
     assert "1 evaluation(s) failed" in capsys.readouterr().err
+
+
+def test_all_lists_every_committed_policy_by_a_relative_path(monkeypatch):
+    monkeypatch.chdir(ROOT)
+    runs = robustness.committed_runs(ROOT / "results")
+    assert Path("results/restaurant/mpc-pearl-eps0.2") in runs
+    assert all(not r.is_absolute() for r in runs)
+    assert Path("results/restaurant/grbal") not in runs  # a model, not a policy
