@@ -18,6 +18,7 @@ in one process so that each run's evaluator is compiled once. A record that exis
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -40,12 +41,20 @@ def suffix(text: str) -> str:
 
 
 def committed_runs(results: Path) -> list[Path]:
-    """Every committed restaurant run with a policy (GrBAL has none), relative to the working
+    """Every committed restaurant run with a policy (not GrBAL's model), relative to the working
     directory where it lies below it (the records name the run: no machine paths in them)."""
     runs = sorted(p.parent for p in (results / "restaurant").rglob("policy.msgpack"))
-    runs = [r for r in runs if (r / "config.json").is_file()]
+    runs = [r for r in runs if (r / "config.json").is_file() and not _is_grbal(r)]
     here = Path.cwd().resolve()
     return [r.resolve().relative_to(here) if r.resolve().is_relative_to(here) else r for r in runs]
+
+
+def _is_grbal(run: Path) -> bool:
+    """A GrBAL run: a dynamics model planned with MPPI, evaluated by experiments.grbal."""
+    try:
+        return json.loads((run / "config.json").read_text()).get("method") == "grbal"
+    except (OSError, ValueError):
+        return False
 
 
 def record_path(run: Path | None, text: str) -> Path:
