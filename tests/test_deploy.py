@@ -20,13 +20,17 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _committed_options() -> list[tuple[str, dict]]:
-    """Every distinct (family, env overrides) of the committed runs under results/."""
+    """Every distinct (family, env overrides) of the committed runs under results/ (an option
+    since removed dropped, as loading the run does: `config.REMOVED_OPTIONS`)."""
+    from mpcpearl_jax.config import REMOVED_OPTIONS
+
     seen: dict[str, tuple[str, dict]] = {}
     for path in sorted((ROOT / "results").rglob("config.json")):
         cfg = json.loads(path.read_text())
         if "env" not in cfg:
             continue
-        over = cfg.get("env_overrides") or {}
+        removed = REMOVED_OPTIONS["env_overrides"]
+        over = {k: v for k, v in (cfg.get("env_overrides") or {}).items() if k not in removed}
         seen.setdefault(json.dumps([cfg["env"], over], sort_keys=True), (cfg["env"], over))
     return list(seen.values())
 
