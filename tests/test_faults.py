@@ -59,7 +59,7 @@ SMALL = [
     *("--set", "train.keep_checkpoints=3"),
 ]
 ITERATIONS = 6
-TIMING = {"collect_s", "update_s", "wall_s", "eval_s", "mpc_solve_s", "mpc_host_s"}
+TIMING = {"collect_s", "update_s", "train_s", "wall_s", "eval_s", "mpc_solve_s", "mpc_host_s"}
 # train only (the command line without its final evaluation), as the command line trains
 DRIVER = (
     "import sys\n"
