@@ -345,8 +345,7 @@ def setup(args: argparse.Namespace) -> Setup:
         raise UsageError("--seed-index applies to a run's policy, not to gp-mpc")
     out = args.out
     split_name = f"scenarios-{args.split}" if scenarios is not None else args.split
-    if not perturbation.is_identity:
-        split_name += "-" + perturbation.label.replace("=", "").replace(",", "-")
+    split_name += perturbation.folder_suffix
     if out is None and args.run is not None:
         name = f"{ctrl}-shield" if shield is not None else ctrl
         out = args.run / "eval" / (f"{name}-{split_name}" + ("-online" if args.online else ""))

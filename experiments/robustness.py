@@ -36,8 +36,7 @@ TASK_SEEDS = "1-8"
 
 def suffix(text: str) -> str:
     """The folder suffix experiments.evaluate gives a perturbation ('' for none)."""
-    p = parse_perturbation(text)
-    return "" if p.is_identity else "-" + p.label.replace("=", "").replace(",", "-")
+    return parse_perturbation(text).folder_suffix
 
 
 def committed_runs(results: Path) -> list[Path]:

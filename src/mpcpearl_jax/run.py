@@ -304,7 +304,7 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
     and at the end, checkpoints every `checkpoint_interval`; Ctrl-C -> RunInterrupted."""
     cfg, trainer, ckpt = sess.cfg, sess.trainer, sess.ckpt
     tc, log_path, total = cfg.train, sess.run_dir / LOG_FILE, cfg.train.iterations
-    state_of = Progress(iterations=sess.done, saved=sess.saved)
+    where = Progress(iterations=sess.done, saved=sess.saved)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -338,7 +338,7 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
         state = train_loop(
             trainer,
             sess.state,
-            state_of,
+            where,
             until=lambda p: p.iterations >= total,
             save=lambda it, s: ckpt.save(it, s, policy_params(s)),
             on_row=on_row,
@@ -348,15 +348,15 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
             stop=stop,
         )
     except IterationAbandoned:
-        saved = max(state_of.saved, 0)
-        raise RunInterrupted(saved, state_of.iterations - saved) from None
+        saved = max(where.saved, 0)
+        raise RunInterrupted(saved, where.iterations - saved) from None
     except OSError as e:  # a full disk or an I/O error while logging
-        raise write_error(e, state_of.saved) from e
+        raise write_error(e, where.saved) from e
     finally:
         if bar is not None:
             bar.close()
-    if state_of.stopped == "interrupted":
-        raise RunInterrupted(state_of.iterations)
+    if where.stopped == "interrupted":
+        raise RunInterrupted(where.iterations)
     return state
 
 

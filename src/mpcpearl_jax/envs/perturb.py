@@ -60,6 +60,11 @@ class Perturbation:
         )
         return ",".join(parts) or "none"
 
+    @property
+    def folder_suffix(self) -> str:
+        """An evaluation folder's name ends in it: '' unperturbed, else e.g. '-delay3-speed1.3'."""
+        return "" if self.is_identity else "-" + self.label.replace("=", "").replace(",", "-")
+
 
 def parse_perturbation(text: str) -> Perturbation:
     """'delay=6', 'speed=1.3', 'delay=3,speed=0.7' (or 'none') -> Perturbation; ValueError naming
