@@ -14,13 +14,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+
+from mpcpearl_jax.machine import available_cores, machine_info, print_table  # noqa: F401 (re-exported)
 
 DEFAULT_OUT = Path("benchmarks") / "results"
 SIZES = ("tiny", "default", "full")
@@ -49,13 +50,6 @@ def size_of(args: argparse.Namespace) -> str:
 
 
 # -------------------------------------------------------------------------- threads
-def available_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
 def configure_threads(n: int | None) -> dict[str, Any]:
     """Give JAX (XLA) and PyTorch the same `n` CPU cores; returns what was set, for the record.
 
@@ -104,41 +98,6 @@ TORCH_MISSING = (
     "PyTorch is not installed: skipping the PyTorch comparison "
     "(install the optional extra: pip install -e '.[bench]', i.e. torch==2.13.0 CPU)"
 )
-
-
-# -------------------------------------------------------------------------- machine
-def machine_info() -> dict[str, Any]:
-    """CPU, thread and library versions of this run."""
-    info: dict[str, Any] = {
-        "platform": platform.platform(),
-        "python": sys.version.split()[0],
-        "cpu_count": os.cpu_count(),
-        "cores_available": available_cores(),
-        "processor": platform.processor() or platform.machine(),
-        "loadavg_1m_5m_15m": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-    }
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    info["cpu_model"] = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    for mod in ("jax", "jaxlib", "flax", "optax", "numpy", "osqp", "torch"):
-        if mod == "torch" and "torch" not in sys.modules:
-            continue  # do not import torch just to print its version
-        try:
-            info[mod] = __import__(mod).__version__
-        except Exception:  # noqa: BLE001 - optional packages
-            pass
-    try:
-        import jax
-
-        info["jax_devices"] = [str(d) for d in jax.devices()]
-    except Exception:  # noqa: BLE001
-        pass
-    return info
 
 
 # --------------------------------------------------------------------------- timing
@@ -199,24 +158,6 @@ def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
 
 
 # ---------------------------------------------------------------------------- output
-def print_table(rows: Sequence[dict[str, Any]], columns: Sequence[str], title: str = "") -> str:
-    """Print rows as a Markdown table (also returned)."""
-
-    def fmt(v: Any) -> str:
-        if isinstance(v, float):
-            return f"{v:.4g}" if abs(v) < 1e5 else f"{v:,.0f}"
-        return str(v)
-
-    lines = [f"### {title}"] if title else []
-    lines.append("| " + " | ".join(columns) + " |")
-    lines.append("|" + "|".join("---" for _ in columns) + "|")
-    for r in rows:
-        lines.append("| " + " | ".join(fmt(r.get(c, "")) for c in columns) + " |")
-    text = "\n".join(lines)
-    print(text, flush=True)
-    return text
-
-
 def write_record(
     name: str, config: dict[str, Any], results: Any, out_dir: str | Path | None = None
 ) -> Path:

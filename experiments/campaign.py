@@ -2,7 +2,7 @@
 
     python -m experiments.campaign CAMPAIGN.json [--only NAME ...] [--dry-run]
 
-A campaign file lists runs of the learning-curve harness (`benchmarks.learning`) and what to do
+A campaign file lists runs of the learning-curve harness (`experiments.learning`) and what to do
 with each when it has finished:
 
     {"runs": [{"name": "mpc-pearl-s0",
@@ -130,7 +130,7 @@ def commands(run: CampaignRun, state: str) -> list[list[str]]:
     cmds: list[list[str]] = []
     if state in ("new", "resume"):
         extra = ["--resume"] if state == "resume" else []
-        cmds.append(py + ["benchmarks.learning", *run.argv, "--out", str(run.work), *extra])
+        cmds.append(py + ["experiments.learning", *run.argv, "--out", str(run.work), *extra])
     for args in run.evaluate:
         if eval_out(args).is_file():
             continue

@@ -32,7 +32,7 @@ def add_config_options(
     p: argparse.ArgumentParser, env: str, default_preset: str = "default"
 ) -> None:
     """The options `build_config` reads: --preset, --eps, --seeds, --seed, --algo, --set
-    (and --data for the sidewalk). Shared with `benchmarks.learning`."""
+    (and --data for the sidewalk). Shared with `experiments.learning`."""
     p.add_argument(
         "--preset",
         default=default_preset,

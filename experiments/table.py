@@ -129,7 +129,7 @@ def _pooled(rec: Records, rel: str, metric: str) -> Stat | None:
 
 
 def _curve_value(rec: Records, run: str, kind: str, metric: str) -> Stat | None:
-    """benchmarks.learning's curve.json; a run of the training CLIs has none: its budget is the
+    """experiments.learning's curve.json; a run of the training CLIs has none: its budget is the
     training wall time of metrics.jsonl and its gradient steps iterations x updates."""
     if (rec.results / run / "curve.json").is_file():
         curve = rec.read(f"{run}/curve.json")

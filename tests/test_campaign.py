@@ -51,7 +51,7 @@ def test_states_commands_and_copy(tmp_path, monkeypatch):
     assert run.evaluate == (("--split", "val", "--out", "res/a/eval/v"),)
     assert campaign.state_of(run) == "new"
     cmds = campaign.commands(run, "new")
-    assert cmds[0][1:4] == ["-m", "benchmarks.learning", "--preset"]
+    assert cmds[0][1:4] == ["-m", "experiments.learning", "--preset"]
     assert cmds[0][-2:] == ["--out", str(campaign.WORK / "a")]
     assert cmds[1][1:4] == ["-m", "experiments.evaluate", "res/a"]
     # a checkpoint: resumed
@@ -102,4 +102,4 @@ def test_a_failing_run_stops_the_campaign_with_its_code(tmp_path, monkeypatch, c
     monkeypatch.setattr(campaign.subprocess, "call", call)
     assert campaign.main([str(path)]) == 130
     assert len(calls) == 1 and calls[0][0] == sys.executable
-    assert "a: benchmarks.learning" in capsys.readouterr().err
+    assert "a: experiments.learning" in capsys.readouterr().err

@@ -263,6 +263,9 @@ def test_cpu_presets_differ_only_in_the_extensions():
         ("cpu-explore", "0", "pearl", "pearl"),
         ("cpu-explore", "0.2", "sac", "mpc-sac"),
         ("cpu-robust", "0.2", "pearl", "ablation/crowd-delay20-30min"),
+        ("cpu-auto", "0.2", "pearl", "ablation/auto-entropy-24min"),
+        ("cpu-auto", "0", "pearl", "ablation/pearl-auto-entropy-24min"),
+        ("cpu-auto", "0.2", "sac", "ablation/mpc-sac-auto-entropy-24min"),
         ("cpu-tuned", "0.2", "pearl", "ablation/extended-60min"),
         ("cpu-tuned", "0", "pearl", "ablation/pearl-tuned-60min"),
         ("cpu-tuned", "0.2", "sac", "ablation/mpc-sac-tuned-60min"),
@@ -275,7 +278,7 @@ def test_presets_build_the_committed_restaurant_runs(tmp_path, capsys, name, eps
     import json
     from pathlib import Path
 
-    from benchmarks import learning
+    from experiments import learning
     from experiments.common import ENV_EXTRAS, build_config
 
     args = learning.parse_args(["--preset", name, "--eps", eps, "--algo", algo, "--minutes", "60"])

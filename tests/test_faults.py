@@ -630,7 +630,7 @@ def learning_args(out: Path, minutes: float, every: float, *extra: str) -> list[
 
 
 class _Tick:
-    """A fake clock for `benchmarks.learning.main`: every call is one second later, so that each
+    """A fake clock for `experiments.learning.main`: every call is one second later, so that each
     iteration takes one training second; once metrics.jsonl in `sigint_log` holds `sigint_rows`
     rows, the next call sends this process a SIGINT (a real Ctrl-C, handled by the harness)."""
 
@@ -652,11 +652,11 @@ def _points(run: Path) -> list[dict]:
 
 
 def test_learning_run_stops_on_ctrl_c_and_resumes_exactly(tmp_path, monkeypatch, capsys):
-    """benchmarks.learning stopped by Ctrl-C in its fifth iteration (a fake clock: one second per
+    """experiments.learning stopped by Ctrl-C in its fifth iteration (a fake clock: one second per
     iteration, 6 s of budget, an evaluation every 3 s) saves iteration 4 and exits 130 with one
     line; --resume ends identical to a run never stopped: checkpoint, policy, metrics and the
     curve points (the budget counts the 4 s already trained)."""
-    from benchmarks import learning
+    from experiments import learning
 
     monkeypatch.setattr("mpcpearl_jax.run.final_evaluation", lambda *a, **k: {})  # not needed
     ref, run = tmp_path / "ref", tmp_path / "run"
@@ -682,10 +682,10 @@ def test_learning_run_ctrl_c_then_kill9_then_resume(tmp_path, monkeypatch):
     config.json and curve saved; a --resume killed with SIGKILL loses at most the iteration under
     way (a checkpoint every iteration here); the next --resume continues the curve and the log
     where the last checkpoint left them."""
-    from benchmarks import learning
+    from experiments import learning
 
     run, log = tmp_path / "run", tmp_path / "log.txt"
-    cmd = [sys.executable, "-m", "benchmarks.learning", *learning_args(run, 10, 5)]
+    cmd = [sys.executable, "-m", "experiments.learning", *learning_args(run, 10, 5)]
     with open(log, "a") as f:
         proc = subprocess.Popen(cmd, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT, env=_env())
     t_sig = _sigint_when(proc, rows_at_least(run, 2))
@@ -748,8 +748,7 @@ def test_one_writer_per_run_folder(tmp_path, ref0, capsys):
     """While another process holds a run folder, a new run, a --resume, the learning harness and
     GrBAL each stop with one line naming the holder's PID and write nothing; once the holder is
     killed (SIGKILL), its lock file no longer blocks anyone."""
-    from benchmarks import learning
-    from experiments import grbal
+    from experiments import grbal, learning
     from mpcpearl_jax.runlock import LOCK_FILE, RunLock
 
     new, old = tmp_path / "new", tmp_path / "old"

@@ -1,4 +1,4 @@
-"""`python -m benchmarks.learning`: time-to-threshold, the eval schedule (fake trainer and clock),
+"""`python -m experiments.learning`: time-to-threshold, the eval schedule (fake trainer and clock),
 option errors, and one real smoke run end to end."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from benchmarks import learning
+from experiments import learning
 
 
 def _point(minutes, it, test_sr, val_sr):
@@ -224,3 +224,10 @@ def test_smoke_run_writes_curve_policy_and_results(tmp_path, fast_compile, capsy
 
     act = policy.act(jnp.zeros((policy.obs_dim,)), policy.prior_z())
     assert act.shape == (2,) and bool(jnp.all(jnp.abs(act) <= 1))
+
+
+def test_the_old_command_name_runs_the_same_program():
+    """`python -m benchmarks.learning`, the name recorded with the older results, is this harness."""
+    import benchmarks.learning
+
+    assert benchmarks.learning.main is learning.main

@@ -44,7 +44,7 @@ def test_a_missing_writer_is_a_clear_error(monkeypatch):
 
 
 class _Trainer:
-    """Enough of a Trainer for benchmarks.learning.train_for: 1 s per iteration."""
+    """Enough of a Trainer for experiments.learning.train_for: 1 s per iteration."""
 
     def __init__(self, clock):
         from mpcpearl_jax.config import preset
@@ -61,7 +61,7 @@ class _Trainer:
 
 
 def test_learning_benchmark_mirrors_its_rows(tmp_path):
-    from benchmarks import learning
+    from experiments import learning
 
     class Clock:
         t = 0.0

@@ -390,6 +390,20 @@ PRESET_CHANGES: dict[str, dict[str, dict[str, Any]]] = {
         "mpc": _MPC_RECOVERY,
         "env_overrides": _OBSERVATION,
     },
+    # `cpu-explore` with automatic entropy tuning: the five-seed comparison's preset, chosen on
+    # the validation split over `cpu-explore` (results/README.md, five seeds per method);
+    # restaurant only
+    "cpu-auto": {
+        "pearl": {**_CPU_NETS, "auto_entropy": True, "bc_q_filter": False, "layer_norm": True},
+        "train": {
+            **_CPU_SCHEDULE,
+            "redraw_behaviours": True,
+            "explore_start_share": 0.5,
+            "mpc_demo_step_prob": 0.5,  # inactive without the warm start (as in cpu-explore)
+        },
+        "mpc": _MPC_RECOVERY,
+        "env_overrides": _OBSERVATION,
+    },
     # `cpu-explore` with randomised crowd timing (every person of a visited training task waits
     # 0-20 extra steps at its start), chosen on validation perturbations of its own
     # (results/README.md, crowd perturbations); restaurant only

@@ -6,7 +6,7 @@ in as rules and callbacks, so every caller gets the same Ctrl-C, checkpoint and 
 
 - `experiments.restaurant` / `experiments.sidewalk` (`run.train`): a number of iterations,
   evaluation every `eval_interval` iterations, checkpoints every `checkpoint_interval`.
-- the learning-curve harness (`benchmarks.learning`): a budget of training seconds, evaluation
+- the learning-curve harness (`experiments.learning`): a budget of training seconds, evaluation
   off the clock every so many training seconds, a checkpoint after every evaluation.
 - GrBAL (`grbal.run.train`): iterations and an optional wall-clock budget.
 

@@ -156,7 +156,7 @@ def prepare(
     directory's lock (one writer per folder), resume compatibility, writable folders, data and
     tasks (building the Trainer), checkpoint restore (falling back past corrupt ones; nothing to
     resume from is an error where iterations were logged), --iterations against the finished
-    count (not with until_budget: a run that stops on a time budget, `benchmarks.learning`).
+    count (not with until_budget: a run that stops on a time budget, `experiments.learning`).
     Only then is config.json written and metrics.jsonl cut back to the restored iteration. The
     session holds the lock: `sess.lock.release()` once the run's last file is written."""
     run_dir = Path(out)

@@ -1,6 +1,6 @@
 """One writer per run folder: an exclusive `fcntl.flock` on <run>/.lock.
 
-Every command that writes a run folder (training, `--resume`, `benchmarks.learning`, GrBAL) takes
+Every command that writes a run folder (training, `--resume`, `experiments.learning`, GrBAL) takes
 the lock before it writes anything there and holds it until it ends. A second writer gets a
 one-line `RunDirError` naming the holder's PID. The operating system drops the lock when its
 process dies (SIGKILL, power loss), so a lock file left by a killed run never blocks a resume.

@@ -1,0 +1,733 @@
+"""Learning curve against wall-clock time: how good does the policy get in M minutes of training?
+
+    python -m experiments.learning --preset P --eps E --minutes M [--algo sac] [--env ENV]
+        [--set SECTION.FIELD=VALUE ...] [--eval-minutes X] [--out DIR] [--seed N]
+        [--seeds S] [--label NAME] [--overwrite | --resume] [--policy-only]
+
+Builds `Trainer(cfg)` (same presets, --eps, --algo and --set as `experiments.*`) and calls
+`trainer.iteration` until M minutes of training have passed, counted from the start of the first
+iteration (its compilation included, and reported on its own). Every X minutes of training
+(default M / 8; at most M / 2) and once more at the end the policy is evaluated
+deterministically on the test tasks (the run's headline protocol: adaptation, or online for the
+sidewalk; for reporting only) and on a validation set that is not the test set, the first 24
+training tasks. The clock stops while evaluating; evaluation seconds are recorded separately.
+There is also an evaluation of the untrained policy at minute 0.
+
+Writes into --out (default runs/learning/<label>): curve.json (config, machine, load average,
+eval points, time to the first success and to SR 0.5 / 0.75 on test and val), curve.png,
+metrics.jsonl (one line per iteration, as `run.train` writes it), curve-points.jsonl (the eval
+points so far), config.json, the policy and training state as `run.train` saves them
+(`mpcpearl_jax.load_policy(out)` works; `experiments.<env> --resume --out DIR --iterations N`
+continues the run), and what `run.final_evaluation` writes (results.json, learning_curves.png,
+trajectory figures).
+
+A learning run is a run (`mpcpearl_jax.run.prepare`: one writer per folder, the same checks,
+checkpoints and log): the training state is checkpointed every `train.checkpoint_interval`
+iterations and after every evaluation, so a crash (kill -9) loses at most the work since then.
+Ctrl-C stops at the next phase boundary, saves, and exits 130; `--resume` (the same options;
+--minutes may grow) continues exactly: the curve points so far are kept and the budget counts the
+training minutes already spent.
+
+Train alone: other work on the machine slows every iteration down and so shifts the whole curve.
+The 1-minute load average at the start is recorded, with a warning above LOAD_WARN.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from experiments.common import ENV_EXTRAS, add_config_options, build_config
+from mpcpearl_jax.checkpoint import write_json
+from mpcpearl_jax.envs.restaurant.scenarios import VAL_IDS, check_val_split, uses_scenarios
+from mpcpearl_jax.report import run_label
+
+METRICS = ("SR", "CFR", "TT", "SPL", "MGD", "return")
+SPLITS = ("test", "val")
+VAL_TASKS = 24  # the first VAL_TASKS training tasks are the validation set
+LOAD_WARN = 1.5  # 1-minute load average above which another job is probably running
+# (name, metric, threshold, strict): the first eval point with metric > / >= threshold
+TARGETS = (
+    ("first_success", "SR", 0.0, True),
+    ("SR_0.5", "SR", 0.5, False),
+    ("SR_0.75", "SR", 0.75, False),
+)
+# files this script writes; --overwrite removes them (and only them) first
+POINTS_FILE = "curve-points.jsonl"  # one line per eval point, as metrics.jsonl (for --resume)
+OUTPUTS = (
+    "curve.json",
+    "curve.png",
+    "metrics.jsonl",
+    "config.json",
+    "policy.msgpack",
+    "network.json",
+    "curve-points.jsonl",
+    "results.json",
+    "learning_curves.png",
+    "episode_test0.gif",
+)
+
+
+# ------------------------------------------------------------------------------ CLI
+def make_parser(env: str = "restaurant") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m experiments.learning",
+        description="Learning curve against wall-clock training time (SR / CFR / return on "
+        "the test tasks and on a validation set of training tasks).",
+    )
+    p.add_argument(
+        "--env",
+        choices=sorted(ENV_EXTRAS),
+        default="restaurant",
+        help="task family (the sidewalk adds --data FILE, as in experiments.sidewalk)",
+    )
+    add_config_options(p, env)
+    p.add_argument(
+        "--minutes",
+        type=float,
+        required=True,
+        help="training budget in minutes (from the start of the first iteration, compilation "
+        "included, evaluation excluded)",
+    )
+    p.add_argument(
+        "--eval-minutes",
+        type=float,
+        help="minutes of training between evaluations (default: --minutes / 8; at most "
+        "--minutes / 2); there is always one at minute 0 and one at the end",
+    )
+    p.add_argument(
+        "--label", help="run name (default <env>-<preset>-<algo>-eps<eps>); names the --out"
+    )
+    p.add_argument("--out", type=Path, help="output folder (default runs/learning/<label>)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="reuse a non-empty --out (this script's earlier outputs there are removed)",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out (same options; --minutes may grow): its checkpoint, "
+        "metrics and curve points; the budget counts the training minutes already spent",
+    )
+    p.add_argument(
+        "--policy-only",
+        action="store_true",
+        help="save policy.msgpack only, not the orbax checkpoint of the whole training state "
+        "(replay buffers: hundreds of MB for the cpu/paper presets; needed only for --resume)",
+    )
+    p.add_argument(
+        "--tensorboard",
+        action="store_true",
+        help="also log the metrics rows to <out>/tensorboard (watch with tensorboard --logdir)",
+    )
+    return p
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--env", choices=sorted(ENV_EXTRAS), default="restaurant")
+    env = pre.parse_known_args(argv)[0].env  # the sidewalk has an extra option (--data)
+    args = make_parser(env).parse_args(argv)
+    args.argv = argv
+    return args
+
+
+# ------------------------------------------------------------------- pure helpers
+def time_to_threshold(
+    points: Sequence[dict[str, Any]], key: str, threshold: float, strict: bool = False
+) -> dict[str, Any] | None:
+    """The first eval point with points[key] >= threshold (> if strict), as
+    {"minutes", "grad_steps", "iteration", "value"}; None if no point reaches it.
+
+    `points` are in training order; NaN or missing values never count.
+    """
+    for p in points:
+        v = p.get(key)
+        if v is None or (isinstance(v, float) and math.isnan(v)):
+            continue
+        if v > threshold or (not strict and v == threshold):
+            return {
+                "minutes": p["minutes"],
+                "grad_steps": p["grad_steps"],
+                "iteration": p["iteration"],
+                "value": v,
+            }
+    return None
+
+
+def time_to_targets(points: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """{split: {target: time_to_threshold(...)}} for the TARGETS on test and val."""
+    return {
+        split: {
+            name: time_to_threshold(points, f"{split}_{metric}", thr, strict)
+            for name, metric, thr, strict in TARGETS
+        }
+        for split in SPLITS
+    }
+
+
+def first_train_success(rows: Sequence[dict[str, Any]], updates_per_iteration: int):
+    """The first iteration whose training episodes (posterior z, MPC infusion on) reached the
+    goal without collision, from metrics.jsonl rows; None if none did."""
+    for r in rows:
+        if r.get("train_success", 0) > 0:
+            return {
+                "minutes": r["train_s"] / 60.0,
+                "grad_steps": r["iteration"] * updates_per_iteration,
+                "iteration": r["iteration"],
+                "value": r["train_success"],
+            }
+    return None
+
+
+def eval_every_minutes(minutes: float, eval_minutes: float | None) -> float:
+    """Minutes of training between evaluations: default M / 8, at most M / 2."""
+    every = minutes / 8 if eval_minutes is None else eval_minutes
+    return min(every, minutes / 2)
+
+
+def default_label(env: str, preset: str, algo: str, eps: float) -> str:
+    return f"{env}-{preset}-{algo}-eps{eps:g}"
+
+
+def check_out(out: Path, overwrite: bool) -> str | None:
+    """Check that `out` can take a new run (create it and prove it writable; a non-empty folder
+    only with overwrite, whose old outputs `clear_outputs` removes once the folder is locked).
+    Returns a one-line error, or None."""
+    from mpcpearl_jax.runlock import LOCK_FILE
+
+    if out.exists() and not out.is_dir():
+        return f"--out {out}: exists and is not a folder"
+    if out.is_dir() and any(p.name != LOCK_FILE for p in out.iterdir()) and not overwrite:
+        return f"--out {out}: exists and is not empty (pass --overwrite, --resume or another --out)"
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
+            pass
+    except OSError as e:
+        return f"--out {out}: not writable ({e.strerror or e})"
+    return None
+
+
+def clear_outputs(out: Path) -> None:
+    """--overwrite: remove this script's earlier outputs from `out` (and only them)."""
+    for name in OUTPUTS:
+        (out / name).unlink(missing_ok=True)
+    for fig in out.glob("trajectory_test*.png"):
+        fig.unlink()
+    for folder in ("checkpoints", "corrupt_checkpoints", "tensorboard"):
+        shutil.rmtree(out / folder, ignore_errors=True)
+
+
+def _loadavg() -> list[float] | None:
+    return list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+
+
+# -------------------------------------------------------------------------- running
+def _evaluate(trainer, state, val_tasks, online: bool) -> dict[str, float]:
+    """test_* and val_* metrics of the policy."""
+    row: dict[str, float] = {}
+    for split, tasks in (("test", None), ("val", val_tasks)):
+        ev = trainer.evaluate(state, tasks=tasks, online=online)
+        row.update({f"{split}_{k}": ev[k] for k in METRICS})
+    return row
+
+
+def _train_logs(log: dict[str, Any] | None) -> dict[str, Any]:
+    if log is None:
+        return {}
+    keep = ("mpc_fallbacks", "mpc_fallback_rate")
+    return {k: v for k, v in log.items() if k.startswith("train_") or k in keep}
+
+
+def plot_curve(points: Sequence[dict[str, Any]], path: Path, title: str) -> Path:
+    """curve.png: SR, CFR and return on test and val against minutes (top) and gradient steps
+    (bottom)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(14, 7), squeeze=False)
+    for row, (xkey, xlabel) in enumerate(
+        (
+            ("minutes", "training minutes (compile included)"),
+            ("grad_steps", "gradient steps (thousands)"),
+        )
+    ):
+        scale = 1e-3 if xkey == "grad_steps" else 1.0
+        x = [p[xkey] * scale for p in points]
+        for ax, metric in zip(axes[row], ("SR", "CFR", "return"), strict=True):
+            for split, style in (("test", "-o"), ("val", "--s")):
+                ax.plot(x, [p[f"{split}_{metric}"] for p in points], style, ms=3, label=split)
+            ax.set_title(metric)
+            ax.set_xlabel(xlabel)
+            ax.grid(alpha=0.3)
+            if metric in ("SR", "CFR"):
+                ax.set_ylim(-0.05, 1.05)
+            ax.legend(fontsize=8)
+    sub = "test: the unseen test tasks; val: the validation tasks"
+    fig.suptitle(f"{title}\n{sub}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def summary_rows(record: dict[str, Any]) -> list[dict[str, Any]]:
+    rows = []
+    for split in SPLITS:
+        for name, _, _, _ in TARGETS:
+            hit = record["time_to"][split][name]
+            rows.append(
+                {
+                    "split": split,
+                    "target": name,
+                    "minutes": "never" if hit is None else round(hit["minutes"], 2),
+                    "grad steps": "-" if hit is None else hit["grad_steps"],
+                    "iteration": "-" if hit is None else hit["iteration"],
+                }
+            )
+    return rows
+
+
+def main(argv: Sequence[str] | None = None, clock=time.perf_counter) -> int:
+    """Exit codes: 0 done, 2 an error before or around training (one line naming the field, file
+    or folder), 1 training diverged, 130 Ctrl-C (saved; continue with --resume). `clock` times
+    the training (tests give a fake one)."""
+    args = parse_args(argv)
+    from mpcpearl_jax.config import validate
+    from mpcpearl_jax.errors import ConfigError
+
+    try:
+        cfg = validate(build_config(args, args.env, **ENV_EXTRAS[args.env]))
+    except (ConfigError, TypeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if not (args.minutes > 0 and math.isfinite(args.minutes)):
+        print(f"error: --minutes must be positive, got {args.minutes}", file=sys.stderr)
+        return 2
+    if args.eval_minutes is not None and not args.eval_minutes > 0:
+        print(f"error: --eval-minutes must be positive, got {args.eval_minutes}", file=sys.stderr)
+        return 2
+    if args.tensorboard:
+        from mpcpearl_jax.livelog import missing
+
+        if missing():
+            print(f"error: {missing()}", file=sys.stderr)
+            return 2
+    label = args.label or default_label(args.env, args.preset, args.algo, cfg.train.eps)
+    out = args.out or Path("runs") / "learning" / label
+    err = None
+    if args.resume and (args.overwrite or args.policy_only):
+        err = "--resume continues a run: not with --overwrite or --policy-only (no checkpoint)"
+    elif not args.resume:
+        err = check_out(out, args.overwrite)
+    if err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return _locked_run(args, cfg, label, out, clock)
+
+
+def _locked_run(args: argparse.Namespace, cfg, label: str, out: Path, clock) -> int:
+    """`run` with --out locked (before --overwrite removes anything) and its errors as one
+    line."""
+    from experiments.common import error_line, out_of_memory
+    from mpcpearl_jax.errors import CheckpointError, ConfigError, RunDirError
+    from mpcpearl_jax.runlock import RunLock
+
+    lock = None
+    try:
+        if not args.resume:  # --resume: run.prepare checks the folder first, then locks it
+            lock = RunLock(out)
+            if args.overwrite:
+                clear_outputs(out)
+        return run(args, cfg, label, out, clock=clock)
+    except (ConfigError, CheckpointError, RunDirError, OSError) as e:
+        print(f"error: {error_line(e)}", file=sys.stderr, flush=True)
+        return 2
+    except KeyboardInterrupt:  # before training, or a second Ctrl-C: the last checkpoint stands
+        print("interrupted; continue with --resume", file=sys.stderr, flush=True)
+        return 130
+    except RuntimeError as e:
+        if not out_of_memory(e):
+            raise
+        print(f"error: {out_of_memory(e)}", file=sys.stderr, flush=True)
+        return 2
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def env_steps(trainer, iterations: int) -> int:
+    """Environment steps collected per seed after `iterations` (initial collection included)."""
+    if iterations == 0:
+        return 0
+    tc, horizon = trainer.cfg.train, trainer.horizon
+    per_iter = min(tc.tasks_per_iteration, trainer.num_train)
+    per_iter *= (tc.prior_episodes + tc.posterior_episodes) * horizon
+    return trainer.num_train * tc.initial_episodes * horizon + iterations * per_iter
+
+
+def _print_point(p: dict[str, Any]) -> None:
+    print(
+        f"[learning] {p['minutes']:7.2f} min  it {p['iteration']:6d}  grad {p['grad_steps']:8d}"
+        f"  test SR {p['test_SR']:.2f} CFR {p['test_CFR']:.2f} ret {p['test_return']:8.1f}"
+        f"  val SR {p['val_SR']:.2f} CFR {p['val_CFR']:.2f}  (eval {p['eval_s']:.1f} s)",
+        flush=True,
+    )
+
+
+def train_for(
+    trainer,
+    state,
+    *,
+    budget_s: float,
+    every_s: float,
+    val_tasks,
+    log_path: Path,
+    online: bool = False,
+    clock=time.perf_counter,
+    on_point=_print_point,
+    tensorboard=None,
+    save=None,
+    checkpoint_every: int = 0,
+    stop=None,
+    start: dict[str, Any] | None = None,
+    points_path: Path | None = None,
+) -> tuple[Any, list[dict[str, Any]], dict[str, Any]]:
+    """Train until `budget_s` seconds of `trainer.iteration` calls have passed; evaluate at 0,
+    every `every_s` training seconds and at the end (evaluation is off the clock).
+
+    Appends one JSON line per iteration to `log_path` (and writes it to `tensorboard`, a
+    `mpcpearl_jax.livelog.TensorBoardLog`, if given) and one per eval point to `points_path`.
+    `save(iteration, state)` checkpoints every `checkpoint_every` iterations, after every
+    evaluation and when stopping on `stop()` (Ctrl-C, polled between iterations and inside
+    them). `start` continues an earlier process: {points, train_s, wall_s, first_iteration_s,
+    iterations} at the restored checkpoint. Returns (state, eval points, info) with info =
+    {iterations, saved, train_s, eval_s, first_iteration_s, stopped}; stopped is "budget",
+    "interrupted" or "diverged: ..." (then `state` is the last one evaluated and must not be used
+    any more: the failed iteration donated it; after "interrupted" it is None when the iteration
+    under way was abandoned, and `saved` is the iteration a resume starts from).
+    """
+    from mpcpearl_jax.errors import TrainingDiverged
+    from mpcpearl_jax.loop import Progress, train_loop
+    from mpcpearl_jax.run import append_log
+    from mpcpearl_jax.trainer import IterationAbandoned
+
+    start = start or {}
+    ups = trainer.cfg.train.updates_per_iteration
+    points: list[dict[str, Any]] = list(start.get("points", []))
+    progress = Progress(
+        iterations=start.get("iterations", 0),
+        saved=start.get("saved", -1),
+        train_s=start.get("train_s", 0.0),
+        wall_s0=start.get("wall_s", 0.0),
+        first_iteration_s=start.get("first_iteration_s"),
+    )
+    info: dict[str, Any] = {"eval_s": sum(p["eval_s"] for p in points), "stopped": "budget"}
+    t_loop0 = clock() - progress.wall_s0
+    schedule = {"next_eval_s": (math.floor(progress.train_s / every_s) + 1) * every_s}
+
+    def evaluate(state, p: Progress) -> dict[str, Any]:
+        t = clock()
+        row = _evaluate(trainer, state, val_tasks, online)
+        dt = clock() - t
+        info["eval_s"] += dt
+        done = p.iterations
+        point = {
+            "minutes": p.train_s / 60.0,
+            "wall_minutes": (clock() - t_loop0) / 60.0,
+            "iteration": done,
+            "grad_steps": done * ups,
+            "env_steps": env_steps(trainer, done),
+            "eval_s": dt,
+            **row,
+            **_train_logs(p.log),
+        }
+        points.append(point)
+        if points_path is not None:
+            append_log(points_path, point)
+        if on_point is not None:
+            on_point(point)
+        schedule["next_eval_s"] = (math.floor(p.train_s / every_s) + 1) * every_s
+        fields = {k: v for k, v in point.items() if k.startswith(("test_", "val_"))}
+        return {**fields, "eval_s": dt}
+
+    def on_row(row: dict[str, Any]) -> None:
+        append_log(log_path, row)
+        if tensorboard is not None:
+            tensorboard.write(row)
+
+    if not points:
+        evaluate(state, progress)  # the untrained policy at minute 0 (compiles the evaluator)
+    try:
+        state = train_loop(
+            trainer,
+            state,
+            progress,
+            until=lambda p: p.train_s >= budget_s,
+            save=save,
+            on_row=on_row,
+            evaluate_after=lambda p: p.train_s >= schedule["next_eval_s"],
+            evaluate=evaluate,
+            checkpoint_after=lambda p, evaluated: (
+                evaluated or bool(checkpoint_every and p.iterations % checkpoint_every == 0)
+            ),
+            stop=stop,
+            clock=clock,
+        )
+        if progress.stopped == "interrupted":
+            info["stopped"] = "interrupted"
+        elif points[-1]["iteration"] != progress.iterations:  # resumed at the end of the budget
+            evaluate(state, progress)
+    except TrainingDiverged as e:
+        info["stopped"], state = f"diverged: {e}", None
+        print(f"error: {e}", file=sys.stderr, flush=True)
+    except IterationAbandoned:  # Ctrl-C inside an iteration: the state was consumed
+        info["stopped"], state = "interrupted", None
+    info.update(
+        iterations=progress.iterations,
+        saved=progress.saved,
+        train_s=progress.train_s,
+        first_iteration_s=progress.first_iteration_s,
+    )
+    return state, points, info
+
+
+def run(args: argparse.Namespace, cfg, label: str, out: Path, clock=time.perf_counter) -> int:
+    from mpcpearl_jax.run import prepare
+
+    budget_s = args.minutes * 60.0
+    every_s = eval_every_minutes(args.minutes, args.eval_minutes) * 60.0
+    load_start = _loadavg()
+    if load_start is not None and load_start[0] > LOAD_WARN:
+        print(
+            f"warning: 1-minute load average {load_start[0]:.2f} > {LOAD_WARN}: another job is "
+            "running; timings (and so the whole curve) will be slower than on a quiet machine",
+            file=sys.stderr,
+            flush=True,
+        )
+    print(
+        f"[learning] {run_label(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
+        f"budget={args.minutes:g} min, eval every {every_s / 60:.3g} min "
+        f"({'online' if cfg.online_eval else 'adaptation'} protocol), out={out}"
+        + (" (resumed)" if args.resume else ""),
+        flush=True,
+    )
+    t_wall0 = time.perf_counter()
+    # the checks, lock, trainer and (restored) state, config.json and metrics.jsonl of a run
+    sess = prepare(cfg, out, resume=args.resume, until_budget=True)
+    try:
+        return _run_session(args, sess, label, budget_s, every_s, load_start, t_wall0, clock)
+    finally:
+        sess.ckpt.close()
+        sess.lock.release()
+
+
+def _start_from(sess, points_path: Path) -> dict[str, Any]:
+    """What `train_for` continues from: the eval points, training seconds and wall seconds of
+    the restored checkpoint (all zero for a new run); curve-points.jsonl is cut back to it."""
+    from mpcpearl_jax.checkpoint import atomic_write
+    from mpcpearl_jax.run import read_log
+
+    points = read_log(points_path, sess.done) if sess.done or sess.saved >= 0 else []
+    atomic_write(points_path, "".join(json.dumps(p) + "\n" for p in points))
+    rows = [r for r in sess.rows if r["iteration"] <= sess.done]
+    return {
+        "points": points,
+        "iterations": sess.done,
+        "saved": sess.saved,
+        "train_s": rows[-1]["train_s"] if rows else 0.0,
+        "wall_s": rows[-1].get("wall_s", 0.0) if rows else 0.0,
+        "first_iteration_s": rows[0]["train_s"] if rows else None,
+    }
+
+
+def _run_session(
+    args: argparse.Namespace, sess, label: str, budget_s, every_s, load_start, t_wall0, clock
+) -> int:
+    import dataclasses
+
+    import jax
+
+    from mpcpearl_jax.checkpoint import POLICY_FILE, save_config, save_params
+    from mpcpearl_jax.envs import make_tasks
+    from mpcpearl_jax.machine import available_cores, machine_info, print_table
+    from mpcpearl_jax.run import (
+        LOG_FILE,
+        RunInterrupted,
+        _sigint_flag,
+        final_evaluation,
+        policy_params,
+        read_log,
+        write_error,
+    )
+
+    cfg, trainer, out = sess.cfg, sess.trainer, sess.run_dir
+    online = cfg.online_eval
+    build_s = time.perf_counter() - t_wall0
+    val_set = "the family's 'val' split (held-out behaviours, neither train nor test)"
+    try:  # a held-out validation split where the family has one (restaurant)
+        kw = {"data": cfg.data} if cfg.data else {}
+        kw.update(cfg.task_options)
+        check_val_split(cfg.task_options, "val")  # not the scenarios the run trains on
+        val_tasks = make_tasks(cfg.env, "val", cfg.task_seed, config=trainer.env.config, **kw)
+        if uses_scenarios(cfg.task_options):
+            val_set = f"the paper's scenarios {VAL_IDS[0]}-{VAL_IDS[-1]} (held out of training)"
+    except ValueError:
+        val_tasks = jax.tree_util.tree_map(lambda x: x[:VAL_TASKS], trainer.train_tasks)
+        val_set = f"the first {VAL_TASKS} training tasks (or all if fewer)"
+    tc = cfg.train
+    log_path, points_path = out / LOG_FILE, out / POINTS_FILE
+    start = _start_from(sess, points_path)
+    tb = None
+    if args.tensorboard:
+        from mpcpearl_jax.livelog import TB_DIR, TensorBoardLog
+
+        tb = TensorBoardLog(out / TB_DIR, purge_step=sess.done + 1 if sess.done else None)
+
+    def save(step: int, state) -> None:
+        if args.policy_only:  # no orbax checkpoint (no --resume): the policy only
+            save_params(out / POLICY_FILE, policy_params(state))
+        else:  # exactly as run.train: orbax checkpoint of the TrainState + policy.msgpack
+            sess.ckpt.save(step, state, policy_params(state))
+
+    try:
+        with _sigint_flag(True) as stop:
+            state, points, info = train_for(
+                trainer,
+                sess.state,
+                budget_s=budget_s,
+                every_s=every_s,
+                val_tasks=val_tasks,
+                log_path=log_path,
+                online=online,
+                clock=clock,
+                tensorboard=tb,
+                save=save,
+                checkpoint_every=tc.checkpoint_interval,
+                stop=stop,
+                start=start,
+                points_path=points_path,
+            )
+    except OSError as e:  # a full disk or an I/O error while logging
+        steps = sess.ckpt.steps()
+        raise write_error(e, steps[-1] if steps else -1) from e
+    finally:
+        if tb is not None:
+            tb.close()
+    done, train_s, eval_s = info["iterations"], info["train_s"], info["eval_s"]
+    stopped, first_iteration_s = info["stopped"], info["first_iteration_s"]
+    saved = max(info["saved"], 0)
+    if stopped == "interrupted":  # the curve as a resume will continue it
+        done, points = saved, [p for p in points if p["iteration"] <= saved]
+    load_end = _loadavg()
+    if done:  # the config as run: iterations = those done (a --resume continues from here)
+        cfg = cfg.replace(train=dataclasses.replace(cfg.train, iterations=done))
+        trainer.cfg = cfg  # only train.iterations differs, which the trainer never reads
+    save_config(out, cfg)
+    record: dict[str, Any] = {
+        "label": label,
+        "algo": run_label(cfg),
+        "env": cfg.env,
+        "preset": args.preset,
+        "argv": args.argv,
+        "budget_minutes": args.minutes,
+        "eval_every_minutes": every_s / 60.0,
+        "eval_protocol": "online" if online else "adapt",
+        "test_tasks": int(trainer.test_tasks.start.shape[0]),
+        "val_tasks": int(val_tasks.start.shape[0]),
+        "val_set": val_set,
+        "stopped": stopped,
+        "iterations": done,
+        "updates_per_iteration": tc.updates_per_iteration,
+        "grad_steps": done * tc.updates_per_iteration,
+        "env_steps": env_steps(trainer, done),
+        "resumed_at_iteration": sess.done if args.resume else None,
+        "timing": {
+            "build_s": build_s,  # the trainer and its initial (or restored) state
+            "first_iteration_s": first_iteration_s,
+            "train_s": train_s,
+            "eval_s": eval_s,
+            "first_eval_s": points[0]["eval_s"],
+        },
+        "loadavg_start_1m_5m_15m": load_start,
+        "loadavg_end_1m_5m_15m": load_end,
+        "load_warning": bool(load_start and load_start[0] > LOAD_WARN),
+        "machine": machine_info(),
+        "threads": {
+            "cores_available": available_cores(),
+            **{
+                v: os.environ.get(v)
+                for v in ("XLA_FLAGS", "OMP_NUM_THREADS", "JAX_PLATFORMS")
+                if os.environ.get(v)
+            },
+        },
+        "config": cfg.to_dict(),
+        "time_to": time_to_targets(points),
+        "points": points,
+    }
+    rows = read_log(log_path)
+    record["time_to"]["train"] = {
+        "first_success": first_train_success(rows, tc.updates_per_iteration)
+    }
+    steady = [b["train_s"] - a["train_s"] for a, b in zip(rows, rows[1:], strict=False)]
+    # compilation ~ first iteration minus a steady one (the first also does the initial collection)
+    record["timing"]["iteration_s_median"] = statistics.median(steady) if steady else None
+    curve_path = out / "curve.json"
+    write_json(curve_path, record)
+    plot_curve(points, out / "curve.png", f"{label}: {run_label(cfg)}, {args.minutes:g} min")
+    if stopped == "interrupted":
+        lost = info["iterations"] - saved
+        line = str(RunInterrupted(saved, lost))
+        if args.policy_only:
+            line = f"interrupted at iteration {saved} (--policy-only: no checkpoint to resume from)"
+        print(line, file=sys.stderr, flush=True)
+        return 130
+    if done == 0:
+        print(f"error: no iteration finished; {curve_path} written", file=sys.stderr)
+        return 1
+
+    t = time.perf_counter()  # the last checkpoint was saved with the last evaluation
+    if stopped == "budget":
+        final_evaluation(trainer, state, out, label)
+    record["timing"]["final_evaluation_s"] = time.perf_counter() - t
+    record["timing"]["total_wall_s"] = time.perf_counter() - t_wall0
+    write_json(curve_path, record)
+
+    tm = record["timing"]
+    print_table(
+        summary_rows(record),
+        ["split", "target", "minutes", "grad steps", "iteration"],
+        title=f"{label}: time to target (training minutes, compile included)",
+    )
+    hit = record["time_to"]["train"]["first_success"]
+    first = "never" if hit is None else f"{hit['minutes']:.2f} min"
+    print(
+        f"trained {train_s / 60:.2f} min ({done} iterations, {record['grad_steps']} gradient "
+        f"steps, {record['env_steps']} env steps per seed; first iteration incl. compile "
+        f"{first_iteration_s:.1f} s); evaluation {eval_s:.1f} s off the clock; first training "
+        f"success: {first}; "
+        f"final test SR {points[-1]['test_SR']:.2f}, val SR {points[-1]['val_SR']:.2f}; "
+        f"total wall {tm['total_wall_s']:.1f} s",
+        flush=True,
+    )
+    print(f"curve, policy and results in {out}", flush=True)
+    return 0 if stopped == "budget" else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
