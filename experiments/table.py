@@ -658,11 +658,124 @@ def render_robustness_choice(rec: Records) -> str:
     return "\n".join(lines)
 
 
+# ---------------------------------------------------------------- five seeds per method
+
+# the five-seed comparison (`python -m experiments.campaign
+# experiments/campaigns/restaurant-seeds.json`): method -> its seed folders (seeds 0, 1, ... in
+# order), each trained alone for 24 minutes with `--preset cpu-auto`; a folder is listed once its
+# campaign run and evaluations have finished
+SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    (
+        "MPC-PEARL 0.2",
+        ("restaurant/ablation/auto-entropy-24min", "restaurant/ablation/auto-entropy-seed1-24min"),
+    ),
+    ("PEARL", ("restaurant/ablation/pearl-auto-entropy-24min",)),
+    ("MPC-SAC 0.2", ("restaurant/ablation/mpc-sac-auto-entropy-24min",)),
+)
+# evaluation sets of the seed table: kind, label
+SEED_SETS = (
+    ("test", "24 test tasks"),
+    ("val8", "192 validation tasks"),
+    ("online", "24 test tasks, online"),
+    ("ood", "24 OOD tasks"),
+    ("scen_test", "paper's 25 test scenarios"),
+    ("scen_ood", "paper's 25 OOD scenarios"),
+)
+# the paper's ordering claim, as pairs (A, B): A > B in the paper's table
+PAPER_ORDER = (
+    ("MPC-PEARL 0.2", "PEARL"),
+    ("PEARL", "MPC-SAC 0.2"),
+    ("MPC-PEARL 0.2", "MPC-SAC 0.2"),
+)
+# two-sided 95 % Student t quantiles by degrees of freedom (seeds - 1)
+T95 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447}
+
+
+def seed_cell(stats: list[Stat] | str, metric: str) -> str:
+    """'mean +- se (worst w)' over seeds; one seed alone is shown as its value '(1 seed)'."""
+    if isinstance(stats, str):
+        return stats
+    if len(stats) == 1:
+        return f"{f2(stats[0].value)} (1 seed)"
+    return fmt_metric(stats, metric)
+
+
+def seed_difference(a: Sequence[Stat], b: Sequence[Stat]) -> tuple[float, float, int] | None:
+    """Mean and standard error over seeds of the per-seed difference A - B (seed i of A against
+    seed i of B, over the seeds both have), and that number of seeds; None below two seeds."""
+    d = [x.value - y.value for x, y in zip(a, b, strict=False)]
+    n = len(d)
+    if n < 2:
+        return None
+    mean = sum(d) / n
+    return mean, math.sqrt(sum((v - mean) ** 2 for v in d) / (n - 1) / n), n
+
+
+def verdict(diff: tuple[float, float, int] | None) -> str:
+    """The paper's 'A > B' as measured: holds (the 95 % t interval over seeds lies above 0),
+    does not hold (below 0, or B ahead), or cannot be told apart (it contains 0)."""
+    if diff is None:
+        return "fewer than two seeds each"
+    mean, se, n = diff
+    half = T95.get(n - 1, 1.96) * se
+    if mean - half > 0:
+        return "holds"
+    if mean + half < 0:
+        return "does not hold (B ahead)"
+    return "cannot be told apart"
+
+
+def render_seeds(rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEED_GROUPS) -> str:
+    """Per method and evaluation set: mean +- standard error over seeds and the worst seed of
+    SR, CFR, TT, SPL and MGD; then the paper's ordering with seeds as the unit."""
+    entries = {name: Entry(name, tuple(runs)) for name, runs in groups}
+    head = ["method", "seeds", "budget (min)", "grad steps", "evaluated on", *METRICS]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, e in entries.items():
+        steps = fmt_count(entry_values(rec, e, "grad_steps", ""), _steps)
+        budget = fmt_count(entry_values(rec, e, "budget", ""), _minutes)
+        for i, (kind, label) in enumerate(SEED_SETS):
+            first = [name, str(len(e.runs)), budget, steps] if i == 0 else ["", "", "", ""]
+            cells = [seed_cell(entry_values(rec, e, kind, m), m) for m in METRICS]
+            lines.append("| " + " | ".join([*first, label, *cells]) + " |")
+    lines += [
+        "",
+        "mean +- standard error over seeds (worst seed): one value per seed (the 192 validation "
+        "tasks pooled per seed), seeds as the unit. Folders: "
+        + "; ".join(f"{n}: " + ", ".join(f"`{r}`" for r in e.runs) for n, e in entries.items())
+        + ".",
+        "",
+        "| paper's claim | evaluated on | A - B over seeds (mean +- se) | seeds | as measured |",
+        "|---|---|---|---|---|",
+    ]
+    for a, b in PAPER_ORDER:
+        if a not in entries or b not in entries:
+            continue
+        for kind, label in SEED_SETS:
+            va = entry_values(rec, entries[a], kind, "SR")
+            vb = entry_values(rec, entries[b], kind, "SR")
+            if isinstance(va, str) or isinstance(vb, str):
+                lines.append(f"| {a} > {b} | {label} | {MISSING} | - | - |")
+                continue
+            d = seed_difference(va, vb)
+            cell = "-" if d is None else f"{d[0]:+.2f} +- {d[1]:.2f}"
+            n = min(len(va), len(vb))
+            lines.append(f"| {a} > {b} (SR) | {label} | {cell} | {n} | {verdict(d)} |")
+    lines += [
+        "",
+        "A - B: seed i of A against seed i of B (the same seed number, not the same random "
+        "stream), mean and standard error of those differences; 'holds' / 'does not hold' when "
+        "the 95 % Student t interval over seeds excludes 0, else 'cannot be told apart'.",
+    ]
+    return "\n".join(lines)
+
+
 BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block name, renderer
     ("README.md", "quality", render_quality),
     ("results/README.md", "restaurant", render_restaurant),
     ("results/README.md", "robustness", render_robustness),
     ("results/README.md", "robustness-choice", render_robustness_choice),
+    ("results/README.md", "seeds", render_seeds),
 )
 
 

@@ -38,7 +38,8 @@ def _run(results, name, sr, tt, val, scen=True, steps=1000):
     n = len(val)
     mean = sum(val) / n
     se = math.sqrt(sum((v - mean) ** 2 for v in val) / (n - 1) / n)
-    pooled = {"SR": {"mean": mean, "se": se}, "CFR": {"mean": 1.0, "se": 0.0}}
+    pooled = {k: {"mean": v, "se": 0.0} for k, v in m.items()}
+    pooled["SR"] = {"mean": mean, "se": se}
     rec = {"task_seed": 1, "tasks": list(range(n)), "per_task": {"SR": [val]}}
     val8 = run / table.VAL8
     val8.parent.mkdir(parents=True)
@@ -46,7 +47,7 @@ def _run(results, name, sr, tt, val, scen=True, steps=1000):
     for rel in table.SCENARIOS.values():
         if scen:
             (run / rel).parent.mkdir(parents=True)
-            (run / rel).write_text(json.dumps({"metrics": {"SR": sr, "CFR": 1.0}}))
+            (run / rel).write_text(json.dumps({"metrics": m}))
     return f"restaurant/{name}"
 
 
@@ -176,3 +177,40 @@ def test_referenced_paths_reads_code_brackets_and_links_but_not_outputs():
         "restaurant/y",
         "earlier/z.png",
     ]
+
+
+def test_seed_table_gives_seed_statistics_and_the_papers_ordering_with_seeds_as_the_unit(tmp_path):
+    results = tmp_path / "results"
+
+    def group(name, srs):
+        return name, tuple(
+            _run(results, f"{name}{i}", sr, 50.0, [sr, sr]) for i, sr in enumerate(srs)
+        )
+
+    groups = (
+        group("MPC-PEARL 0.2", [0.9, 0.8, 1.0]),
+        group("PEARL", [0.5, 0.4, 0.6]),  # 0.4 below MPC-PEARL on every seed
+        group("MPC-SAC 0.2", [0.6, 0.3, 0.5]),  # PEARL - MPC-SAC: -0.1, +0.1, +0.1
+    )
+    rec = Records(results)
+    text = table.render_seeds(rec, groups)
+    rows = [line for line in text.splitlines() if line.startswith("| ")]
+    first = rows[1].split(" | ")
+    assert first[:5] == ["| MPC-PEARL 0.2", "3", "60", "1000", "24 test tasks"]
+    se = math.sqrt(sum((v - 0.9) ** 2 for v in (0.9, 0.8, 1.0)) / 2 / 3)
+    assert first[5] == f"0.90 +- {se:.2f} (worst 0.80)"
+    claims = {tuple(r.split(" | ")[:2]): r for r in rows if "(SR)" in r}
+    holds = claims[("| MPC-PEARL 0.2 > PEARL (SR)", "192 validation tasks")]
+    assert "+0.40 +- 0.00" in holds and holds.endswith("| 3 | holds |")
+    mixed = claims[("| PEARL > MPC-SAC 0.2 (SR)", "paper's 25 test scenarios")]
+    assert "+0.03 +- 0.07" in mixed and mixed.endswith("cannot be told apart |")
+    # B ahead on every seed: the claim does not hold
+    d = table.seed_difference([Stat(0.1), Stat(0.2)], [Stat(0.5), Stat(0.62)])
+    assert d == pytest.approx((-0.41, 0.01, 2)) and table.verdict(d).startswith("does not hold")
+    assert table.verdict(table.seed_difference([Stat(0.5)], [Stat(0.1)])) == (
+        "fewer than two seeds each"
+    )
+    # one seed is shown as such, never as a spread
+    one = table.render_seeds(rec, (group("solo", [0.7]),))
+    assert "0.70 (1 seed)" in one
+    assert not rec.missing
