@@ -208,3 +208,48 @@ def test_step_invariants(x, y, theta, t, a0, a1, task):
     assert np.all(np.abs(np.asarray(obs)) <= 1.0)
     assert int(nstate.t) == t + 1 and bool(done) == (t + 1 >= _CFG.horizon)
     np.testing.assert_allclose(info.position, pose[:2])
+
+
+def _restaurant_task():
+    from mpcpearl_jax.envs import make_env, make_tasks
+
+    env = make_env("restaurant")
+    tasks = make_tasks("restaurant", "train", 0, config=env.config)
+    return env, jax.tree_util.tree_map(lambda x: x[0], tasks)
+
+
+def test_random_start_is_free_in_the_arena_and_outside_the_goal():
+    env, task = _restaurant_task()
+    cfg = env.config
+    poses = np.asarray(
+        jax.vmap(lambda k: env.random_start(k, task))(jax.random.split(jax.random.PRNGKey(0), 400))
+    )
+    assert poses.shape == (400, 3) and np.all(np.isfinite(poses))
+    assert np.all(np.abs(poses[:, 2]) <= np.pi)
+    lo = np.asarray(cfg.arena_lo) + cfg.robot_radius
+    hi = np.asarray(cfg.arena_hi) - cfg.robot_radius
+    assert np.all(poses[:, :2] >= lo) and np.all(poses[:, :2] <= hi)
+    # NumPy reference of the two exclusions: no table or person present at t = 0 within reach,
+    # not inside the goal region
+    hp, hm = np.asarray(task.human_pos[0]), np.asarray(task.human_mask[0])
+    slo, shi = np.asarray(task.static_lo), np.asarray(task.static_hi)
+    srad = np.asarray(task.static_radius)
+    for p in poses[:, :2]:
+        d_s = np.linalg.norm(np.maximum(np.maximum(slo - p, p - shi), 0.0), axis=-1) - srad
+        assert np.all(d_s >= cfg.robot_radius)
+        d_h = np.linalg.norm(hp - p, axis=-1)[hm]
+        assert np.all(d_h >= cfg.robot_radius + cfg.human_radius)
+        assert np.linalg.norm(p - np.asarray(task.goal)) > cfg.goal_radius
+    # spread over the arena, not a handful of spots
+    assert np.std(poses[:, 0]) > 2.0 and np.std(poses[:, 1]) > 2.0
+    assert len(np.unique(np.round(poses[:, :2], 3), axis=0)) == 400
+
+
+def test_random_start_falls_back_to_the_task_start_when_nothing_is_free():
+    env, task = _restaurant_task()
+    blocked = task.replace(  # one box over the whole arena: no candidate is free
+        static_lo=task.static_lo.at[0].set(jnp.array([-5.0, -5.0])),
+        static_hi=task.static_hi.at[0].set(jnp.array([5.0, 5.0])),
+    )
+    pose = env.random_start(jax.random.PRNGKey(3), blocked)
+    np.testing.assert_array_equal(np.asarray(pose), np.asarray(task.start, np.float32))

@@ -263,3 +263,18 @@ def test_grbal_cli_sidewalk(tmp_path):
     res = json.loads((tmp_path / "results.json").read_text())
     assert res["env"] == "sidewalk" and res["config"]["online_eval"] is True
     assert "SR" in res["test_online"]
+
+
+def test_grbal_refuses_env_options_its_model_or_planner_cannot_handle():
+    from mpcpearl_jax.envs import make_env, make_tasks
+    from mpcpearl_jax.grbal.model import layout_of
+
+    tasks = make_tasks("restaurant", "val", 0)
+    for field, value in (
+        ("observe_relative", True),
+        ("sensing_radius", 2.0),
+        ("observe_time", True),
+        ("observe_sorted", True),
+    ):
+        with pytest.raises(ConfigError, match=f"env.{field}"):
+            layout_of(make_env("restaurant", **{field: value}), tasks)

@@ -227,7 +227,7 @@ def test_smoke_run_writes_curve_policy_and_results(tmp_path, fast_compile, capsy
 
 
 def test_the_old_command_name_runs_the_same_program():
-    """`python -m benchmarks.learning`, the name recorded with the older results, is this harness."""
+    """`python -m benchmarks.learning` (the name recorded with older results) is this harness."""
     import benchmarks.learning
 
     assert benchmarks.learning.main is learning.main

@@ -199,3 +199,24 @@ def test_callback_runs_only_on_steps_with_a_fire_and_merges_actions():
             want = [2.0 * mpc_u[0] / ENV.config.v_max - 1.0, mpc_u[1] / (np.pi / 2)]
             np.testing.assert_allclose(act[t, b], want, atol=1e-6)
     assert (status == SOLVED).sum() > 0
+
+
+def test_unsafe_recovery_uses_the_least_violating_move_instead_of_falling_back():
+    from mpcpearl_jax.envs.types import EnvState, stack_params
+    from mpcpearl_jax.mpc import SOLVED, MPCConfig, make_mpc_bridge
+
+    task = crossing_task().replace(start=jnp.array([2.4, 3.5, np.pi]))  # 0.6 m from a table
+    params = stack_params([task])
+    state = EnvState(pose=params.start, t=jnp.zeros(1, jnp.int32))
+    policy = jnp.array([[0.25, -0.5]])
+    bridge = make_mpc_bridge(ENV, MPCConfig(unsafe_recovery=True))
+    act, used, status = jax.jit(bridge)(
+        jax.random.PRNGKey(0), jnp.array([True]), state, params, policy
+    )
+    assert int(status[0]) == SOLVED and bool(used[0])
+    assert bridge.stats()["reasons"] == {"least_violation": 1}
+    # the executed move does not bring the robot closer to the table than standing still
+    _, nstate, _, _, _ = ENV.step(jax.random.PRNGKey(0), EnvState(params.start[0], 0), act[0], task)
+    before = float(jnp.linalg.norm(params.start[0, :2] - jnp.array([3.0, 3.5])))
+    after = float(jnp.linalg.norm(nstate.pose[:2] - jnp.array([3.0, 3.5])))
+    assert after >= before - 1e-6

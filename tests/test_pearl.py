@@ -1,5 +1,7 @@
 """PEARL networks and losses: posterior, KL, log-probs, gradient routing (method §7)."""
 
+import dataclasses
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -233,3 +235,104 @@ def test_auto_entropy_moves_alpha_towards_the_target_and_starts_at_the_paper_upd
 def test_invalid_auto_entropy_settings_name_the_field(changes, field):
     with pytest.raises(ConfigError, match=f"PearlConfig.{field}"):
         SMALL.replace(**changes)
+
+
+def _bc_setup(bc_weight):
+    cfg = PearlConfig(hidden=(16, 16), encoder_hidden=(8,), latent_dim=2, bc_weight=bc_weight)
+    nets = Networks(cfg, OBS, A)
+    params = nets.init(jax.random.PRNGKey(0))
+    k = jax.random.split(jax.random.PRNGKey(1), 3)
+    obs = jax.random.normal(k[0], (2, 8, OBS))
+    z = jax.random.normal(k[1], (2, 8, 2))
+    demo_action = jnp.tanh(jax.random.normal(k[2], (2, 8, A)))
+    return cfg, nets, params, obs, z, demo_action
+
+
+def _policy_loss(cfg, nets, params, obs, z, demo_action, demo_mask, q_params=None):
+    return losses.policy_loss(
+        params["policy"],
+        nets,
+        params["q"] if q_params is None else q_params,
+        obs,
+        z,
+        jax.random.PRNGKey(3),
+        cfg.policy_mean_reg,
+        cfg.policy_std_reg,
+        demo_action,
+        demo_mask,
+        cfg.bc_weight,
+    )
+
+
+def test_bc_term_is_zero_when_off_or_without_demo_rows():
+    cfg0, nets, params, obs, z, demo = _bc_setup(0.0)
+    base, _ = _policy_loss(cfg0, nets, params, obs, z, demo, jnp.ones((2, 8)))
+    cfg1 = dataclasses.replace(cfg0, bc_weight=1.0)
+    none, aux = _policy_loss(cfg1, nets, params, obs, z, demo, jnp.zeros((2, 8)))
+    np.testing.assert_allclose(float(base), float(none), rtol=1e-6)
+    assert float(aux["bc_kept"]) == 0.0
+
+
+def test_bc_term_matches_hand_computation_and_q_filter():
+    cfg, nets, params, obs, z, demo = _bc_setup(0.5)
+    mask = jnp.zeros((2, 8)).at[:, :3].set(1.0)
+    base, _ = _policy_loss(
+        dataclasses.replace(cfg, bc_weight=0.0), nets, params, obs, z, demo, mask
+    )
+    loss, aux = _policy_loss(cfg, nets, params, obs, z, demo, mask)
+    mean, log_std = nets.policy_out(params["policy"], obs, z)
+    det = jnp.tanh(mean)
+    q_det = jnp.minimum(*nets.q_values(params["q"], obs, det, z))
+    q_demo = jnp.minimum(*nets.q_values(params["q"], obs, demo, z))
+    from mpcpearl_jax.pearl.networks import tanh_gaussian
+
+    a, _ = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=jax.random.PRNGKey(3))
+    q_scale = jnp.mean(jnp.abs(jnp.minimum(*nets.q_values(params["q"], obs, a, z))))
+    keep = mask * (q_demo > q_det)
+    want = 0.5 * q_scale * jnp.sum(keep * jnp.sum((det - demo) ** 2, -1)) / jnp.sum(mask)
+    np.testing.assert_allclose(float(loss - base), float(want), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(float(aux["bc_kept"]), float(jnp.sum(keep) / 6.0), rtol=1e-6)
+    # a critic that prefers the demo everywhere keeps every demo row; one that never does, none
+    prefer = jax.tree_util.tree_map(jnp.zeros_like, params["q"])
+    _, aux0 = _policy_loss(cfg, nets, params, obs, z, demo, mask, prefer)
+    assert float(aux0["bc_kept"]) == 0.0  # equal Q: the strict filter keeps nothing
+
+
+def test_bc_gradient_pulls_policy_mean_towards_mpc_action():
+    cfg, nets, params, obs, z, demo = _bc_setup(50.0)
+    mask = jnp.ones((2, 8))
+
+    # a Q that ranks the MPC action first: Q(s, a) = -|a - a_mpc|^2 through a stub network
+    def q_prefers_demo(p, o, a, zz):
+        q = -jnp.sum((a - demo) ** 2, -1) * 10.0
+        return q, q
+
+    stub = type("N", (), {})()
+    stub.policy_out = nets.policy_out
+    stub.q_values = q_prefers_demo
+
+    def bc_only(pp):
+        full, _ = losses.policy_loss(
+            pp, stub, None, obs, z, jax.random.PRNGKey(3), 0.0, 0.0, demo, mask, cfg.bc_weight
+        )
+        return full
+
+    g = jax.grad(bc_only)(params["policy"])
+    step = jax.tree_util.tree_map(lambda p, gg: p - 1e-3 * gg, params["policy"], g)
+    before = jnp.mean((jnp.tanh(nets.policy_out(params["policy"], obs, z)[0]) - demo) ** 2)
+    after = jnp.mean((jnp.tanh(nets.policy_out(step, obs, z)[0]) - demo) ** 2)
+    assert float(after) < float(before)
+
+
+def test_layer_norm_adds_scale_and_bias_to_critics_only():
+    cfg = PearlConfig(hidden=(8, 8), encoder_hidden=(4,), latent_dim=2, layer_norm=True)
+    p = Networks(cfg, OBS, A).init(jax.random.PRNGKey(0))
+    names = lambda tree: {  # noqa: E731
+        "/".join(str(getattr(k, "key", k)) for k in path)
+        for path, _ in jax.tree_util.tree_flatten_with_path(tree)[0]
+    }
+    assert any("LayerNorm" in n for n in names(p["q"]))
+    assert any("LayerNorm" in n for n in names(p["v"]))
+    assert not any("LayerNorm" in n for n in names(p["policy"]))
+    off = Networks(dataclasses.replace(cfg, layer_norm=False), OBS, A).init(jax.random.PRNGKey(0))
+    assert not any("LayerNorm" in n for n in names(off["q"]))

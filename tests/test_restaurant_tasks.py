@@ -231,3 +231,26 @@ def test_endpoints_are_seats_and_landmarks(split):
                 else:  # a point near the landmark, clear of the tables
                     assert d.min() >= seat - 1e-5
                     assert np.linalg.norm(pt - LANDMARKS[name]) < 4 * model.landmark_jitter
+
+
+def test_redrawn_tasks_keep_the_layout_and_change_the_crowd_deterministically():
+    from mpcpearl_jax.envs import make_env, make_tasks, redraw_tasks
+
+    cfg = make_env("restaurant").config
+    train = make_tasks("restaurant", "train", 0, config=cfg)
+    ids = np.array([0, 17, 119])
+    a = redraw_tasks("restaurant", 0, ids, (0, 5), config=cfg)
+    b = redraw_tasks("restaurant", 0, ids, (0, 5), config=cfg)
+    c = redraw_tasks("restaurant", 0, ids, (0, 6), config=cfg)
+    orig = jax.tree_util.tree_map(lambda x: np.asarray(x)[ids], train)
+    np.testing.assert_array_equal(np.asarray(a.static_lo), orig.static_lo)  # same tables
+    np.testing.assert_array_equal(np.asarray(a.start), orig.start)
+    np.testing.assert_array_equal(np.asarray(a.goal), orig.goal)
+    np.testing.assert_array_equal(np.asarray(a.human_pos), np.asarray(b.human_pos))
+    assert not np.allclose(np.asarray(a.human_pos), np.asarray(c.human_pos))
+    assert not np.allclose(np.asarray(a.human_pos), orig.human_pos)
+    # the redrawn crowd obeys the crowd model: nobody inside a table, people stand at the end
+    pos, tables = np.asarray(a.human_pos), np.asarray(a.static_lo)
+    d = np.linalg.norm(pos[:, :, :, None, :] - tables[:, None, None, :, :], axis=-1)
+    assert d.min() > 0.5
+    np.testing.assert_allclose(pos[:, -1], pos[:, -5], atol=1e-5)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.config import ExperimentConfig, validate
 from mpcpearl_jax.distributed import initialize, make_mesh, select_devices
 from mpcpearl_jax.errors import ConfigError
 
@@ -196,7 +196,7 @@ def test_two_processes_with_the_mpc_on_finish_and_log(tmp_path):
 # ----------------------------------------------------------- options (in process, 1 device)
 def test_seed_count_must_split_evenly_over_the_devices():
     with pytest.raises(ConfigError, match=r"ExperimentConfig.devices: 4 seed\(s\) do not split"):
-        ExperimentConfig(seeds=4, devices=3)
+        validate(ExperimentConfig(seeds=4, devices=3))
     for bad in (-1, True, 1.5):
         with pytest.raises(ConfigError, match="ExperimentConfig.devices"):
             ExperimentConfig(seeds=4, devices=bad)

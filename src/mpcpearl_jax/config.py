@@ -177,13 +177,6 @@ class ExperimentConfig(SerializableConfig):
             object.__setattr__(self, "mpc", mpc_config(self.mpc))
         v.ints(self, "seeds")
         v.ints(self, "devices", lo=0)
-        if self.devices and self.seeds % self.devices:
-            v.fail(
-                self,
-                "devices",
-                f"{self.seeds} seed(s) do not split evenly over {self.devices} devices; give a "
-                "seed count that is a multiple of it",
-            )
         v.ints(self, "seed", "task_seed", lo=None)
         v.instance(self, "env", str, "a task family name")
         v.instance(self, "task_options", dict, "a dict of builder options")
@@ -195,11 +188,6 @@ class ExperimentConfig(SerializableConfig):
         v.check(not unknown, self, "env_overrides", f"NavConfig has no field(s) {unknown}")
         v.instance(self, "data", (str, type(None)), "a file path or None")
         v.flags(self, "online_eval")
-        if self.pearl.bc_weight > 0 and self.train.mpc_buffer_fraction == 0:
-            raise ConfigError(
-                "PearlConfig.bc_weight: behaviour cloning needs MPC samples in the batch "
-                "(set train.mpc_buffer_fraction > 0)"
-            )
 
     @classmethod
     def from_dict(cls, d: dict) -> ExperimentConfig:
@@ -249,15 +237,29 @@ def _without_removed(d: dict) -> dict:
 
 
 def validate(cfg: ExperimentConfig) -> ExperimentConfig:
-    """The checks of a config that need its task family, run once before a command touches
-    anything (`run.prepare`, the learning harness; `Trainer` runs them too, for callers that build
-    one directly). Each section's own fields were checked when it was built (`__post_init__`):
-    here the env overrides' values on the family's own NavConfig, and whether the family can
-    re-draw its training crowds when `train.redraw_behaviours` asks for it (not the sidewalk's
-    recorded windows, not the paper's fixed scenarios). Returns `cfg`; ConfigError naming the
-    field."""
+    """Every check of a config that involves more than one field, run once before a command
+    touches anything (`experiments.common.main`, `run.prepare`, the learning harness; `Trainer`
+    runs it too, for callers that build one directly). The type and range of each single field
+    are the dataclasses' own invariants, checked when a section is built (`__post_init__`,
+    through `mpcpearl_jax.validate`); here: the seeds split evenly over the devices, behaviour
+    cloning has MPC samples in its batch, the env overrides' values on the family's own
+    NavConfig, and whether the family can re-draw its training crowds when
+    `train.redraw_behaviours` asks for it (not the sidewalk's recorded windows, not the paper's
+    fixed scenarios). Returns `cfg`; ConfigError naming the field."""
     from mpcpearl_jax.envs import can_redraw, make_env
 
+    if cfg.devices and cfg.seeds % cfg.devices:
+        v.fail(
+            cfg,
+            "devices",
+            f"{cfg.seeds} seed(s) do not split evenly over {cfg.devices} devices; give a "
+            "seed count that is a multiple of it",
+        )
+    if cfg.pearl.bc_weight > 0 and cfg.train.mpc_buffer_fraction == 0:
+        raise ConfigError(
+            "PearlConfig.bc_weight: behaviour cloning needs MPC samples in the batch "
+            "(set train.mpc_buffer_fraction > 0)"
+        )
     try:
         make_env(cfg.env, **cfg.env_overrides)
     except ValueError as e:
