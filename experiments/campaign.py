@@ -13,12 +13,18 @@ with each when it has finished:
                              "--out", "{results}/eval/policy-val-seeds1-8"]]},
               ...]}
 
-For each run in order: a run whose results folder holds curve.json is done and skipped; a run
-whose work folder (`runs/campaign/<name>`) holds a finished curve (stopped on its budget) is
-copied into its results folder without checkpoints and then evaluated; a run with checkpoints
-is resumed (`--resume`); any other is started. Every evaluation is `python -m
-experiments.evaluate RESULTS ARGS...` on the copied folder; it must name its `--out` (`{results}`
-stands for the results folder) and is skipped where that folder holds results.json. One
+A run may name `"trainer": "grbal"` to train with `python -m experiments.grbal` (the GrBAL
+baseline; `--minutes` is its budget) instead of the learning-curve harness.
+
+For each run in order: a run whose results folder holds its finished record (the harness's
+curve.json; GrBAL's results.json) is done and skipped; a run whose work folder
+(`runs/campaign/<name>`) holds a finished record (a curve stopped on its budget; GrBAL's
+results.json, written once training has ended) is copied into its results folder without
+checkpoints and then evaluated; a run with checkpoints is resumed (`--resume`; GrBAL's time
+budget then starts again in the resumed process); any other is started. Every evaluation is
+`python -m experiments.evaluate RESULTS ARGS...` on the copied folder; it must name its
+`--out` (`{results}` stands for the results folder) and is skipped where that folder holds
+results.json. One
 training at a time, each in its own process: stop the campaign with Ctrl-C (the run under way
 saves and exits 130) and start the same command again later to continue where it stopped.
 A run that fails (exit code other than 0) stops the campaign with its name and code.
@@ -38,16 +44,32 @@ WORK = Path("runs") / "campaign"
 NOT_COPIED = ("checkpoints", ".lock")
 
 
+# trainer -> (module, the file that marks a finished run)
+TRAINERS = {
+    "learning": ("experiments.learning", "curve.json"),
+    "grbal": ("experiments.grbal", "results.json"),
+}
+
+
 @dataclass(frozen=True)
 class CampaignRun:
     name: str
     argv: tuple[str, ...]
     results: Path
     evaluate: tuple[tuple[str, ...], ...] = field(default_factory=tuple)
+    trainer: str = "learning"
 
     @property
     def work(self) -> Path:
         return WORK / self.name
+
+    @property
+    def module(self) -> str:
+        return TRAINERS[self.trainer][0]
+
+    @property
+    def record(self) -> str:
+        return TRAINERS[self.trainer][1]
 
 
 def load_campaign(path: Path) -> list[CampaignRun]:
@@ -79,23 +101,28 @@ def load_campaign(path: Path) -> list[CampaignRun]:
             isinstance(e, list) and all(isinstance(a, str) for a in e) for e in evals
         ):
             raise ValueError(f"{where}: 'evaluate' must be a list of argument lists")
+        trainer = r.get("trainer", "learning")
+        if trainer not in TRAINERS:
+            raise ValueError(f"{where}: 'trainer' must be one of {sorted(TRAINERS)}")
         results = Path(r["results"])
         evals = [tuple(a.replace("{results}", str(results)) for a in e) for e in evals]
         for e in evals:
             if "--out" not in e[:-1]:
                 raise ValueError(f"{where}: every 'evaluate' entry must give --out")
-        out.append(CampaignRun(name, tuple(argv), results, tuple(evals)))
+        out.append(CampaignRun(name, tuple(argv), results, tuple(evals), trainer))
     return out
 
 
 def state_of(run: CampaignRun) -> str:
     """'done', 'finished' (trained, not yet copied), 'resume', or 'new'."""
-    if (run.results / "curve.json").is_file():
+    if (run.results / run.record).is_file():
         return "done"
-    curve = run.work / "curve.json"
-    if curve.is_file():
+    record = run.work / run.record
+    if record.is_file():
+        if run.trainer == "grbal":  # written once, after training and its evaluation
+            return "finished"
         try:
-            if json.loads(curve.read_text()).get("stopped") == "budget":
+            if json.loads(record.read_text()).get("stopped") == "budget":
                 return "finished"
         except (OSError, json.JSONDecodeError):
             pass
@@ -106,10 +133,10 @@ def state_of(run: CampaignRun) -> str:
 
 
 def copy_results(run: CampaignRun) -> None:
-    """The finished work folder into the results folder, without checkpoints (curve.json last,
-    so that a copy cut short is not taken for a finished one)."""
+    """The finished work folder into the results folder, without checkpoints (the finished
+    record last, so that a copy cut short is not taken for a finished one)."""
     run.results.mkdir(parents=True, exist_ok=True)
-    for p in sorted(run.work.iterdir(), key=lambda p: p.name == "curve.json"):
+    for p in sorted(run.work.iterdir(), key=lambda p: p.name == run.record):
         if p.name in NOT_COPIED:
             continue
         dest = run.results / p.name
@@ -130,7 +157,7 @@ def commands(run: CampaignRun, state: str) -> list[list[str]]:
     cmds: list[list[str]] = []
     if state in ("new", "resume"):
         extra = ["--resume"] if state == "resume" else []
-        cmds.append(py + ["experiments.learning", *run.argv, "--out", str(run.work), *extra])
+        cmds.append(py + [run.module, *run.argv, "--out", str(run.work), *extra])
     for args in run.evaluate:
         if eval_out(args).is_file():
             continue

@@ -15,6 +15,9 @@ Controllers:
               on that run's tasks with its MPC settings; without, on --env with the defaults.
   policy+mpc  one training-style episode per task: z from the prior, stochastic policy, the MPC
               acting on an event with probability --eps (default: the run's eps).
+A GrBAL run (`experiments.grbal`) is evaluated with its own controller, as its results.json
+(the learned model adapting as it acts, MPPI planning; after its adaptation episodes, or
+--online); the MPC options (--controller, --set, --eps), --episodes and --shield do not apply.
 
 With --task-seeds the split is drawn once per task-set seed (fresh crowds for every seed; the
 restaurant keeps its eight table layouts) and the metrics are pooled over all those tasks, with
@@ -26,7 +29,8 @@ Prints SR / TT / CFR / SPL / MGD (mean and per seed, then per task) and how the 
 goal reached after it or not; out of time; `metrics.first_contact`), and writes results.json,
 trajectory figures and, with --animate, one GIF per figure task into --out (default
 RUN_DIR/eval/<controller>-<split>[-online], or runs/eval/gp-mpc-<env>-<split>). With every task of
-the split and the default --eval-seed, the policy numbers are those of the run's results.json.
+the split and the default --eval-seed, the policy (and GrBAL) numbers are those of the run's
+results.json.
 """
 
 from __future__ import annotations
@@ -220,6 +224,7 @@ class Setup:
     # the paper's scenarios (folder and sha256 of each file) when they are the task source
     scenarios: dict | None = None
     perturbation: str = "none"  # the crowd's timing changed (envs.perturb), e.g. "delay=6"
+    grbal: tuple | None = None  # a GrBAL run: (GrbalTrainer, saved model of the evaluated seeds)
 
 
 def _mpc_overrides(items: list[str], base: dict) -> dict:
@@ -242,10 +247,117 @@ def _mpc_overrides(items: list[str], base: dict) -> dict:
     return out
 
 
+def _task_setup(args: argparse.Namespace, cfg: Any, env: Any, env_name: str, data: str | None):
+    """The evaluated tasks of `args` for a run config: (task seed, scenario source, tasks, task
+    ids, figure ids, perturbation)."""
+    task_seed = args.task_seed if args.task_seed is not None else (cfg.task_seed if cfg else 0)
+    kw: dict[str, Any] = {"data": data} if data else {}
+    kw.update(cfg.task_options if cfg else {})
+    scenarios = _scenario_source(args, cfg, env_name, kw)
+    if scenarios is not None:
+        kw = dict(scenarios)
+    try:
+        all_tasks = make_tasks(env_name, args.split, task_seed, config=env.config, **kw)
+    except (ValueError, TypeError, OSError) as e:
+        if isinstance(e, OSError) and scenarios is None:
+            raise
+        raise UsageError(f"{env_name} --split {args.split}: {e}") from e
+    n = all_tasks.num_tasks
+    task_ids = parse_indices(args.tasks, n, "--tasks")
+    if not task_ids:
+        raise UsageError("--tasks: no task selected")
+    if args.figures is None:
+        figure_ids = task_ids[:FIGURES]
+    else:
+        figure_ids = parse_indices(args.figures, n, "--figures")
+        missing = sorted(set(figure_ids) - set(task_ids))
+        if missing:
+            raise UsageError(f"--figures: task(s) {missing} are not evaluated (see --tasks)")
+    tasks = jax.tree_util.tree_map(lambda x: x[np.asarray(task_ids)], all_tasks)
+    try:
+        perturbation = parse_perturbation(args.perturb)
+    except ValueError as e:
+        raise UsageError(str(e)) from e
+    return (
+        task_seed,
+        scenarios,
+        perturb_tasks(tasks, perturbation),
+        task_ids,
+        figure_ids,
+        perturbation,
+    )
+
+
+def _default_out(args: argparse.Namespace, name: str, scenarios: Any, perturbation: Any) -> Path:
+    split_name = f"scenarios-{args.split}" if scenarios is not None else args.split
+    split_name += perturbation.folder_suffix
+    return args.run / "eval" / (f"{name}-{split_name}" + ("-online" if args.online else ""))
+
+
+def _grbal_setup(args: argparse.Namespace) -> Setup:
+    """A GrBAL run (`experiments.grbal`): its own controller, the learned model adapted as it
+    acts, planned with MPPI (the protocol of its results.json)."""
+    from mpcpearl_jax.grbal.run import load_model
+
+    given = [
+        f
+        for f, v in (
+            ("--controller", args.controller != "policy"),
+            ("--set", args.set),
+            ("--eps", args.eps is not None),
+            ("--episodes", args.episodes is not None),
+            ("--shield", args.shield),
+            ("--env", args.env),
+        )
+        if v
+    ]
+    if given:
+        raise UsageError(f"{given[0]} does not apply to a GrBAL run (it is evaluated as trained)")
+    data = str(args.data) if args.data else None
+    try:
+        trainer, saved = load_model(args.run, data=data)
+    except (ValueError, OSError) as e:  # a bad config, data file or task option
+        raise UsageError(f"{args.run}: {e}") from e
+    cfg = trainer.cfg
+    if cfg.data is not None and not Path(cfg.data).is_file():
+        raise UsageError(
+            f"data file {cfg.data} does not exist (the run's data file; pass --data PATH)"
+        )
+    seeds = cfg.seeds
+    if args.seed_index is not None and not 0 <= args.seed_index < seeds:
+        raise UsageError(f"--seed-index {args.seed_index}: the run has {seeds} seed(s)")
+    seed_ids = list(range(seeds)) if args.seed_index is None else [args.seed_index]
+    saved = jax.tree_util.tree_map(lambda x: np.asarray(x)[np.asarray(seed_ids)], saved)
+    task_seed, scenarios, tasks, task_ids, figure_ids, perturbation = _task_setup(
+        args, cfg, trainer.env, cfg.env, cfg.data
+    )
+    out = args.out or _default_out(args, "grbal", scenarios, perturbation)
+    return Setup(
+        controller="grbal",
+        env_name=cfg.env,
+        env_config=trainer.env.config,
+        split=args.split,
+        task_seed=task_seed,
+        data=cfg.data,
+        tasks=tasks,
+        task_ids=task_ids,
+        figure_ids=figure_ids,
+        out=out,
+        label="GrBAL",
+        run=args.run,
+        run_config=cfg,
+        seed_ids=seed_ids,
+        scenarios=scenarios,
+        perturbation=perturbation.label,
+        grbal=(trainer, saved),
+    )
+
+
 def setup(args: argparse.Namespace) -> Setup:
     """Resolve the command line; raises UsageError (and CheckpointError) with a one-line reason."""
     from mpcpearl_jax.checkpoint import load_config
     from mpcpearl_jax.envs import mpc_defaults
+    from mpcpearl_jax.grbal.run import is_grbal_run
     from mpcpearl_jax.policy import load_policy
     from mpcpearl_jax.report import run_label
 
@@ -254,6 +366,8 @@ def setup(args: argparse.Namespace) -> Setup:
     if args.run is not None:
         if not args.run.is_dir():
             raise UsageError(f"{args.run}: no such directory")
+        if is_grbal_run(args.run):
+            return _grbal_setup(args)
         cfg = load_config(args.run)  # CheckpointError: not a run directory
     elif ctrl != "gp-mpc":
         raise UsageError(f"--controller {ctrl} needs a run directory (RUN_DIR)")
@@ -291,35 +405,9 @@ def setup(args: argparse.Namespace) -> Setup:
         env = make_env(env_name, **overrides)
     except ValueError as e:
         raise UsageError(str(e)) from e
-    task_seed = args.task_seed if args.task_seed is not None else (cfg.task_seed if cfg else 0)
-    kw: dict[str, Any] = {"data": data} if data else {}
-    kw.update(cfg.task_options if cfg else {})
-    scenarios = _scenario_source(args, cfg, env_name, kw)
-    if scenarios is not None:
-        kw = dict(scenarios)
-    try:
-        all_tasks = make_tasks(env_name, args.split, task_seed, config=env.config, **kw)
-    except (ValueError, TypeError, OSError) as e:
-        if isinstance(e, OSError) and scenarios is None:
-            raise
-        raise UsageError(f"{env_name} --split {args.split}: {e}") from e
-    n = all_tasks.num_tasks
-    task_ids = parse_indices(args.tasks, n, "--tasks")
-    if not task_ids:
-        raise UsageError("--tasks: no task selected")
-    if args.figures is None:
-        figure_ids = task_ids[:FIGURES]
-    else:
-        figure_ids = parse_indices(args.figures, n, "--figures")
-        missing = sorted(set(figure_ids) - set(task_ids))
-        if missing:
-            raise UsageError(f"--figures: task(s) {missing} are not evaluated (see --tasks)")
-    tasks = jax.tree_util.tree_map(lambda x: x[np.asarray(task_ids)], all_tasks)
-    try:
-        perturbation = parse_perturbation(args.perturb)
-    except ValueError as e:
-        raise UsageError(str(e)) from e
-    tasks = perturb_tasks(tasks, perturbation)
+    task_seed, scenarios, tasks, task_ids, figure_ids, perturbation = _task_setup(
+        args, cfg, env, env_name, data
+    )
 
     base_mpc = cfg.mpc.to_dict() if cfg else mpc_defaults(env_name)
     mpc = _mpc_overrides(args.set, base_mpc) if ctrl != "policy" else {}
@@ -344,13 +432,12 @@ def setup(args: argparse.Namespace) -> Setup:
     elif args.seed_index is not None:
         raise UsageError("--seed-index applies to a run's policy, not to gp-mpc")
     out = args.out
-    split_name = f"scenarios-{args.split}" if scenarios is not None else args.split
-    split_name += perturbation.folder_suffix
     if out is None and args.run is not None:
         name = f"{ctrl}-shield" if shield is not None else ctrl
-        out = args.run / "eval" / (f"{name}-{split_name}" + ("-online" if args.online else ""))
+        out = _default_out(args, name, scenarios, perturbation)
     elif out is None:
-        out = Path("runs") / "eval" / f"gp-mpc-{env_name}-{split_name}"
+        split_name = f"scenarios-{args.split}" if scenarios is not None else args.split
+        out = Path("runs") / "eval" / f"gp-mpc-{env_name}-{split_name}{perturbation.folder_suffix}"
     return Setup(
         controller=ctrl,
         env_name=env_name,
@@ -567,6 +654,12 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
     elif s.controller == "gp-mpc":
         protocol = "MPC at every step"
         result, stats = run_gp_mpc(s, key)
+    elif s.controller == "grbal":
+        trainer, saved = s.grbal
+        episodes = s.run_config.grbal.eval_adapt_episodes
+        protocol = "online" if args.online else f"after {episodes} adaptation episode(s)"
+        raw = trainer.rollouts(saved["model"], saved["norm"], s.tasks, key)
+        result = raw["online" if args.online else "adapt"]
     else:
         protocol = f"training-style episode: prior z, MPC on an event with probability {s.eps:g}"
         result, stats = run_policy_mpc(s, key, s.eps)
@@ -593,14 +686,14 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
         "per_task": per_task_metrics(result, s.tasks, s.env_config),
         "wall_s": wall,
     }
-    if s.controller != "policy":
+    if s.controller not in ("policy", "grbal"):
         record["mpc"] = s.mpc
         if s.controller == "policy+mpc":
             record["eps"] = s.eps
         record["mpc_share"] = float(np.mean(result["used_mpc"]))
         record["mpc_status"] = dict(stats["status"])
         record["mpc_reasons"] = dict(stats["reasons"])
-    if s.controller == "policy":
+    if s.controller in ("policy", "grbal"):
         record["episodes"] = 1 if args.online else episodes + 1
         if s.shield is not None:
             record["shield"] = asdict(s.shield)

@@ -35,6 +35,7 @@ def _run(name="a", results="res/a", evaluate=None):
         ([{**_run(), "argv": ["--resume"]}], "--resume"),
         ([_run(evaluate=[["--split", "val"]])], "must give --out"),
         ([_run(evaluate="--split val")], "list of argument lists"),
+        ([{**_run(), "trainer": "ppo"}], "'trainer' must be one of"),
     ],
 )
 def test_bad_campaign_files_name_the_entry(tmp_path, runs, match):
@@ -103,3 +104,23 @@ def test_a_failing_run_stops_the_campaign_with_its_code(tmp_path, monkeypatch, c
     assert campaign.main([str(path)]) == 130
     assert len(calls) == 1 and calls[0][0] == sys.executable
     assert "a: experiments.learning" in capsys.readouterr().err
+
+
+def test_grbal_runs_train_with_their_own_command_and_finish_with_their_results(
+    tmp_path, monkeypatch
+):
+    monkeypatch.chdir(tmp_path)
+    ev = [["--split", "val", "--task-seeds", "1-8", "--out", "{results}/eval/v"]]
+    entry = {**_run("g", results="res/g", evaluate=ev), "trainer": "grbal"}
+    (run,) = campaign.load_campaign(_write(tmp_path, [entry]))
+    assert campaign.state_of(run) == "new"
+    assert campaign.commands(run, "new")[0][1:3] == ["-m", "experiments.grbal"]
+    (run.work / "checkpoints" / "3").mkdir(parents=True)
+    assert campaign.state_of(run) == "resume"
+    (run.work / "policy.msgpack").write_bytes(b"p")
+    (run.work / "results.json").write_text("{}")
+    assert campaign.state_of(run) == "finished"
+    campaign.copy_results(run)
+    assert sorted(p.name for p in run.results.iterdir()) == ["policy.msgpack", "results.json"]
+    assert campaign.state_of(run) == "done"
+    assert [c[2] for c in campaign.commands(run, "done")] == ["experiments.evaluate"]

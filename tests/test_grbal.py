@@ -242,6 +242,38 @@ def test_grbal_cli_restaurant_resume_and_compare(tmp_path):
     table = (tmp_path / "cmp" / "table.md").read_text()
     assert "GrBAL (2 adapt. eps.)" in table and "worst performance" in table
 
+    # experiments.evaluate reproduces the run's own numbers from config.json + policy.msgpack,
+    # and scores it on other task sets (pooled over task seeds)
+    from experiments import evaluate
+
+    for online, key in ((False, "test_adapt"), (True, "test_online")):
+        ev = tmp_path / f"ev{online}"
+        argv = [str(out), "--figures", "none", "--out", str(ev)] + ["--online"] * online
+        assert evaluate.main(argv) == 0
+        rec = json.loads((ev / "results.json").read_text())
+        assert rec["controller"] == "grbal" and rec["label"] == "GrBAL"
+        for m in ("SR", "TT", "CFR", "SPL", "MGD"):
+            assert rec["metrics"][m] == pytest.approx(res[key][m], abs=1e-6), (key, m)
+    pooled = tmp_path / "pooled"
+    argv = [
+        str(out),
+        "--split",
+        "val",
+        "--task-seeds",
+        "1-2",
+        "--tasks",
+        "0-2",
+        "--out",
+        str(pooled),
+    ]
+    assert evaluate.main(argv) == 0
+    rec = json.loads((pooled / "results.json").read_text())
+    assert rec["num_tasks"] == 6 and set(rec["pooled"]) >= {"SR", "CFR", "MGD"}
+    assert evaluate.main([str(out), "--set", "trust_v=1", "--out", str(tmp_path / "x")]) == 2
+    (out / "policy.msgpack").write_bytes(b"garbage")
+    assert evaluate.main([str(out), "--out", str(tmp_path / "y")]) == 2
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
 
 def test_grbal_cli_rejects_bad_settings(tmp_path, capsys):
     from experiments import grbal

@@ -6,6 +6,7 @@ Used by `python -m experiments.grbal`.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -48,6 +49,47 @@ def load_config(run_dir: Path) -> GrbalExperimentConfig:
         return GrbalExperimentConfig.from_dict(json.loads(path.read_text()))
     except (json.JSONDecodeError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: not a GrBAL run config ({e})") from e
+
+
+def is_grbal_run(run_dir: Path) -> bool:
+    """Whether `run_dir`'s config.json was written by a GrBAL run (its `method` field)."""
+    try:
+        return json.loads((Path(run_dir) / CONFIG_FILE).read_text()).get("method") == "grbal"
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return False
+
+
+def load_model(run_dir: Path, data: str | None = None) -> tuple[GrbalTrainer, dict]:
+    """A GrBAL run's trainer (built from its config.json; `data` replaces the run's data file)
+    and what its policy.msgpack holds: {"model": parameters, "norm": input normalisation}, every
+    leaf with a leading seed axis. CheckpointError naming the file when it is missing, does not
+    match the config's model, or holds NaN or inf."""
+    from flax import serialization
+
+    from mpcpearl_jax.checkpoint import POLICY_FILE, non_finite_leaves
+
+    run_dir = Path(run_dir)
+    cfg = load_config(run_dir)
+    if data is not None:
+        cfg = dataclasses.replace(cfg, data=data)
+    trainer = GrbalTrainer(cfg)
+    path = run_dir / POLICY_FILE
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no saved model (the run has not saved one yet)")
+    shapes = jax.eval_shape(trainer._init_state)
+    target = {"model": shapes.params, "norm": shapes.norm}
+    try:
+        saved = serialization.from_bytes(target, path.read_bytes())
+    except (ValueError, TypeError, KeyError) as e:
+        raise CheckpointError(f"{path}: not this run's GrBAL model ({e})") from e
+    want = [(x.shape, x.dtype) for x in jax.tree_util.tree_leaves(target)]
+    got = [(np.shape(x), np.asarray(x).dtype) for x in jax.tree_util.tree_leaves(saved)]
+    if want != got:
+        raise CheckpointError(f"{path}: its arrays do not match the model of {CONFIG_FILE}")
+    bad = non_finite_leaves(saved)
+    if bad:
+        raise CheckpointError(f"{path}: NaN or inf in {len(bad)} array(s), e.g. {bad[0]}")
+    return trainer, saved
 
 
 def _eval_row(trainer: GrbalTrainer, state: GrbalState) -> dict[str, Any]:

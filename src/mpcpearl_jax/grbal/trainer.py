@@ -381,6 +381,11 @@ class GrbalTrainer:
         r = self.env.config.robot_radius
         return {k: eval_lib.summarize(v, tasks, r) | {"_raw": v} for k, v in res.items()}
 
+    def rollouts(self, params, norm: Normalizer, tasks: TaskParams, key: Array) -> dict:
+        """The evaluation program on saved model parameters and normalisation ([S]-stacked, as
+        `model_params` returns them): {"adapt": arrays [S, N, ...], "online": ...}."""
+        return jax.device_get(self._evaluate(key, params, norm, tasks))
+
     def evaluate(
         self,
         state: GrbalState,
