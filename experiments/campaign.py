@@ -1,4 +1,4 @@
-"""A queue of learning runs, trained one at a time and resumable across sessions.
+"""A queue of training runs, trained one at a time and resumable across sessions.
 
     python -m experiments.campaign CAMPAIGN.json [--only NAME ...] [--dry-run]
 
@@ -14,19 +14,21 @@ with each when it has finished:
               ...]}
 
 A run may name `"trainer": "grbal"` to train with `python -m experiments.grbal` (the GrBAL
-baseline; `--minutes` is its budget) instead of the learning-curve harness.
+baseline; `--minutes` is its budget) or `"trainer": "restaurant"` to train with the main command
+`python -m experiments.restaurant` (a budget in iterations) instead of the learning-curve
+harness.
 
 For each run in order: a run whose results folder holds its finished record (the harness's
-curve.json; GrBAL's results.json) is done and skipped; a run whose work folder
-(`runs/campaign/<name>`) holds a finished record (a curve stopped on its budget; GrBAL's
-results.json, written once training has ended) is copied into its results folder without
-checkpoints and then evaluated; a run with checkpoints is resumed (`--resume`; GrBAL's time
-budget then starts again in the resumed process); any other is started. Every evaluation is
+curve.json; results.json for the other two) is done and skipped; a run whose work folder
+(`runs/campaign/<name>`) holds a finished record (a curve stopped on its budget; a results.json,
+written once training has ended) is copied into its results folder without checkpoints and then
+evaluated; a run with checkpoints is resumed (`--resume`; GrBAL's time budget then starts again
+in the resumed process); any other is started. Every evaluation is
 `python -m experiments.evaluate RESULTS ARGS...` on the copied folder; it must name its
 `--out` (`{results}` stands for the results folder) and is skipped where that folder holds
-results.json. One
-training at a time, each in its own process: stop the campaign with Ctrl-C (the run under way
-saves and exits 130) and start the same command again later to continue where it stopped.
+results.json. One training at a time, each in its own process: stop the campaign with Ctrl-C
+(the run under way saves and exits 130) and start the same command again later to continue
+where it stopped.
 A run that fails (exit code other than 0) stops the campaign with its name and code.
 """
 
@@ -48,6 +50,7 @@ NOT_COPIED = ("checkpoints", ".lock")
 TRAINERS = {
     "learning": ("experiments.learning", "curve.json"),
     "grbal": ("experiments.grbal", "results.json"),
+    "restaurant": ("experiments.restaurant", "results.json"),
 }
 
 
@@ -119,7 +122,7 @@ def state_of(run: CampaignRun) -> str:
         return "done"
     record = run.work / run.record
     if record.is_file():
-        if run.trainer == "grbal":  # written once, after training and its evaluation
+        if run.record == "results.json":  # written once, after training and its evaluation
             return "finished"
         try:
             if json.loads(record.read_text()).get("stopped") == "budget":
@@ -165,6 +168,18 @@ def commands(run: CampaignRun, state: str) -> list[list[str]]:
     return cmds
 
 
+def run_child(cmd: list[str]) -> int:
+    """Run one process to its end and return its exit code. Ctrl-C reaches the child too (the
+    same process group): the campaign keeps waiting while the child saves and exits (130),
+    instead of killing it as `subprocess.call` does after a quarter of a second."""
+    p = subprocess.Popen(cmd)
+    while True:
+        try:
+            return p.wait()
+        except KeyboardInterrupt:
+            continue
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("campaign", type=Path)
@@ -195,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
             print("[campaign] $ " + " ".join(cmd[1:]), flush=True)
             if args.dry_run:
                 continue
-            rc = subprocess.call(cmd)
+            rc = run_child(cmd)
             if rc != 0:
                 print(f"error: {run.name}: {cmd[2]} exited {rc}", file=sys.stderr)
                 return rc

@@ -84,7 +84,7 @@ def test_dry_run_prints_and_runs_nothing(tmp_path, monkeypatch, capsys):
     (tmp_path / "res" / "b").mkdir(parents=True)
     (tmp_path / "res" / "b" / "curve.json").write_text("{}")
     calls = []
-    monkeypatch.setattr(campaign.subprocess, "call", lambda cmd: calls.append(cmd) or 0)
+    monkeypatch.setattr(campaign, "run_child", lambda cmd: calls.append(cmd) or 0)
     assert campaign.main([str(path), "--dry-run"]) == 0
     out = capsys.readouterr().out
     assert "a: new, 1 process(es)" in out and "b: done" in out and not calls
@@ -100,7 +100,7 @@ def test_a_failing_run_stops_the_campaign_with_its_code(tmp_path, monkeypatch, c
         calls.append(cmd)
         return 130  # Ctrl-C in the run under way
 
-    monkeypatch.setattr(campaign.subprocess, "call", call)
+    monkeypatch.setattr(campaign, "run_child", call)
     assert campaign.main([str(path)]) == 130
     assert len(calls) == 1 and calls[0][0] == sys.executable
     assert "a: experiments.learning" in capsys.readouterr().err
@@ -115,6 +115,8 @@ def test_grbal_runs_train_with_their_own_command_and_finish_with_their_results(
     (run,) = campaign.load_campaign(_write(tmp_path, [entry]))
     assert campaign.state_of(run) == "new"
     assert campaign.commands(run, "new")[0][1:3] == ["-m", "experiments.grbal"]
+    main = campaign.load_campaign(_write(tmp_path, [{**entry, "trainer": "restaurant"}]))[0]
+    assert campaign.commands(main, "new")[0][1:3] == ["-m", "experiments.restaurant"]
     (run.work / "checkpoints" / "3").mkdir(parents=True)
     assert campaign.state_of(run) == "resume"
     (run.work / "policy.msgpack").write_bytes(b"p")
@@ -124,3 +126,37 @@ def test_grbal_runs_train_with_their_own_command_and_finish_with_their_results(
     assert sorted(p.name for p in run.results.iterdir()) == ["policy.msgpack", "results.json"]
     assert campaign.state_of(run) == "done"
     assert [c[2] for c in campaign.commands(run, "done")] == ["experiments.evaluate"]
+
+
+def test_ctrl_c_lets_the_run_under_way_save_before_the_campaign_stops(tmp_path):
+    """Ctrl-C reaches the whole process group: the child takes a second to save and exits 130;
+    the campaign waits for it (subprocess.call would kill it after 0.25 s) and returns its code."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    saved, ready = tmp_path / "saved", tmp_path / "ready"
+    child = (
+        "import signal, sys, time, pathlib\n"
+        "def stop(*_):\n"
+        "    time.sleep(1.0)\n"
+        f"    pathlib.Path({str(saved)!r}).write_text('state')\n"
+        "    sys.exit(130)\n"
+        "signal.signal(signal.SIGINT, stop)\n"
+        f"pathlib.Path({str(ready)!r}).write_text('')\n"
+        "time.sleep(60)\n"
+    )
+    parent = (
+        "import sys; from experiments import campaign; "
+        f"sys.exit(campaign.run_child([sys.executable, '-c', {child!r}]))"
+    )
+    root = Path(__file__).resolve().parents[1]
+    p = subprocess.Popen([sys.executable, "-c", parent], cwd=root, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while not ready.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert ready.exists(), "the child did not start"
+    os.killpg(p.pid, signal.SIGINT)  # what Ctrl-C in a terminal does
+    assert p.wait(timeout=30) == 130
+    assert saved.read_text() == "state"
