@@ -139,9 +139,9 @@ def load_config(run_dir: str | Path, resume: bool = False) -> ExperimentConfig:
         if isinstance(raw, dict) and raw.get("method") == "grbal":
             raise CheckpointError(
                 f"{run_dir}: a GrBAL run (a learned dynamics model planned with MPPI, not a "
-                "policy): load_policy and experiments.evaluate do not apply; python -m "
-                "experiments.grbal evaluates it when training ends (results.json; the same "
-                "command with --resume evaluates a finished run again)"
+                "policy): load_policy does not apply; python -m experiments.evaluate scores it "
+                "with its own controller, and python -m experiments.grbal evaluates it when "
+                "training ends (results.json)"
             )
         on = removed_options_on(raw) if isinstance(raw, dict) else []
         if resume and on:
