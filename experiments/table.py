@@ -669,7 +669,7 @@ SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
         "MPC-PEARL 0.2",
         ("restaurant/ablation/auto-entropy-24min", "restaurant/ablation/auto-entropy-seed1-24min"),
     ),
-    ("PEARL", ("restaurant/ablation/pearl-auto-entropy-24min",)),
+    ("PEARL", ("restaurant/ablation/pearl-auto-entropy-24min", "restaurant/seeds/pearl-s1")),
     ("MPC-SAC 0.2", ("restaurant/ablation/mpc-sac-auto-entropy-24min",)),
 )
 # evaluation sets of the seed table: kind, label
