@@ -670,7 +670,10 @@ SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
         ("restaurant/ablation/auto-entropy-24min", "restaurant/ablation/auto-entropy-seed1-24min"),
     ),
     ("PEARL", ("restaurant/ablation/pearl-auto-entropy-24min", "restaurant/seeds/pearl-s1")),
-    ("MPC-SAC 0.2", ("restaurant/ablation/mpc-sac-auto-entropy-24min",)),
+    (
+        "MPC-SAC 0.2",
+        ("restaurant/ablation/mpc-sac-auto-entropy-24min", "restaurant/seeds/mpc-sac-s1"),
+    ),
 )
 # evaluation sets of the seed table: kind, label
 SEED_SETS = (
@@ -711,11 +714,17 @@ def seed_difference(a: Sequence[Stat], b: Sequence[Stat]) -> tuple[float, float,
     return mean, math.sqrt(sum((v - mean) ** 2 for v in d) / (n - 1) / n), n
 
 
+# seeds per method below which no verdict is given: with two, the t interval has one degree of
+# freedom, and two seeds that happen to differ by the same amount (se 0) would read as 'holds'
+MIN_VERDICT_SEEDS = 3
+
+
 def verdict(diff: tuple[float, float, int] | None) -> str:
     """The paper's 'A > B' as measured: holds (the 95 % t interval over seeds lies above 0),
-    does not hold (below 0, or B ahead), or cannot be told apart (it contains 0)."""
-    if diff is None:
-        return "fewer than two seeds each"
+    does not hold (below 0, or B ahead), or cannot be told apart (it contains 0); no verdict
+    below `MIN_VERDICT_SEEDS` seeds each."""
+    if diff is None or diff[2] < MIN_VERDICT_SEEDS:
+        return f"fewer than {MIN_VERDICT_SEEDS} seeds each: no verdict"
     mean, se, n = diff
     half = T95.get(n - 1, 1.96) * se
     if mean - half > 0:
@@ -765,7 +774,8 @@ def render_seeds(rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEE
         "",
         "A - B: seed i of A against seed i of B (the same seed number, not the same random "
         "stream), mean and standard error of those differences; 'holds' / 'does not hold' when "
-        "the 95 % Student t interval over seeds excludes 0, else 'cannot be told apart'.",
+        "the 95 % Student t interval over seeds excludes 0, else 'cannot be told apart'; no "
+        f"verdict below {MIN_VERDICT_SEEDS} seeds each (the difference is still shown).",
     ]
     return "\n".join(lines)
 

@@ -205,11 +205,16 @@ def test_seed_table_gives_seed_statistics_and_the_papers_ordering_with_seeds_as_
     mixed = claims[("| PEARL > MPC-SAC 0.2 (SR)", "paper's 25 test scenarios")]
     assert "+0.03 +- 0.07" in mixed and mixed.endswith("cannot be told apart |")
     # B ahead on every seed: the claim does not hold
-    d = table.seed_difference([Stat(0.1), Stat(0.2)], [Stat(0.5), Stat(0.62)])
-    assert d == pytest.approx((-0.41, 0.01, 2)) and table.verdict(d).startswith("does not hold")
+    d = table.seed_difference([Stat(0.1), Stat(0.2), Stat(0.3)], [Stat(0.5), Stat(0.62), Stat(0.7)])
+    assert d[:2] == pytest.approx((-0.4066667, 0.0066667), abs=1e-6) and d[2] == 3
+    assert table.verdict(d).startswith("does not hold")
     assert table.verdict(table.seed_difference([Stat(0.5)], [Stat(0.1)])) == (
-        "fewer than two seeds each"
+        "fewer than 3 seeds each: no verdict"
     )
+    # two seeds that differ by the same amount (se 0) get no verdict, not 'holds'
+    two = table.seed_difference([Stat(0.9), Stat(0.8)], [Stat(0.7), Stat(0.6)])
+    assert two == pytest.approx((0.2, 0.0, 2))
+    assert table.verdict(two) == "fewer than 3 seeds each: no verdict"
     # one seed is shown as such, never as a spread
     one = table.render_seeds(rec, (group("solo", [0.7]),))
     assert "0.70 (1 seed)" in one
