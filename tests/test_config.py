@@ -162,9 +162,10 @@ def test_default_preset_keeps_the_sidewalk_crowd():
 @pytest.mark.parametrize(
     "folder, option",
     [
-        ("dagger-labels-60min", "train.mpc_dagger_labels"),
-        ("policy-ema-60min", "pearl.policy_ema"),
-        ("collision-penalty-60min", "env_overrides.w_collision"),
+        ("ablation/dagger-labels-60min", "train.mpc_dagger_labels"),
+        ("ablation/policy-ema-60min", "pearl.policy_ema"),
+        ("ablation/collision-penalty-60min", "env_overrides.w_collision"),
+        ("main-seeds/alpha-lr1e-3-s2", "pearl.alpha_lr"),
     ],
 )
 def test_runs_of_removed_options_evaluate_but_do_not_resume(tmp_path, folder, option):
@@ -178,7 +179,7 @@ def test_runs_of_removed_options_evaluate_but_do_not_resume(tmp_path, folder, op
     from mpcpearl_jax.config import REMOVED_OPTIONS, removed_options_on
     from mpcpearl_jax.errors import CheckpointError
 
-    run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "ablation" / folder
+    run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / folder
     raw = json.loads((run / "config.json").read_text())
     assert removed_options_on(raw) == [option]
     cfg = load_config(run)

@@ -212,7 +212,7 @@ class ExperimentConfig(SerializableConfig):
 # their off value: section -> {field: off value}. Every one of them acted on training only.
 REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
     "train": {"mpc_dagger_labels": False},
-    "pearl": {"policy_ema": 0.0},
+    "pearl": {"policy_ema": 0.0, "alpha_lr": None},
     "env_overrides": {"w_collision": 0.0},
 }
 

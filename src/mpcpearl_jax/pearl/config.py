@@ -46,12 +46,6 @@ class PearlConfig:
     # policy's entropy is pulled to the target; target_entropy None = -(action dimension)
     auto_entropy: bool = False
     target_entropy: float | None = None
-    # Adam's step size on log_alpha (None = lr). Adam moves log_alpha by about its step size per
-    # gradient step whatever the gap, so at lr 3e-4 alpha falls from 1 to 0.03 in ~12k steps
-    # while the young policy is still more random than the target, and the policy's entropy
-    # then overshoots far below the target for the ~10k steps alpha needs to climb back
-    # (results/README.md, the main command in five minutes); a larger step lets alpha follow
-    alpha_lr: float | None = None
 
     def __post_init__(self) -> None:
         v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size")
@@ -81,13 +75,6 @@ class PearlConfig:
             "must be below log_std_max",
         )
         v.positive(self, "max_grad_norm", none_ok=True)
-        v.positive(self, "alpha_lr", none_ok=True)
-        v.check(
-            self.alpha_lr is None or self.auto_entropy,
-            self,
-            "alpha_lr",
-            "only used with auto_entropy: set pearl.auto_entropy=true",
-        )
 
     def replace(self, **changes: Any) -> PearlConfig:
         return dataclasses.replace(self, **changes)

@@ -52,11 +52,6 @@ def _optimizer(cfg: PearlConfig) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), adam)
 
 
-def _alpha_optimizer(cfg: PearlConfig) -> optax.GradientTransformation:
-    """The optimizer of log_alpha (`auto_entropy`): the networks' own, or Adam at `alpha_lr`."""
-    return _optimizer(cfg) if cfg.alpha_lr is None else optax.adam(cfg.alpha_lr)
-
-
 def init_learner(key: Array, nets: Networks) -> LearnerState:
     """Fresh parameters, optimizer states and target V of the agent `nets`."""
     params = nets.init(key)
@@ -69,7 +64,7 @@ def init_learner(key: Array, nets: Networks) -> LearnerState:
     log_alpha = None
     if nets.cfg.auto_entropy:
         log_alpha = jnp.zeros((), jnp.float32)  # alpha = 1: the paper's temperature at first
-        opt_state["alpha"] = _alpha_optimizer(nets.cfg).init(log_alpha)
+        opt_state["alpha"] = opt.init(log_alpha)
     return LearnerState(params, params["v"], opt_state, jnp.zeros((), jnp.int32), log_alpha)
 
 
@@ -138,8 +133,7 @@ def _update(
     log_alpha = state.log_alpha
     if log_alpha is not None:
         g_a = jax.grad(losses.temperature_loss)(log_alpha, pi_aux["log_pi"], target_entropy(nets))
-        alpha_opt = opt if cfg.alpha_lr is None else _alpha_optimizer(cfg)
-        upd, opt_state["alpha"] = alpha_opt.update(g_a, state.opt_state["alpha"], log_alpha)
+        upd, opt_state["alpha"] = opt.update(g_a, state.opt_state["alpha"], log_alpha)
         log_alpha = optax.apply_updates(log_alpha, upd)
 
     params = {"policy": policy, "q": q_enc["q"], "v": v, "encoder": q_enc["encoder"]}
