@@ -780,12 +780,104 @@ def render_seeds(rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEE
     return "\n".join(lines)
 
 
+# ---------------------------------------------------------------- the main command's seeds
+
+# recipes tried for the README's main command (`python -m experiments.restaurant`, the `default`
+# preset, 75 iterations), each on the seeds listed: label, ((seed, folder under
+# results/restaurant), ...).
+# Commands: experiments/campaigns/main-*.json (`python -m experiments.campaign FILE`).
+MAIN_SEEDS: tuple[tuple[str, tuple[tuple[int, str], ...]], ...] = (
+    ("`default`", ((0, "main-default"), (1, "main-seeds/default-s1"))),
+    (
+        "+ MPC warm start for 20 iterations (`train.mpc_demo_share=1.0`, "
+        "`train.mpc_demo_iterations=20`)",
+        ((0, "main-seeds/warmstart20-s0"),),
+    ),
+    (
+        "+ three posterior-phase episodes per task (`train.posterior_episodes=3`)",
+        ((1, "main-seeds/posterior3-s1"), (2, "main-seeds/posterior3-s2")),
+    ),
+    (
+        "+ three posterior-phase episodes + entropy target 0 (`pearl.target_entropy=0.0`)",
+        ((1, "main-seeds/post3-tent0-s1"), (2, "main-seeds/post3-tent0-s2")),
+    ),
+    ("+ entropy target 0", ((2, "main-seeds/tent0-s2"),)),
+    (
+        "+ Adam step 1e-3 on log alpha (`pearl.alpha_lr`, since removed)",
+        ((2, "main-seeds/alpha-lr1e-3-s2"),),
+    ),
+    (
+        "+ 8 tasks per gradient step, 70 iterations (`pearl.meta_batch=8`, "
+        "`train.iterations=70`)",
+        ((1, "main-seeds/mb8-it70-s1"),),
+    ),
+)
+
+
+def _lift_off(rows: list[dict]) -> tuple[str, str, str]:
+    """From a run's metrics.jsonl: the first iteration with a successful training episode from
+    the task's start, the mean success share of the last 10 iterations' such episodes, and the
+    lowest alpha with its iteration."""
+    first = next((r["iteration"] for r in rows if r["train_success"] > 0), None)
+    last = sum(r["train_success"] for r in rows[-10:]) / len(rows[-10:])
+    low = min(rows, key=lambda r: r["alpha"])
+    return (
+        "never" if first is None else str(first),
+        f2(last),
+        f"{low['alpha']:.2f} (it {low['iteration']})",
+    )
+
+
+def render_main_seeds(rec: Records, groups=MAIN_SEEDS) -> str:
+    """Per recipe and seed: when the robot first reached the goal from the task's start in
+    training, how low alpha fell, and the test and validation scores."""
+    head = [
+        "recipe",
+        "seed",
+        "first success (iteration)",
+        "success, last 10 iterations",
+        "lowest alpha",
+        "test SR / CFR",
+        "val SR (CFR), 192 tasks",
+        "folder",
+    ]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for label, runs in groups:
+        for i, (seed, run) in enumerate(runs):
+            rows = rec.read(f"restaurant/{run}/metrics.jsonl")
+            first, last, low = (MISSING,) * 3 if rows is None else _lift_off(rows)
+            sr, cfr = (run_value(rec, f"restaurant/{run}", "test", m) for m in ("SR", "CFR"))
+            test = MISSING if sr is None or cfr is None else f"{f2(sr.value)} / {f2(cfr.value)}"
+            vsr, vcfr = (run_value(rec, f"restaurant/{run}", "val8", m) for m in ("SR", "CFR"))
+            val = (
+                MISSING
+                if vsr is None or vcfr is None
+                else f"{f2(vsr.value)} +- {f2(vsr.se)} ({f2(vcfr.value)})"
+            )
+            name = label if i == 0 else ""
+            cells = [name, str(seed), first, last, low, test, val, f"`{run}`"]
+            lines.append("| " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "first success: the first iteration with a training episode that reached the goal from "
+        "the task's start (`train_success` in metrics.jsonl; exploring starts not counted, "
+        "episodes the MPC drove counted); success, last 10 iterations: the mean share of those "
+        "episodes that reached the goal over the last 10 iterations; lowest alpha: the automatic "
+        "entropy weight's minimum over the run (it starts at 1). "
+        "test: the 24 test tasks after two adaptation episodes; val: the 192 validation tasks "
+        "(task seeds 1-8), +- the standard error over tasks. Each row is one run of 75 "
+        "iterations unless its recipe says otherwise.",
+    ]
+    return "\n".join(lines)
+
+
 BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block name, renderer
     ("README.md", "quality", render_quality),
     ("results/README.md", "restaurant", render_restaurant),
     ("results/README.md", "robustness", render_robustness),
     ("results/README.md", "robustness-choice", render_robustness_choice),
     ("results/README.md", "seeds", render_seeds),
+    ("results/README.md", "main-seeds", render_main_seeds),
 )
 
 
