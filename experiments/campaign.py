@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -169,15 +170,18 @@ def commands(run: CampaignRun, state: str) -> list[list[str]]:
 
 
 def run_child(cmd: list[str]) -> int:
-    """Run one process to its end and return its exit code. Ctrl-C reaches the child too (the
-    same process group): the campaign keeps waiting while the child saves and exits (130),
-    instead of killing it as `subprocess.call` does after a quarter of a second."""
-    p = subprocess.Popen(cmd)
+    """Run one process to its end and return its exit code. The child runs in a session of its
+    own, and every SIGINT the campaign gets (Ctrl-C in its terminal, or `kill -INT` of the
+    campaign's process alone, e.g. under nohup) is passed on to it once: the child saves and
+    exits (130) while the campaign keeps waiting, instead of being killed as `subprocess.call`
+    does after a quarter of a second; a second Ctrl-C reaches it as a second one (stop at once)."""
+    p = subprocess.Popen(cmd, start_new_session=True)
     while True:
         try:
             return p.wait()
         except KeyboardInterrupt:
-            continue
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
 
 
 def main(argv: list[str] | None = None) -> int:
