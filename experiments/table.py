@@ -672,7 +672,14 @@ def render_robustness_choice(rec: Records) -> str:
 # campaign run and evaluations have finished
 SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("MPC-PEARL 0.2", CAMPAIGN_MPC_PEARL),
-    ("PEARL", ("restaurant/ablation/pearl-auto-entropy-24min", "restaurant/seeds/pearl-s1")),
+    (
+        "PEARL",
+        (
+            "restaurant/ablation/pearl-auto-entropy-24min",
+            "restaurant/seeds/pearl-s1",
+            "restaurant/seeds/pearl-s2",
+        ),
+    ),
     (
         "MPC-SAC 0.2",
         ("restaurant/ablation/mpc-sac-auto-entropy-24min", "restaurant/seeds/mpc-sac-s1"),
