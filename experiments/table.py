@@ -847,7 +847,7 @@ def render_main_seeds(rec: Records, groups=MAIN_SEEDS) -> str:
         "success, last 10 iterations",
         "lowest alpha",
         "test SR / CFR",
-        "val SR (CFR), 192 tasks",
+        "val SR, 192 tasks",
         "folder",
     ]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -855,14 +855,8 @@ def render_main_seeds(rec: Records, groups=MAIN_SEEDS) -> str:
         for i, (seed, run) in enumerate(runs):
             rows = rec.read(f"restaurant/{run}/metrics.jsonl")
             first, last, low = (MISSING,) * 3 if rows is None else _lift_off(rows)
-            sr, cfr = (run_value(rec, f"restaurant/{run}", "test", m) for m in ("SR", "CFR"))
-            test = MISSING if sr is None or cfr is None else f"{f2(sr.value)} / {f2(cfr.value)}"
-            vsr, vcfr = (run_value(rec, f"restaurant/{run}", "val8", m) for m in ("SR", "CFR"))
-            val = (
-                MISSING
-                if vsr is None or vcfr is None
-                else f"{f2(vsr.value)} +- {f2(vsr.se)} ({f2(vcfr.value)})"
-            )
+            e = Entry(label, (f"restaurant/{run}",))
+            test, val = pair_cell(rec, e, "test"), val8_cell(rec, e, cfr=True)
             name = label if i == 0 else ""
             cells = [name, str(seed), first, last, low, test, val, f"`{run}`"]
             lines.append("| " + " | ".join(cells) + " |")
