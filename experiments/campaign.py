@@ -30,21 +30,31 @@ results.json. One training at a time, each in its own process: stop the campaign
 (the run under way saves and exits 130) and start the same command again later to continue
 where it stopped.
 A run that fails (exit code other than 0) stops the campaign with its name and code.
+
+Before a training with a wall-clock budget (the harness and GrBAL) starts, the campaign waits
+until the 1-minute load average is below the harness's warning level (at most SETTLE_MAX_S), so
+that the previous run's evaluations, which keep it up for a minute after they end, neither eat
+into the new run's budget nor mark its record as trained beside another job.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import signal
 import subprocess
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 WORK = Path("runs") / "campaign"
 NOT_COPIED = ("checkpoints", ".lock")
+SETTLE_LOAD = 1.5  # = experiments.learning.LOAD_WARN
+SETTLE_MAX_S = 120.0
+WALL_CLOCK_TRAINERS = ("learning", "grbal")
 
 
 # trainer -> (module, the file that marks a finished run)
@@ -169,6 +179,18 @@ def commands(run: CampaignRun, state: str) -> list[list[str]]:
     return cmds
 
 
+def settle(limit_s: float = SETTLE_MAX_S, poll_s: float = 5.0) -> float:
+    """Wait until the 1-minute load average is below SETTLE_LOAD, at most `limit_s` seconds;
+    the seconds waited."""
+    if not hasattr(os, "getloadavg"):
+        return 0.0
+    waited = 0.0
+    while os.getloadavg()[0] >= SETTLE_LOAD and waited < limit_s:
+        time.sleep(poll_s)
+        waited += poll_s
+    return waited
+
+
 def run_child(cmd: list[str]) -> int:
     """Run one process to its end and return its exit code. The child runs in a session of its
     own, and every SIGINT the campaign gets (Ctrl-C in its terminal, or `kill -INT` of the
@@ -214,6 +236,14 @@ def main(argv: list[str] | None = None) -> int:
             print("[campaign] $ " + " ".join(cmd[1:]), flush=True)
             if args.dry_run:
                 continue
+            if i == 0 and state in ("new", "resume") and run.trainer in WALL_CLOCK_TRAINERS:
+                waited = settle()
+                if waited:
+                    load = os.getloadavg()[0]
+                    print(
+                        f"[campaign] waited {waited:.0f} s for the load average (now {load:.2f})",
+                        flush=True,
+                    )
             rc = run_child(cmd)
             if rc != 0:
                 print(f"error: {run.name}: {cmd[2]} exited {rc}", file=sys.stderr)

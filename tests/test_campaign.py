@@ -11,6 +11,12 @@ import pytest
 from experiments import campaign
 
 
+@pytest.fixture(autouse=True)
+def _idle_machine(monkeypatch):
+    """The campaign waits for a quiet machine before wall-clock trainings: tests see one."""
+    monkeypatch.setattr(campaign.os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+
+
 def _write(tmp_path: Path, runs) -> Path:
     path = tmp_path / "c.json"
     path.write_text(json.dumps({"runs": runs}))
@@ -165,3 +171,30 @@ def test_ctrl_c_lets_the_run_under_way_save_before_the_campaign_stops(tmp_path, 
         os.kill(p.pid, signal.SIGINT)  # the campaign's process only (a job under nohup)
     assert p.wait(timeout=30) == 130
     assert saved.read_text() == "state"
+
+
+def test_settle_waits_for_the_load_average_and_gives_up_at_its_limit(monkeypatch):
+    from experiments import learning
+
+    assert campaign.SETTLE_LOAD == learning.LOAD_WARN
+    loads = iter([2.0, 1.8, 1.6, 1.2])
+    slept = []
+    monkeypatch.setattr(campaign.os, "getloadavg", lambda: (next(loads), 0.0, 0.0))
+    monkeypatch.setattr(campaign.time, "sleep", slept.append)
+    assert campaign.settle(limit_s=100, poll_s=5) == 15 and slept == [5, 5, 5]
+    monkeypatch.setattr(campaign.os, "getloadavg", lambda: (3.0, 0.0, 0.0))
+    assert campaign.settle(limit_s=12, poll_s=5) == 15  # busy for good: stops after the limit
+
+
+def test_only_wall_clock_trainings_wait_for_the_load(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    runs = [_run("a"), {**_run("m", results="res/m"), "trainer": "restaurant"}]
+    path = _write(tmp_path, runs)
+    settled, calls = [], []
+    monkeypatch.setattr(campaign, "settle", lambda: settled.append(1) or 10.0)
+    monkeypatch.setattr(campaign.os, "getloadavg", lambda: (1.0, 0.0, 0.0))
+    monkeypatch.setattr(campaign, "run_child", lambda cmd: calls.append(cmd[2]) or 0)
+    monkeypatch.setattr(campaign, "copy_results", lambda run: None)
+    assert campaign.main([str(path)]) == 0
+    assert calls == ["experiments.learning", "experiments.restaurant"] and settled == [1]
+    assert "waited 10 s for the load average (now 1.00)" in capsys.readouterr().out
