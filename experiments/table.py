@@ -829,6 +829,8 @@ def _lift_off(rows: list[dict]) -> tuple[str, str, str]:
     lowest alpha with its iteration."""
     first = next((r["iteration"] for r in rows if r["train_success"] > 0), None)
     last = sum(r["train_success"] for r in rows[-10:]) / len(rows[-10:])
+    if "alpha" not in rows[0]:  # a fixed temperature: no alpha is logged
+        return ("never" if first is None else str(first), f2(last), "fixed")
     low = min(rows, key=lambda r: r["alpha"])
     return (
         "never" if first is None else str(first),
@@ -866,7 +868,7 @@ def render_main_seeds(rec: Records, groups=MAIN_SEEDS) -> str:
         "the task's start (`train_success` in metrics.jsonl; exploring starts not counted, "
         "episodes the MPC drove counted); success, last 10 iterations: the mean share of those "
         "episodes that reached the goal over the last 10 iterations; lowest alpha: the automatic "
-        "entropy weight's minimum over the run (it starts at 1). "
+        "entropy weight's minimum over the run (it starts at 1; fixed: no automatic tuning). "
         "test: the 24 test tasks after two adaptation episodes; val: the 192 validation tasks "
         "(task seeds 1-8), +- the standard error over tasks. Each row is one run of 75 "
         "iterations unless its recipe says otherwise.",

@@ -219,3 +219,13 @@ def test_seed_table_gives_seed_statistics_and_the_papers_ordering_with_seeds_as_
     one = table.render_seeds(rec, (group("solo", [0.7]),))
     assert "0.70 (1 seed)" in one
     assert not rec.missing
+
+
+def test_lift_off_reads_first_success_last_ten_and_lowest_alpha():
+    rows = [
+        {"iteration": i + 1, "train_success": s, "alpha": a}
+        for i, (s, a) in enumerate([(0, 1.0), (0, 0.3), (0.5, 0.05), (0, 0.2)] + [(1.0, 0.9)] * 9)
+    ]
+    assert table._lift_off(rows) == ("3", "0.90", "0.05 (it 3)")
+    fixed = [{k: v for k, v in r.items() if k != "alpha"} for r in rows[:2]]
+    assert table._lift_off(fixed) == ("never", "0.00", "fixed")
