@@ -40,7 +40,9 @@ SCENARIOS = {  # the paper's 25 test and 25 OOD scenarios
     "scen_ood": "eval/policy-scenarios-ood/results.json",
 }
 RESULTS_KEY = {"test": "test_adapt", "online": "test_online", "ood": "ood_adapt"}
-LOWER_IS_BETTER = frozenset({"TT", "MGD"})  # the worst seed of these is the largest value
+LOWER_IS_BETTER = frozenset(
+    {"TT", "MGD", "first_success_min"}
+)  # the worst seed of these is the largest value
 NO_RECORD = "-"  # a record that does not exist by design (e.g. no validation run)
 MISSING = "MISSING"  # a record that should exist and does not (reported, never filled in)
 
@@ -790,6 +792,111 @@ def render_seeds(rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEE
     return "\n".join(lines)
 
 
+# ---------------------------------------------------------------- the seeds' learning curves
+
+# the learning harness's evaluation points of the five-seed runs (every 6 minutes)
+CURVE_MINUTES = (6, 12, 18, 24)
+# values of a curve point shown per method: key in curve.json's points, label
+CURVE_VALUES = (
+    ("val_SR", "SR, 24 validation tasks"),
+    ("val_CFR", "CFR, 24 validation tasks"),
+    ("test_SR", "SR, 24 test tasks"),
+)
+FIRST_SUCCESS = "first_success_min"
+
+
+def curve_point(rec: Records, run: str, minute: float) -> dict | None:
+    """The evaluation point of a run's curve.json nearest `minute` (within half an evaluation
+    interval), or None (noted as missing)."""
+    curve = rec.read(f"{run}/curve.json")
+    if curve is None:
+        return None
+    near = [
+        p for p in curve["points"] if abs(p["minutes"] - minute) < curve["eval_every_minutes"] / 2
+    ]
+    if not near:
+        rec.missing.append(f"{rec.results.name}/{run}/curve.json: no point at {minute:g} minutes")
+        return None
+    return near[0]
+
+
+def curve_values(rec: Records, runs: Sequence[str], minute: float, key: str) -> list[Stat] | str:
+    points = [curve_point(rec, run, minute) for run in runs]
+    return MISSING if any(p is None for p in points) else [Stat(p[key]) for p in points]
+
+
+def first_success_cell(rec: Records, runs: Sequence[str]) -> str:
+    """Minutes to the first successful training episode from the task's start (curve.json
+    `time_to.train.first_success`), over seeds; seeds that never got one are counted."""
+    curves = [rec.read(f"{run}/curve.json") for run in runs]
+    if any(c is None for c in curves):
+        return MISSING
+    hits = [c["time_to"]["train"]["first_success"] for c in curves]
+    found = [Stat(h["minutes"]) for h in hits if h is not None]
+    never = len(hits) - len(found)
+    if not never:
+        return seed_cell(found, FIRST_SUCCESS)
+    if not found:
+        return "never"
+    mean = sum(s.value for s in found) / len(found)
+    return f"{f2(mean)} over {len(found)} seed(s) (worst: never, on {never})"
+
+
+def short_verdict(diff: tuple[float, float, int] | None) -> str:
+    v = verdict(diff)
+    return (
+        "no verdict" if v.startswith("fewer") else v.replace("does not hold (B ahead)", "B ahead")
+    )
+
+
+def render_seed_curves(
+    rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEED_GROUPS
+) -> str:
+    """Where the methods differ in time: the learning harness's evaluation points of the
+    five-seed runs, mean +- standard error over seeds (worst seed), and the paper's ordering at
+    each point with seeds as the unit."""
+    mins = [f"{m:g} min" for m in CURVE_MINUTES]
+    head = ["method", "seeds", "value", *mins, "first training success (min)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    runs = {name: tuple(r) for name, r in groups}
+    for name, rr in runs.items():
+        for i, (key, label) in enumerate(CURVE_VALUES):
+            metric = key.split("_", 1)[1]
+            cells = [seed_cell(curve_values(rec, rr, m, key), metric) for m in CURVE_MINUTES]
+            first = [name, str(len(rr))] if i == 0 else ["", ""]
+            last = first_success_cell(rec, rr) if i == 0 else ""
+            lines.append("| " + " | ".join([*first, label, *cells, last]) + " |")
+    lines += [
+        "",
+        "| paper's claim | value | " + " | ".join(mins) + " |",
+        "|" + "---|" * (2 + len(mins)),
+    ]
+    for a, b in PAPER_ORDER:
+        if a not in runs or b not in runs:
+            continue
+        for key, label in CURVE_VALUES:
+            cells = []
+            for m in CURVE_MINUTES:
+                va, vb = curve_values(rec, runs[a], m, key), curve_values(rec, runs[b], m, key)
+                if isinstance(va, str) or isinstance(vb, str):
+                    cells.append(MISSING)
+                    continue
+                d = seed_difference(va, vb)
+                cells.append("-" if d is None else f"{d[0]:+.2f} +- {d[1]:.2f}, {short_verdict(d)}")
+            lines.append(f"| {a} > {b} | {label} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "Each run's own evaluations during training (`points` of its curve.json: the policy after "
+        "two adaptation episodes on 24 validation tasks of task seed 0, which the 192-task "
+        "validation set (task seeds 1-8) does not contain, and on the 24 test tasks), at the "
+        "point nearest each minute of training; first training success: the minutes to the first "
+        "training episode that reached the goal from the task's start (`time_to.train`). Pairs: "
+        "A - B over seeds as in the table above (holds / B ahead when the 95 % t interval "
+        f"excludes 0; no verdict below {MIN_VERDICT_SEEDS} seeds each).",
+    ]
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------- the main command's seeds
 
 # recipes tried for the README's main command (`python -m experiments.restaurant`, the `default`
@@ -882,6 +989,7 @@ BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block
     ("results/README.md", "robustness", render_robustness),
     ("results/README.md", "robustness-choice", render_robustness_choice),
     ("results/README.md", "seeds", render_seeds),
+    ("results/README.md", "seed-curves", render_seed_curves),
     ("results/README.md", "main-seeds", render_main_seeds),
 )
 

@@ -229,3 +229,48 @@ def test_lift_off_reads_first_success_last_ten_and_lowest_alpha():
     assert table._lift_off(rows) == ("3", "0.90", "0.05 (it 3)")
     fixed = [{k: v for k, v in r.items() if k != "alpha"} for r in rows[:2]]
     assert table._lift_off(fixed) == ("never", "0.00", "fixed")
+
+
+def _curve(results: Path, name: str, points, first_success) -> str:
+    run = results / name
+    run.mkdir(parents=True)
+    pts = [{"minutes": m, "val_SR": v, "val_CFR": c, "test_SR": t} for m, v, c, t in points]
+    hit = None if first_success is None else {"minutes": first_success}
+    curve = {"eval_every_minutes": 6.0, "points": pts, "time_to": {"train": {"first_success": hit}}}
+    (run / "curve.json").write_text(json.dumps(curve))
+    return name
+
+
+def test_seed_curves_read_each_evaluation_point_and_pair_seeds_at_each_minute(tmp_path):
+    results = tmp_path / "results"
+
+    def pts(v12, v24):  # points at 0, 6.1, 12.05, 18.2, 24.01 minutes
+        return [(0.0, 0, 0.5, 0), (6.1, 0, 0.5, 0), (12.05, v12, 0.8, v12), (18.2, 0.5, 0.9, 0.5),
+                (24.01, v24, 1.0, v24)]  # fmt: skip
+
+    groups = (
+        ("MPC-PEARL 0.2", tuple(_curve(results, f"m{i}", pts(v, 0.9), 7.0 + i)
+                                for i, v in enumerate((0.1, 0.2, 0.3)))),
+        ("PEARL", tuple(_curve(results, f"p{i}", pts(v, 0.9), f)
+                        for i, (v, f) in enumerate([(0.5, 4.0), (0.6, 5.0), (0.7, None)]))),
+    )  # fmt: skip
+    rec = Records(results)
+    text = table.render_seed_curves(rec, groups)
+    rows = {tuple(r.split(" | ")[:3]): r for r in text.splitlines() if r.startswith("| ")}
+    m = rows[("| MPC-PEARL 0.2", "3", "SR, 24 validation tasks")].split(" | ")
+    se = math.sqrt(2 * 0.1**2 / 2 / 3)
+    assert m[3:7] == ["0.00 +- 0.00 (worst 0.00)", f"0.20 +- {se:.2f} (worst 0.10)",
+                      "0.50 +- 0.00 (worst 0.50)", "0.90 +- 0.00 (worst 0.90)"]  # fmt: skip
+    assert m[7] == "8.00 +- 0.58 (worst 9.00) |"  # the slowest seed is the worst
+    p = rows[("| PEARL", "3", "SR, 24 validation tasks")]
+    assert p.endswith("4.50 over 2 seed(s) (worst: never, on 1) |")  # no spread, never as worst
+    (claim,) = [r for r in text.splitlines() if r.startswith("| MPC-PEARL 0.2 > PEARL | SR, 24 v")]
+    assert claim.split(" | ")[2:4] == [
+        "+0.00 +- 0.00, cannot be told apart",
+        "-0.40 +- 0.00, B ahead",
+    ]
+    assert not rec.missing
+    # a run without a point near a minute is named, never filled in
+    _curve(results, "short", [(0.0, 0, 0, 0), (6.0, 0.1, 0.5, 0.1)], 3.0)
+    text = table.render_seed_curves(rec, (("X", ("short", "m0")),))
+    assert "MISSING" in text and any("no point at 12 minutes" in m for m in rec.missing)
