@@ -684,7 +684,11 @@ SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ),
     (
         "MPC-SAC 0.2",
-        ("restaurant/ablation/mpc-sac-auto-entropy-24min", "restaurant/seeds/mpc-sac-s1"),
+        (
+            "restaurant/ablation/mpc-sac-auto-entropy-24min",
+            "restaurant/seeds/mpc-sac-s1",
+            "restaurant/seeds/mpc-sac-s2",
+        ),
     ),
 )
 # evaluation sets of the seed table: kind, label
