@@ -327,6 +327,7 @@ CAMPAIGN_MPC_PEARL = (
     "restaurant/ablation/auto-entropy-24min",
     "restaurant/ablation/auto-entropy-seed1-24min",
     "restaurant/seeds/mpc-pearl-s2",
+    "restaurant/seeds/mpc-pearl-s3",
 )
 README_QUALITY: tuple[Entry, ...] = (
     _GP_MPC,
