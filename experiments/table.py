@@ -681,6 +681,7 @@ SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "restaurant/ablation/pearl-auto-entropy-24min",
             "restaurant/seeds/pearl-s1",
             "restaurant/seeds/pearl-s2",
+            "restaurant/seeds/pearl-s3",
         ),
     ),
     (
