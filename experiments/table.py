@@ -690,6 +690,7 @@ SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "restaurant/ablation/mpc-sac-auto-entropy-24min",
             "restaurant/seeds/mpc-sac-s1",
             "restaurant/seeds/mpc-sac-s2",
+            "restaurant/seeds/mpc-sac-s3",
         ),
     ),
 )
