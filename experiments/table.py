@@ -934,6 +934,15 @@ MAIN_SEEDS: tuple[tuple[str, tuple[tuple[int, str], ...]], ...] = (
         "+ 8 tasks per gradient step, 70 iterations (`pearl.meta_batch=8`, `train.iterations=70`)",
         ((1, "main-seeds/mb8-it70-s1"),),
     ),
+    (
+        "+ fixed temperature, alpha 1 (`pearl.auto_entropy=false`: temperature 1 / reward scale 5)",
+        ((1, "main-seeds/fixed1-s1"), (2, "main-seeds/fixed1-s2")),
+    ),
+    (
+        "+ fixed temperature, reward scale 10 (`pearl.auto_entropy=false`, "
+        "`pearl.reward_scale=10`: as alpha 0.5)",
+        ((1, "main-seeds/fixed-rs10-s1"), (2, "main-seeds/fixed-rs10-s2")),
+    ),
 )
 
 
