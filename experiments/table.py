@@ -328,6 +328,7 @@ CAMPAIGN_MPC_PEARL = (
     "restaurant/ablation/auto-entropy-seed1-24min",
     "restaurant/seeds/mpc-pearl-s2",
     "restaurant/seeds/mpc-pearl-s3",
+    "restaurant/seeds/mpc-pearl-s4",
 )
 README_QUALITY: tuple[Entry, ...] = (
     _GP_MPC,
