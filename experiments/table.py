@@ -40,9 +40,8 @@ SCENARIOS = {  # the paper's 25 test and 25 OOD scenarios
     "scen_ood": "eval/policy-scenarios-ood/results.json",
 }
 RESULTS_KEY = {"test": "test_adapt", "online": "test_online", "ood": "ood_adapt"}
-LOWER_IS_BETTER = frozenset(
-    {"TT", "MGD", "first_success_min"}
-)  # the worst seed of these is the largest value
+# the worst seed of these is the largest value
+LOWER_IS_BETTER = frozenset({"TT", "MGD", "first_success_min"})
 NO_RECORD = "-"  # a record that does not exist by design (e.g. no validation run)
 MISSING = "MISSING"  # a record that should exist and does not (reported, never filled in)
 
@@ -899,7 +898,8 @@ def render_seed_curves(
         "validation set (task seeds 1-8) does not contain, and on the 24 test tasks), at the "
         "point nearest each minute of training; first training success: the minutes to the first "
         "training episode that reached the goal from the task's start (`time_to.train`). Pairs: "
-        "A - B over seeds as in the table above (holds / B ahead when the 95 % t interval "
+        "A - B over the seeds both methods have, as in the table above (holds / B ahead when the "
+        "95 % t interval "
         f"excludes 0; no verdict below {MIN_VERDICT_SEEDS} seeds each).",
     ]
     return "\n".join(lines)
