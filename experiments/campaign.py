@@ -54,14 +54,13 @@ WORK = Path("runs") / "campaign"
 NOT_COPIED = ("checkpoints", ".lock")
 SETTLE_LOAD = 1.5  # = experiments.learning.LOAD_WARN
 SETTLE_MAX_S = 120.0
-WALL_CLOCK_TRAINERS = ("learning", "grbal")
 
 
-# trainer -> (module, the file that marks a finished run)
+# trainer -> (module, the file that marks a finished run, whether its budget is wall-clock time)
 TRAINERS = {
-    "learning": ("experiments.learning", "curve.json"),
-    "grbal": ("experiments.grbal", "results.json"),
-    "restaurant": ("experiments.restaurant", "results.json"),
+    "learning": ("experiments.learning", "curve.json", True),
+    "grbal": ("experiments.grbal", "results.json", True),
+    "restaurant": ("experiments.restaurant", "results.json", False),
 }
 
 
@@ -84,6 +83,10 @@ class CampaignRun:
     @property
     def record(self) -> str:
         return TRAINERS[self.trainer][1]
+
+    @property
+    def wall_clock(self) -> bool:
+        return TRAINERS[self.trainer][2]
 
 
 def load_campaign(path: Path) -> list[CampaignRun]:
@@ -236,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
             print("[campaign] $ " + " ".join(cmd[1:]), flush=True)
             if args.dry_run:
                 continue
-            if i == 0 and state in ("new", "resume") and run.trainer in WALL_CLOCK_TRAINERS:
+            if i == 0 and state in ("new", "resume") and run.wall_clock:
                 waited = settle()
                 if waited:
                     load = os.getloadavg()[0]
