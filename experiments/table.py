@@ -753,33 +753,46 @@ def verdict(diff: tuple[float, float, int] | None) -> str:
     return "cannot be told apart"
 
 
-def render_seeds(rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEED_GROUPS) -> str:
+def render_seeds(
+    rec: Records,
+    groups: Sequence[tuple[str, Sequence[str]]] = SEED_GROUPS,
+    sets: Sequence[tuple[str, str]] = SEED_SETS,
+    order: Sequence[tuple[str, str]] = PAPER_ORDER,
+) -> str:
     """Per method and evaluation set: mean +- standard error over seeds and the worst seed of
-    SR, CFR, TT, SPL and MGD; then the paper's ordering with seeds as the unit."""
+    SR, CFR, TT, SPL and MGD; then the paper's ordering (`order`) with seeds as the unit."""
     entries = {name: Entry(name, tuple(runs)) for name, runs in groups}
     head = ["method", "seeds", "budget (min)", "grad steps", "evaluated on", *METRICS]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, e in entries.items():
+        if not e.runs:  # listed before its first seed has finished
+            cells = ["no seed finished yet", *[NO_RECORD] * (len(head) - 3)]
+            lines.append("| " + " | ".join([name, "0", *cells]) + " |")
+            continue
         steps = fmt_count(entry_values(rec, e, "grad_steps", ""), _steps)
         budget = fmt_count(entry_values(rec, e, "budget", ""), _minutes)
-        for i, (kind, label) in enumerate(SEED_SETS):
+        for i, (kind, label) in enumerate(sets):
             first = [name, str(len(e.runs)), budget, steps] if i == 0 else ["", "", "", ""]
             cells = [seed_cell(entry_values(rec, e, kind, m), m) for m in METRICS]
             lines.append("| " + " | ".join([*first, label, *cells]) + " |")
     lines += [
         "",
-        "mean +- standard error over seeds (worst seed): one value per seed (the 192 validation "
-        "tasks pooled per seed), seeds as the unit. Folders: "
-        + "; ".join(f"{n}: " + ", ".join(f"`{r}`" for r in e.runs) for n, e in entries.items())
+        "mean +- standard error over seeds (worst seed): one value per seed"
+        + (" (the 192 validation tasks pooled per seed)" if "val8" in dict(sets) else "")
+        + ", seeds as the unit. Folders: "
+        + "; ".join(
+            f"{n}: " + (", ".join(f"`{r}`" for r in e.runs) or "none yet")
+            for n, e in entries.items()
+        )
         + ".",
         "",
         "| paper's claim | evaluated on | A - B over seeds (mean +- se) | seeds | as measured |",
         "|---|---|---|---|---|",
     ]
-    for a, b in PAPER_ORDER:
+    for a, b in order:
         if a not in entries or b not in entries:
             continue
-        for kind, label in SEED_SETS:
+        for kind, label in sets:
             va = entry_values(rec, entries[a], kind, "SR")
             vb = entry_values(rec, entries[b], kind, "SR")
             if isinstance(va, str) or isinstance(vb, str):
@@ -1000,6 +1013,31 @@ def render_main_seeds(rec: Records, groups=MAIN_SEEDS) -> str:
     return "\n".join(lines)
 
 
+# ---------------------------------------------------------------- the sidewalk's seeds
+
+# the sidewalk's seeds (`python -m experiments.campaign experiments/campaigns/sidewalk-seeds.json`,
+# `--preset cpu-auto` with the data windows kept, 30 minutes alone per seed): method -> its seed
+# folders (seeds 0, 1, ... in order), listed once the run has finished
+SIDEWALK_SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("MPC-PEARL 0.2", ()),
+    ("PEARL", ()),
+)
+# the sidewalk's evaluation sets (Zara 01): online adaptation is the paper's sidewalk protocol
+SIDEWALK_SEED_SETS = (
+    ("online", "6 test windows, online"),
+    ("test", "6 test windows, after two adaptation episodes"),
+    ("ood", "5 windows with annotation holes"),
+)
+SIDEWALK_ORDER = (("MPC-PEARL 0.2", "PEARL"),)
+
+
+def render_sidewalk_seeds(
+    rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SIDEWALK_SEED_GROUPS
+) -> str:
+    """The sidewalk's seed table: as `render_seeds`, on the sidewalk's windows."""
+    return render_seeds(rec, groups, SIDEWALK_SEED_SETS, SIDEWALK_ORDER)
+
+
 BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block name, renderer
     ("README.md", "quality", render_quality),
     ("results/README.md", "restaurant", render_restaurant),
@@ -1008,6 +1046,7 @@ BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block
     ("results/README.md", "seeds", render_seeds),
     ("results/README.md", "seed-curves", render_seed_curves),
     ("results/README.md", "main-seeds", render_main_seeds),
+    ("results/README.md", "sidewalk-seeds", render_sidewalk_seeds),
 )
 
 

@@ -274,3 +274,29 @@ def test_seed_curves_read_each_evaluation_point_and_pair_seeds_at_each_minute(tm
     _curve(results, "short", [(0.0, 0, 0, 0), (6.0, 0.1, 0.5, 0.1)], 3.0)
     text = table.render_seed_curves(rec, (("X", ("short", "m0")),))
     assert "MISSING" in text and any("no point at 12 minutes" in m for m in rec.missing)
+
+
+def test_sidewalk_seed_table_reads_the_windows_and_lists_a_method_without_seeds(tmp_path):
+    results = tmp_path / "results"
+    mpc = tuple(
+        _run(results, f"m{i}", sr, 200.0, [sr, sr]) for i, sr in enumerate([0.5, 0.67, 0.83])
+    )
+    pearl = tuple(
+        _run(results, f"p{i}", sr, 250.0, [sr, sr]) for i, sr in enumerate([0.0, 0.17, 0.0])
+    )
+    rec = Records(results)
+    text = table.render_sidewalk_seeds(rec, (("MPC-PEARL 0.2", mpc), ("PEARL", pearl)))
+    rows = [line for line in text.splitlines() if line.startswith("| ")]
+    online = rows[1].split(" | ")
+    assert online[4] == "6 test windows, online" and online[5].startswith(
+        "0.67 +- 0.10 (worst 0.50)"
+    )
+    assert not any("192 validation" in r for r in rows)  # the restaurant's sets are not read
+    claim = next(
+        r for r in rows if r.startswith("| MPC-PEARL 0.2 > PEARL (SR) | 6 test windows, online")
+    )
+    assert "+0.61 +- 0.11" in claim and claim.endswith("| 3 | holds |")
+    empty = table.render_sidewalk_seeds(rec, (("MPC-PEARL 0.2", mpc[:1]), ("PEARL", ())))
+    assert "| PEARL | 0 | no seed finished yet |" in empty and "PEARL: none yet" in empty
+    assert "0.50 (1 seed)" in empty
+    assert not rec.missing
