@@ -682,6 +682,7 @@ SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "restaurant/seeds/pearl-s1",
             "restaurant/seeds/pearl-s2",
             "restaurant/seeds/pearl-s3",
+            "restaurant/seeds/pearl-s4",
         ),
     ),
     (
