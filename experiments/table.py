@@ -692,6 +692,7 @@ SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "restaurant/seeds/mpc-sac-s1",
             "restaurant/seeds/mpc-sac-s2",
             "restaurant/seeds/mpc-sac-s3",
+            "restaurant/seeds/mpc-sac-s4",
         ),
     ),
 )
