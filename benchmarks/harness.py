@@ -94,6 +94,17 @@ def torch_threads(n: int) -> dict[str, Any] | None:
     return {"torch": torch.__version__, "torch_threads": torch.get_num_threads()}
 
 
+def torch_device() -> str:
+    """Where the PyTorch baseline runs: on the GPU when JAX runs on one and PyTorch sees one
+    (same accelerator on both sides), else on the CPU."""
+    import jax
+    import torch
+
+    if jax.default_backend() == "gpu" and torch.cuda.is_available():
+        return "cuda"
+    return "cpu"
+
+
 TORCH_MISSING = (
     "PyTorch is not installed: skipping the PyTorch comparison "
     "(install the optional extra: pip install -e '.[bench]', i.e. torch==2.13.0 CPU)"

@@ -102,15 +102,15 @@ class JaxSide:
 class TorchSide:
     """The PyTorch baseline on the same batch."""
 
-    def __init__(self, cfg):
+    def __init__(self, cfg, device: str = "cpu"):
         import torch
 
         from benchmarks.torch_pearl import TorchPearl, TorchPearlSizes
 
-        self.model = TorchPearl(OBS_DIM, ACTION_DIM, TorchPearlSizes.like(cfg))
+        self.model = TorchPearl(OBS_DIM, ACTION_DIM, TorchPearlSizes.like(cfg), device=device)
         nb = random_numpy_batch(cfg, seed=0)
         names = ("obs", "action", "reward", "next_obs", "done", "context")
-        self.batch = [torch.from_numpy(nb[k]) for k in names]
+        self.batch = [torch.from_numpy(nb[k]).to(device) for k in names]
 
     def steps(self, n: int) -> None:
         for _ in range(n):
@@ -132,10 +132,22 @@ def interleaved(sides: dict[str, Any], steps: int, rounds: int) -> dict[str, Any
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    args = harness.common_parser(__doc__.splitlines()[0]).parse_args(argv)
+    parser = harness.common_parser(__doc__.splitlines()[0])
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=None,
+        help="numbers of seeds stepped in one program (default: the size's, e.g. 1 2 4)",
+    )
+    args = parser.parse_args(argv)
     threads = harness.configure_threads(args.threads)
     size = harness.size_of(args)
-    sz = SIZES[size]
+    sz = dict(SIZES[size])
+    if args.seeds:
+        if min(args.seeds) < 1:
+            raise SystemExit("--seeds: every number of seeds must be at least 1")
+        sz["seeds"] = tuple(args.seeds)
     torch_info = harness.torch_threads(threads["threads"])
     if torch_info is None:
         print(harness.TORCH_MISSING, flush=True)
@@ -143,8 +155,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     sides: dict[str, Any] = {"jax": JaxSide(cfg, None)}
     compile_s = {"jax": sides["jax"].compile_s}
+    torch_device = None
     if torch_info is not None:
-        sides["torch"] = TorchSide(cfg)
+        torch_device = harness.torch_device()
+        sides["torch"] = TorchSide(cfg, torch_device)
     step_t = interleaved(sides, sz["steps_per_sample"], sz["rounds"])
 
     rows = [
@@ -220,6 +234,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "action_dim": ACTION_DIM,
         "threads": threads,
         "torch": torch_info,
+        "torch_device": torch_device,
         "data": "fixed random batch per side (no replay sampling timed)",
     }
     harness.write_record("pearl_step", config, results, args.out)

@@ -76,7 +76,14 @@ class TorchPearl:
     context [MB, C, 2 O + A + 1].
     """
 
-    def __init__(self, obs_dim: int, action_dim: int, sizes: TorchPearlSizes, seed: int = 0):
+    def __init__(
+        self,
+        obs_dim: int,
+        action_dim: int,
+        sizes: TorchPearlSizes,
+        seed: int = 0,
+        device: str = "cpu",
+    ):
         torch.manual_seed(seed)
         s = sizes
         self.s = s
@@ -89,6 +96,8 @@ class TorchPearl:
         self.target_vf = mlp(obs_dim + z, h, 1)
         self.target_vf.load_state_dict(self.vf.state_dict())
         self.policy = mlp(obs_dim + z, h, 2 * action_dim)
+        for name in ("encoder", "qf1", "qf2", "vf", "target_vf", "policy"):
+            getattr(self, name).to(device)
         adam = lambda m: torch.optim.Adam(m.parameters(), lr=s.lr)
         self.opt = {
             name: adam(getattr(self, name)) for name in ("encoder", "qf1", "qf2", "vf", "policy")

@@ -186,3 +186,14 @@ def test_crowd_cause_runs_tiny(tmp_path: Path, clean_environ) -> None:
         assert 0.0 <= p["success"]["mean"] <= p["collision_free"]["mean"] <= 1.0
         assert (r["path_shift_m"] is None) == (r["delay"] == 0)
     assert json.loads((tmp_path / "crowd_cause.json").read_text())["config"]["delay"] == 6
+
+
+def test_pearl_step_takes_the_seed_counts_it_is_given(tmp_path: Path, clean_environ) -> None:
+    from benchmarks import pearl_step
+
+    pearl_step.main(["--tiny", "--seeds", "3", "--out", str(tmp_path)])
+    record = json.loads((tmp_path / "pearl_step.json").read_text())
+    assert [r["seeds"] for r in record["results"]["seeds"]] == [3]
+    assert record["config"]["seeds"] == [3]
+    with pytest.raises(SystemExit, match="--seeds"):
+        pearl_step.main(["--tiny", "--seeds", "0", "--out", str(tmp_path)])
