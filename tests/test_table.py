@@ -299,4 +299,12 @@ def test_sidewalk_seed_table_reads_the_windows_and_lists_a_method_without_seeds(
     empty = table.render_sidewalk_seeds(rec, (("MPC-PEARL 0.2", mpc[:1]), ("PEARL", ())))
     assert "| PEARL | 0 | no seed finished yet |" in empty and "PEARL: none yet" in empty
     assert "0.50 (1 seed)" in empty
+    assert "| MPC-PEARL 0.2 > PEARL | every set | - | 0 | no seed of PEARL finished yet |" in empty
+    assert "(SR)" not in empty  # no per-set pair rows against a method without seeds
     assert not rec.missing
+
+
+def test_grbal_is_in_the_seed_table_but_not_in_the_curve_table():
+    assert "GrBAL" in dict(table.SEED_GROUPS)
+    assert "GrBAL" not in dict(table.CURVE_SEED_GROUPS)
+    assert ("MPC-SAC 0.2", "GrBAL") in table.PAPER_ORDER
