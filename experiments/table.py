@@ -1035,7 +1035,7 @@ def render_main_seeds(rec: Records, groups=MAIN_SEEDS) -> str:
 # folders (seeds 0, 1, ... in order), listed once the run has finished
 SIDEWALK_SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("MPC-PEARL 0.2", ("sidewalk/seeds/mpc-pearl-s0", "sidewalk/seeds/mpc-pearl-s1")),
-    ("PEARL", ("sidewalk/seeds/pearl-s0",)),
+    ("PEARL", ("sidewalk/seeds/pearl-s0", "sidewalk/seeds/pearl-s1")),
 )
 # the sidewalk's evaluation sets (Zara 01): online adaptation is the paper's sidewalk protocol
 SIDEWALK_SEED_SETS = (
