@@ -1034,7 +1034,14 @@ def render_main_seeds(rec: Records, groups=MAIN_SEEDS) -> str:
 # `--preset cpu-auto` with the data windows kept, 30 minutes alone per seed): method -> its seed
 # folders (seeds 0, 1, ... in order), listed once the run has finished
 SIDEWALK_SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("MPC-PEARL 0.2", ("sidewalk/seeds/mpc-pearl-s0", "sidewalk/seeds/mpc-pearl-s1")),
+    (
+        "MPC-PEARL 0.2",
+        (
+            "sidewalk/seeds/mpc-pearl-s0",
+            "sidewalk/seeds/mpc-pearl-s1",
+            "sidewalk/seeds/mpc-pearl-s2",
+        ),
+    ),
     ("PEARL", ("sidewalk/seeds/pearl-s0", "sidewalk/seeds/pearl-s1")),
 )
 # the sidewalk's evaluation sets (Zara 01): online adaptation is the paper's sidewalk protocol
