@@ -176,6 +176,12 @@ def entry_values(rec: Records, e: Entry, kind: str, metric: str) -> list[Stat] |
 # ---------------------------------------------------------------- seed groups and pairs
 
 
+def signed(x: float) -> str:
+    """A difference with its sign to two decimals; one that rounds to zero is '+0.00', not
+    '-0.00'."""
+    return f"{round(x, 2) or 0.0:+.2f}"
+
+
 def seed_stats(values: Sequence[float], metric: str) -> tuple[float, float, float]:
     """Mean, standard error over seeds (ddof 1) and the worst seed (the largest TT or MGD, the
     smallest of the others) of one configuration's per-seed values."""
@@ -201,7 +207,7 @@ class Paired:
 
     def __str__(self) -> str:
         return (
-            f"{self.mean:+.2f} +- {self.se:.2f} over {self.tasks} tasks "
+            f"{signed(self.mean)} +- {self.se:.2f} over {self.tasks} tasks "
             f"({self.both} solved by both, {self.only_a} only by A, {self.only_b} only by B)"
         )
 
@@ -814,7 +820,7 @@ def render_seeds(
                 lines.append(f"| {a} > {b} | {label} | {MISSING} | - | - |")
                 continue
             d = seed_difference(va, vb)
-            cell = "-" if d is None else f"{d[0]:+.2f} +- {d[1]:.2f}"
+            cell = "-" if d is None else f"{signed(d[0])} +- {d[1]:.2f}"
             n = min(len(va), len(vb))
             lines.append(f"| {a} > {b} (SR) | {label} | {cell} | {n} | {verdict(d)} |")
     lines += [
@@ -917,7 +923,8 @@ def render_seed_curves(
                     cells.append(MISSING)
                     continue
                 d = seed_difference(va, vb)
-                cells.append("-" if d is None else f"{d[0]:+.2f} +- {d[1]:.2f}, {short_verdict(d)}")
+                cell = "-" if d is None else f"{signed(d[0])} +- {d[1]:.2f}, {short_verdict(d)}"
+                cells.append(cell)
             lines.append(f"| {a} > {b} | {label} | " + " | ".join(cells) + " |")
     lines += [
         "",
@@ -1042,7 +1049,7 @@ SIDEWALK_SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "sidewalk/seeds/mpc-pearl-s2",
         ),
     ),
-    ("PEARL", ("sidewalk/seeds/pearl-s0", "sidewalk/seeds/pearl-s1")),
+    ("PEARL", ("sidewalk/seeds/pearl-s0", "sidewalk/seeds/pearl-s1", "sidewalk/seeds/pearl-s2")),
 )
 # the sidewalk's evaluation sets (Zara 01): online adaptation is the paper's sidewalk protocol
 SIDEWALK_SEED_SETS = (

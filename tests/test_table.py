@@ -308,3 +308,8 @@ def test_grbal_is_in_the_seed_table_but_not_in_the_curve_table():
     assert "GrBAL" in dict(table.SEED_GROUPS)
     assert "GrBAL" not in dict(table.CURVE_SEED_GROUPS)
     assert ("MPC-SAC 0.2", "GrBAL") in table.PAPER_ORDER
+
+
+def test_a_difference_that_rounds_to_zero_has_no_minus_sign():
+    assert table.signed(-1e-17) == "+0.00" and table.signed(-0.004) == "+0.00"
+    assert table.signed(-0.17) == "-0.17" and table.signed(0.2) == "+0.20"
