@@ -38,7 +38,7 @@ class MPCConfig:
     sqp_iters: int = 2  # at most this many QPs per call
     sqp_step_tol: float = 0.05  # stop early when the accepted input step is below this (inf-norm)
     trust_v: float = 2.0  # trust region on the speed, m/s (method §6 suggests ~1; 2 did better)
-    trust_steer: float = 0.35  # trust region on the steering angle, rad
+    trust_steer: float = 0.35  # trust region on the steering angle, rad (chosen on validation)
     slack_penalty: float = 2000.0  # L1 weight of the static and CVaR slacks (exact penalty)
     qp_tail_samples: int = 20  # T: samples per stage with the largest loss that enter each QP
     line_search_steps: int = 3  # step sizes 1, 1/2, 1/4, ... on the exact SAA merit
