@@ -703,7 +703,7 @@ SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ),
     # `experiments/campaigns/grbal-seeds.json`: `--preset cpu`, 24 minutes alone per seed; GrBAL's
     # trainer writes no curve.json, so it has no row in the learning-curve table
-    ("GrBAL", ("restaurant/seeds/grbal-s0",)),
+    ("GrBAL", ("restaurant/seeds/grbal-s0", "restaurant/seeds/grbal-s1")),
 )
 # the methods of the learning-curve table (trained by the learning harness)
 CURVE_SEED_GROUPS = tuple(g for g in SEED_GROUPS if g[0] != "GrBAL")
