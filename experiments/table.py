@@ -678,8 +678,9 @@ def render_robustness_choice(rec: Records) -> str:
 # the five-seed comparison (`python -m experiments.campaign
 # experiments/campaigns/restaurant-seeds.json`): method -> its seed folders (seeds 0, 1, ... in
 # order), each trained alone for 24 minutes with `--preset cpu-auto`; a folder is listed once its
-# campaign run and evaluations have finished
-SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
+# campaign run and evaluations have finished. These methods are trained by the learning harness,
+# so they also have the learning-curve table.
+CURVE_SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("MPC-PEARL 0.2", CAMPAIGN_MPC_PEARL),
     (
         "PEARL",
@@ -701,12 +702,13 @@ SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "restaurant/seeds/mpc-sac-s4",
         ),
     ),
-    # `experiments/campaigns/grbal-seeds.json`: `--preset cpu`, 24 minutes alone per seed; GrBAL's
-    # trainer writes no curve.json, so it has no row in the learning-curve table
+)
+# `experiments/campaigns/grbal-seeds.json`: `--preset cpu`, 24 minutes alone per seed; GrBAL's
+# trainer writes no curve.json, so it is in the seed table only
+SEED_GROUPS = (
+    *CURVE_SEED_GROUPS,
     ("GrBAL", ("restaurant/seeds/grbal-s0", "restaurant/seeds/grbal-s1")),
 )
-# the methods of the learning-curve table (trained by the learning harness)
-CURVE_SEED_GROUPS = tuple(g for g in SEED_GROUPS if g[0] != "GrBAL")
 # evaluation sets of the seed table: kind, label
 SEED_SETS = (
     ("test", "24 test tasks"),
