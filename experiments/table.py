@@ -707,7 +707,14 @@ CURVE_SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
 # trainer writes no curve.json, so it is in the seed table only
 SEED_GROUPS = (
     *CURVE_SEED_GROUPS,
-    ("GrBAL", ("restaurant/seeds/grbal-s0", "restaurant/seeds/grbal-s1")),
+    (
+        "GrBAL",
+        (
+            "restaurant/seeds/grbal-s0",
+            "restaurant/seeds/grbal-s1",
+            "restaurant/seeds/grbal-s2",
+        ),
+    ),
 )
 # evaluation sets of the seed table: kind, label
 SEED_SETS = (
