@@ -988,6 +988,10 @@ MAIN_SEEDS: tuple[tuple[str, tuple[tuple[int, str], ...]], ...] = (
         "`pearl.reward_scale=10`: as alpha 0.5)",
         ((1, "main-seeds/fixed-rs10-s1"), (2, "main-seeds/fixed-rs10-s2")),
     ),
+    (
+        "+ target V updated 4x faster (`pearl.tau=0.02`; paper 0.005)",
+        ((1, "main-seeds/tau02-s1"), (2, "main-seeds/tau02-s2")),
+    ),
 )
 
 
