@@ -713,6 +713,7 @@ SEED_GROUPS = (
             "restaurant/seeds/grbal-s0",
             "restaurant/seeds/grbal-s1",
             "restaurant/seeds/grbal-s2",
+            "restaurant/seeds/grbal-s3",
         ),
     ),
 )
