@@ -714,6 +714,7 @@ SEED_GROUPS = (
             "restaurant/seeds/grbal-s1",
             "restaurant/seeds/grbal-s2",
             "restaurant/seeds/grbal-s3",
+            "restaurant/seeds/grbal-s4",
         ),
     ),
 )
