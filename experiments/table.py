@@ -958,7 +958,16 @@ def render_seed_curves(
 # results/restaurant), ...).
 # Commands: experiments/campaigns/main-*.json (`python -m experiments.campaign FILE`).
 MAIN_SEEDS: tuple[tuple[str, tuple[tuple[int, str], ...]], ...] = (
-    ("`default`", ((0, "main-default"), (1, "main-seeds/default-s1"))),
+    (
+        "`default`",
+        (
+            (0, "main-default"),
+            (1, "main-seeds/default-s1"),
+            (2, "main-seeds/default-s2"),
+            (3, "main-seeds/default-s3"),
+            (4, "main-seeds/default-s4"),
+        ),
+    ),
     (
         "+ MPC warm start for 20 iterations (`train.mpc_demo_share=1.0`, "
         "`train.mpc_demo_iterations=20`)",
