@@ -966,6 +966,11 @@ MAIN_SEEDS: tuple[tuple[str, tuple[tuple[int, str], ...]], ...] = (
             (2, "main-seeds/default-s2"),
             (3, "main-seeds/default-s3"),
             (4, "main-seeds/default-s4"),
+            (5, "main-seeds/default-s5"),
+            (6, "main-seeds/default-s6"),
+            (7, "main-seeds/default-s7"),
+            (8, "main-seeds/default-s8"),
+            (9, "main-seeds/default-s9"),
         ),
     ),
     (
