@@ -199,7 +199,10 @@ def run_child(cmd: list[str]) -> int:
     own, and every SIGINT the campaign gets (Ctrl-C in its terminal, or `kill -INT` of the
     campaign's process alone, e.g. under nohup) is passed on to it once: the child saves and
     exits (130) while the campaign keeps waiting, instead of being killed as `subprocess.call`
-    does after a quarter of a second; a second Ctrl-C reaches it as a second one (stop at once)."""
+    does after a quarter of a second; a second Ctrl-C reaches it as a second one (stop at once).
+    SIGINT is handled even where the campaign started with it ignored, as a shell without job
+    control starts a background job (`nohup ... &` in a script)."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     p = subprocess.Popen(cmd, start_new_session=True)
     while True:
         try:

@@ -145,9 +145,23 @@ def _curve_value(rec: Records, run: str, kind: str, metric: str) -> Stat | None:
         return None
     last = rows[-1]
     if kind == "budget":
-        return Stat(last["wall_s"] / 60)
+        return Stat(lifetime_wall_s(rows) / 60)
     section = cfg.get("train", cfg.get("grbal"))
     return Stat(last["iteration"] * section["updates_per_iteration"])
+
+
+def lifetime_wall_s(rows: list[dict]) -> float:
+    """A training CLI run's wall seconds over its lifetime from its metrics.jsonl rows. Records
+    written before resumed runs carried their clocks on restart `wall_s` at 0 in the resumed
+    process; each such drop closes a segment, and the segments add up."""
+    total = prev = 0.0
+    for r in rows:
+        if "wall_s" not in r:
+            continue
+        if r["wall_s"] < prev:
+            total += prev
+        prev = r["wall_s"]
+    return total + prev
 
 
 def entry_values(rec: Records, e: Entry, kind: str, metric: str) -> list[Stat] | str:
@@ -786,9 +800,11 @@ def render_seeds(
     groups: Sequence[tuple[str, Sequence[str]]] = SEED_GROUPS,
     sets: Sequence[tuple[str, str]] = SEED_SETS,
     order: Sequence[tuple[str, str]] = PAPER_ORDER,
+    claim: str = "paper's claim",
 ) -> str:
     """Per method and evaluation set: mean +- standard error over seeds and the worst seed of
-    SR, CFR, TT, SPL and MGD; then the paper's ordering (`order`) with seeds as the unit."""
+    SR, CFR, TT, SPL and MGD; then the paper's ordering (`order`) with seeds as the unit
+    (`claim` heads that column)."""
     entries = {name: Entry(name, tuple(runs)) for name, runs in groups}
     head = ["method", "seeds", "budget (min)", "grad steps", "evaluated on", *METRICS]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -814,7 +830,7 @@ def render_seeds(
         )
         + ".",
         "",
-        "| paper's claim | evaluated on | A - B over seeds (mean +- se) | seeds | as measured |",
+        f"| {claim} | evaluated on | A - B over seeds (mean +- se) | seeds | as measured |",
         "|---|---|---|---|---|",
     ]
     for a, b in order:
@@ -1008,6 +1024,23 @@ MAIN_SEEDS: tuple[tuple[str, tuple[tuple[int, str], ...]], ...] = (
         "+ target V updated 4x faster (`pearl.tau=0.02`; paper 0.005)",
         ((1, "main-seeds/tau02-s1"), (2, "main-seeds/tau02-s2")),
     ),
+    (
+        "+ reward scale 1 and alpha starting at 0.2 (`pearl.reward_scale=1`, "
+        "`pearl.init_alpha=0.2`: for the same Q the actor's and alpha's steps are those of scale 5 "
+        "and alpha 1, while the Q and V targets are 5x smaller; its alpha is on the scale-1 "
+        "footing, x5 to compare)",
+        tuple((s, f"main-seeds/rs1-alpha02-s{s}") for s in range(10)),
+    ),
+    (
+        "`default`, 95 iterations (`--iterations 95`; seeds 2-9 resumed from their 75-iteration "
+        "checkpoints)",
+        tuple((s, f"main-seeds/default-it95-s{s}") for s in range(10)),
+    ),
+    (
+        "reward scale 1, alpha starting at 0.2, 95 iterations (resumed from the 75-iteration "
+        "checkpoints)",
+        tuple((s, f"main-seeds/rs1-alpha02-it95-s{s}") for s in range(10)),
+    ),
 )
 
 
@@ -1056,11 +1089,62 @@ def render_main_seeds(rec: Records, groups=MAIN_SEEDS) -> str:
         "the task's start (`train_success` in metrics.jsonl; exploring starts not counted, "
         "episodes the MPC drove counted); success, last 10 iterations: the mean share of those "
         "episodes that reached the goal over the last 10 iterations; lowest alpha: the automatic "
-        "entropy weight's minimum over the run (it starts at 1; fixed: no automatic tuning). "
+        "entropy weight's minimum over the run (it starts at 1 unless the recipe says otherwise; "
+        "fixed: no automatic tuning). "
         "test: the 24 test tasks after two adaptation episodes; val: the 192 validation tasks "
         "(task seeds 1-8), +- the standard error over tasks. Each row is one run of 75 "
         "iterations unless its recipe says otherwise.",
     ]
+    return "\n".join(lines)
+
+
+# the recipes of the main command run on all ten seeds 0-9, compared with seeds as the unit
+MAIN_SEED_SUMMARY: tuple[tuple[str, tuple[str, ...]], ...] = (
+    (
+        "`default`",
+        ("restaurant/main-default",)
+        + tuple(f"restaurant/main-seeds/default-s{s}" for s in range(1, 10)),
+    ),
+    (
+        "reward scale 1, init alpha 0.2",
+        tuple(f"restaurant/main-seeds/rs1-alpha02-s{s}" for s in range(10)),
+    ),
+    (
+        "`default`, 95 iterations",
+        tuple(f"restaurant/main-seeds/default-it95-s{s}" for s in range(10)),
+    ),
+    (
+        "reward scale 1, init alpha 0.2, 95 iterations",
+        tuple(f"restaurant/main-seeds/rs1-alpha02-it95-s{s}" for s in range(10)),
+    ),
+)
+MAIN_SEED_SETS = (("val8", "192 validation tasks"), ("test", "24 test tasks"))
+MAIN_PASS = 0.3  # the main command's threshold on test and validation SR
+
+
+def render_main_seed_summary(
+    rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = MAIN_SEED_SUMMARY
+) -> str:
+    """The main command's recipes over seeds 0-9: the seed table of `render_seeds` on the
+    validation and test tasks, each recipe against the first seed by seed, and per recipe the
+    seeds that reach `MAIN_PASS` on both (the first group is the baseline)."""
+    order = tuple((name, groups[0][0]) for name, _ in groups[1:])
+    lines = [render_seeds(rec, groups, MAIN_SEED_SETS, order, "A > B"), ""]
+    lines += [
+        f"| recipe | seeds with test SR and val SR >= {MAIN_PASS} |",
+        "|---|---|",
+    ]
+    for name, runs in groups:
+        ok = []
+        for run in runs:
+            t = run_value(rec, run, "test", "SR")
+            v = run_value(rec, run, "val8", "SR")
+            if t is None or v is None:
+                ok = None
+                break
+            ok.append(t.value >= MAIN_PASS and v.value >= MAIN_PASS)
+        cell = MISSING if ok is None else f"{sum(ok)} of {len(ok)}"
+        lines.append(f"| {name} | {cell} |")
     return "\n".join(lines)
 
 
@@ -1104,6 +1188,7 @@ BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block
     ("results/README.md", "seeds", render_seeds),
     ("results/README.md", "seed-curves", render_seed_curves),
     ("results/README.md", "main-seeds", render_main_seeds),
+    ("results/README.md", "main-seed-summary", render_main_seed_summary),
     ("results/README.md", "sidewalk-seeds", render_sidewalk_seeds),
 )
 

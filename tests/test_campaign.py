@@ -134,11 +134,17 @@ def test_grbal_runs_train_with_their_own_command_and_finish_with_their_results(
     assert [c[2] for c in campaign.commands(run, "done")] == ["experiments.evaluate"]
 
 
-@pytest.mark.parametrize("whole_group", [True, False])
-def test_ctrl_c_lets_the_run_under_way_save_before_the_campaign_stops(tmp_path, whole_group):
+@pytest.mark.parametrize(
+    "whole_group, started_ignoring", [(True, False), (False, False), (False, True)]
+)
+def test_ctrl_c_lets_the_run_under_way_save_before_the_campaign_stops(
+    tmp_path, whole_group, started_ignoring
+):
     """Ctrl-C (SIGINT to the campaign's process group) or `kill -INT` of the campaign alone:
     the child gets exactly one SIGINT, takes a second to save and exits 130; the campaign waits
-    for it (subprocess.call would kill it after 0.25 s) and returns its code."""
+    for it (subprocess.call would kill it after 0.25 s) and returns its code. Also when the
+    campaign was started with SIGINT ignored, as a shell without job control starts a
+    background job (`nohup ... &` in a script)."""
     import os
     import signal
     import subprocess
@@ -155,8 +161,11 @@ def test_ctrl_c_lets_the_run_under_way_save_before_the_campaign_stops(tmp_path, 
         f"pathlib.Path({str(ready)!r}).write_text('')\n"
         "time.sleep(60)\n"
     )
+    # started ignoring: the state a process inherits from a shell's background job (the
+    # disposition set before run_child, without a preexec_fn fork beside JAX's threads)
+    ignoring = "signal.signal(signal.SIGINT, signal.SIG_IGN); " if started_ignoring else ""
     parent = (
-        "import sys; from experiments import campaign; "
+        f"import signal, sys; {ignoring}from experiments import campaign; "
         f"sys.exit(campaign.run_child([sys.executable, '-c', {child!r}]))"
     )
     root = Path(__file__).resolve().parents[1]

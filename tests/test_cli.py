@@ -30,6 +30,7 @@ def test_sidewalk_cli_with_mpc_infusion(tmp_path):
     res = json.loads((out / "results.json").read_text())
     assert res["env"] == "sidewalk" and "SR" in res["test_online"]
     assert res["config"]["online_eval"] is True
+    assert {"cpu_count", "cores_available", "jax"} <= set(res["machine"])
 
 
 def test_sidewalk_cli_rejects_missing_data(tmp_path, capsys):

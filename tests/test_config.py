@@ -60,6 +60,7 @@ def test_paper_presets_have_every_extension_off(name):
     assert cfg.train.mpc_demo_step_prob == 1.0
     assert cfg.pearl.bc_weight == 0 and not cfg.pearl.layer_norm
     assert not cfg.pearl.auto_entropy and cfg.pearl.target_entropy is None
+    assert cfg.pearl.init_alpha == 1.0
     assert not cfg.mpc.unsafe_recovery and cfg.train.explore_start_share == 0
     assert cfg.train.crowd_delay_max == 0
     for field in (

@@ -230,11 +230,39 @@ def test_auto_entropy_moves_alpha_towards_the_target_and_starts_at_the_paper_upd
         ({"auto_entropy": True, "target_entropy": "high"}, "target_entropy"),
         ({"auto_entropy": True, "target_entropy": float("nan")}, "target_entropy"),
         ({"target_entropy": -2.0}, "target_entropy"),
+        ({"init_alpha": 0.2}, "init_alpha"),
+        ({"auto_entropy": True, "init_alpha": 0.0}, "init_alpha"),
+        ({"auto_entropy": True, "init_alpha": float("inf")}, "init_alpha"),
     ],
 )
 def test_invalid_auto_entropy_settings_name_the_field(changes, field):
     with pytest.raises(ConfigError, match=f"PearlConfig.{field}"):
         SMALL.replace(**changes)
+
+
+def test_init_alpha_sets_the_first_entropy_weight():
+    """`init_alpha` is alpha at the first step (log alpha = log init_alpha), and the actor loss
+    uses it: the policy's first step differs from alpha = 1's, the Q and V steps do not depend on
+    it (their first targets use the initial V), and log alpha then moves by about lr."""
+    low = Networks(SMALL.replace(auto_entropy=True, init_alpha=0.2), OBS, A)
+    one = Networks(SMALL.replace(auto_entropy=True), OBS, A)
+    s_low, s_one = (
+        init_learner(jax.random.PRNGKey(0), low),
+        init_learner(jax.random.PRNGKey(0), one),
+    )
+    np.testing.assert_allclose(float(jnp.exp(s_low.log_alpha)), 0.2, rtol=1e-6)
+    args = (_batch(jax.random.PRNGKey(1)), _context(jax.random.PRNGKey(2)), jax.random.PRNGKey(3))
+    n_low, m_low = make_update(low)(s_low, *args)
+    n_one, _ = make_update(one)(s_one, *args)
+    np.testing.assert_allclose(float(m_low["alpha"]), 0.2, rtol=1e-6)
+    np.testing.assert_allclose(
+        abs(float(n_low.log_alpha) - float(s_low.log_alpha)), SMALL.lr, rtol=1e-3
+    )
+    policy_gap = jax.tree_util.tree_map(
+        lambda a, b: float(jnp.max(jnp.abs(a - b))), n_low.params["policy"], n_one.params["policy"]
+    )
+    assert max(jax.tree_util.tree_leaves(policy_gap)) > 0.0
+    chex.assert_trees_all_close(n_low.params["q"], n_one.params["q"], rtol=1e-6, atol=1e-7)
 
 
 def _bc_setup(bc_weight):

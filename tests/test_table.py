@@ -313,3 +313,31 @@ def test_grbal_is_in_the_seed_table_but_not_in_the_curve_table():
 def test_a_difference_that_rounds_to_zero_has_no_minus_sign():
     assert table.signed(-1e-17) == "+0.00" and table.signed(-0.004) == "+0.00"
     assert table.signed(-0.17) == "-0.17" and table.signed(0.2) == "+0.20"
+
+
+def test_main_seed_summary_pairs_recipes_with_default_and_counts_seeds_clearing_both(tmp_path):
+    """A seed passes when its test SR and its validation SR both reach 0.3 (0.3 itself passes);
+    each recipe is paired with `default` seed by seed."""
+    results = tmp_path / "results"
+    default = tuple(
+        _run(results, f"d{i}", t, 50.0, [v, v])
+        for i, (t, v) in enumerate([(0.5, 0.2), (0.3, 0.3), (0.29, 0.9)])
+    )
+    better = tuple(
+        _run(results, f"b{i}", t, 50.0, [v, v])
+        for i, (t, v) in enumerate([(0.6, 0.6), (0.7, 0.7), (0.8, 0.95)])
+    )
+    groups = (("`default`", default), ("better", better))
+    text = table.render_main_seed_summary(Records(results), groups)
+    assert "| `default` | 1 of 3 |" in text and "| better | 3 of 3 |" in text
+    claim = next(r for r in text.splitlines() if r.startswith("| better > `default` (SR) | 192"))
+    assert "+0.28 +- 0.12" in claim and claim.endswith("cannot be told apart |")
+    assert "| A > B | evaluated on |" in text
+
+
+def test_lifetime_wall_time_adds_the_segments_of_a_resumed_run():
+    """A record whose resumed process restarted wall_s at 0 (written before resumed runs
+    carried their clocks on) counts both segments; evaluation rows without wall_s are skipped."""
+    rows = [{"wall_s": 10.0}, {"wall_s": 20.0}, {"eval_SR": 0.5}, {"wall_s": 5.0}, {"wall_s": 8.0}]
+    assert table.lifetime_wall_s(rows) == 28.0
+    assert table.lifetime_wall_s([{"wall_s": 3.0}, {"wall_s": 7.5}]) == 7.5

@@ -91,10 +91,19 @@ def test_resume_equals_uninterrupted(tmp_path):
     _, full = train(cfg, tmp_path / "full", progress=False)
     short = cfg.replace(train=TrainConfig(**{**cfg.train.__dict__, "iterations": 2}))
     train(short, tmp_path / "cut", progress=False)
+    # the clocks of the kept rows, pushed 1000 s on: a resumed run's train_s and wall_s go on
+    # from its last kept row (they are over the run's lifetime), they do not start again at 0
+    path = tmp_path / "cut" / "metrics.jsonl"
+    kept = [json.loads(x) for x in path.read_text().splitlines()]
+    for r in kept:
+        r.update(train_s=r["train_s"] + 1000.0, wall_s=r["wall_s"] + 1000.0)
+    path.write_text("".join(json.dumps(r) + "\n" for r in kept))
     _, resumed = train(cfg, tmp_path / "cut", resume=True, progress=False)
     _leaves_equal(full, resumed)
-    log = [json.loads(x) for x in (tmp_path / "cut" / "metrics.jsonl").read_text().splitlines()]
+    log = [json.loads(x) for x in path.read_text().splitlines()]
     assert [r["iteration"] for r in log] == [1, 2, 3]
+    for key in ("train_s", "wall_s"):
+        assert log[2][key] > log[1][key] > 1000.0, [r[key] for r in log]
 
 
 def test_learned_entropy_weight_resumes_exactly(tmp_path):

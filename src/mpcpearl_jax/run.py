@@ -37,6 +37,7 @@ from mpcpearl_jax.config import ExperimentConfig, validate
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, RunDirError
 from mpcpearl_jax.loop import Progress, train_loop
+from mpcpearl_jax.machine import machine_info
 from mpcpearl_jax.pearl.learner import acting_params
 from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.resources import check_state_fits
@@ -304,7 +305,15 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
     and at the end, checkpoints every `checkpoint_interval`; Ctrl-C -> RunInterrupted."""
     cfg, trainer, ckpt = sess.cfg, sess.trainer, sess.ckpt
     tc, log_path, total = cfg.train, sess.run_dir / LOG_FILE, cfg.train.iterations
-    where = Progress(iterations=sess.done, saved=sess.saved)
+    # a resumed run's clocks go on from its last kept iteration row: train_s and wall_s are over
+    # the run's lifetime (metrics.jsonl), not over this process
+    last = next((r for r in reversed(sess.rows) if "train_s" in r), {})
+    where = Progress(
+        iterations=sess.done,
+        saved=sess.saved,
+        train_s=float(last.get("train_s", 0.0)),
+        wall_s0=float(last.get("wall_s", 0.0)),
+    )
     bar = None
     if progress:
         from tqdm import tqdm
@@ -395,6 +404,7 @@ def final_evaluation(
     except (ValueError, FileNotFoundError) as e:  # no OOD split (or no OOD scenario file)
         results["ood_adapt"] = {"skipped": str(e)}
     results["paper"] = PAPER.get(trainer.cfg.env, {})
+    results["machine"] = machine_info()  # run times depend on it (CPU model, cores, versions)
     if not is_primary():  # every process evaluates its seeds; process 0 writes
         return results
     write_json(run_dir / "results.json", results)

@@ -46,11 +46,15 @@ class PearlConfig:
     # policy's entropy is pulled to the target; target_entropy None = -(action dimension)
     auto_entropy: bool = False
     target_entropy: float | None = None
+    # alpha's starting value under auto_entropy (1 = the paper's temperature). Dividing it and
+    # reward_scale by the same factor leaves the actor's and alpha's updates as they are (Adam is
+    # scale-free) and shrinks only the Q and V targets the critics must reach
+    init_alpha: float = 1.0
 
     def __post_init__(self) -> None:
         v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size")
         v.int_tuples(self, "hidden", "encoder_hidden")
-        v.positive(self, "lr", "reward_scale", "min_posterior_var")
+        v.positive(self, "lr", "reward_scale", "min_posterior_var", "init_alpha")
         v.interval(self, "gamma", "tau", lo=0.0, hi=1.0)
         v.nonnegative(self, "kl_weight", "policy_mean_reg", "policy_std_reg", "bc_weight")
         v.flags(self, "use_context", "layer_norm", "bc_q_filter", "auto_entropy")
@@ -64,6 +68,12 @@ class PearlConfig:
             self.target_entropy is None or self.auto_entropy,
             self,
             "target_entropy",
+            "only used with auto_entropy: set pearl.auto_entropy=true",
+        )
+        v.check(
+            self.init_alpha == 1.0 or self.auto_entropy,
+            self,
+            "init_alpha",
             "only used with auto_entropy: set pearl.auto_entropy=true",
         )
         v.check(

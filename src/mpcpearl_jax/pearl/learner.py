@@ -6,6 +6,8 @@
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import optax
@@ -63,7 +65,8 @@ def init_learner(key: Array, nets: Networks) -> LearnerState:
     }
     log_alpha = None
     if nets.cfg.auto_entropy:
-        log_alpha = jnp.zeros((), jnp.float32)  # alpha = 1: the paper's temperature at first
+        # alpha = init_alpha; 1 (the default) is the paper's temperature at first
+        log_alpha = jnp.asarray(math.log(nets.cfg.init_alpha), jnp.float32)
         opt_state["alpha"] = opt.init(log_alpha)
     return LearnerState(params, params["v"], opt_state, jnp.zeros((), jnp.int32), log_alpha)
 
