@@ -151,9 +151,9 @@ def _curve_value(rec: Records, run: str, kind: str, metric: str) -> Stat | None:
 
 
 def lifetime_wall_s(rows: list[dict]) -> float:
-    """A training CLI run's wall seconds over its lifetime from its metrics.jsonl rows. Records
-    written before resumed runs carried their clocks on restart `wall_s` at 0 in the resumed
-    process; each such drop closes a segment, and the segments add up."""
+    """A training CLI run's wall seconds over its lifetime from its metrics.jsonl rows. In records
+    written before resumed runs carried their clocks on, the resumed process restarted `wall_s`
+    at 0; each such drop closes a segment, and the segments add up."""
     total = prev = 0.0
     for r in rows:
         if "wall_s" not in r:
@@ -1126,8 +1126,8 @@ def render_main_seed_summary(
     rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = MAIN_SEED_SUMMARY
 ) -> str:
     """The main command's recipes over seeds 0-9: the seed table of `render_seeds` on the
-    validation and test tasks, each recipe against the first seed by seed, and per recipe the
-    seeds that reach `MAIN_PASS` on both (the first group is the baseline)."""
+    validation and test tasks, each recipe against the first group (the baseline) seed by seed,
+    and per recipe the seeds that reach `MAIN_PASS` on both."""
     order = tuple((name, groups[0][0]) for name, _ in groups[1:])
     lines = [render_seeds(rec, groups, MAIN_SEED_SETS, order, "A > B"), ""]
     lines += [

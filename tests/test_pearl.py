@@ -242,8 +242,8 @@ def test_invalid_auto_entropy_settings_name_the_field(changes, field):
 
 def test_init_alpha_sets_the_first_entropy_weight():
     """`init_alpha` is alpha at the first step (log alpha = log init_alpha), and the actor loss
-    uses it: the policy's first step differs from alpha = 1's, the Q and V steps do not depend on
-    it (their first targets use the initial V), and log alpha then moves by about lr."""
+    uses it: the policy's first step differs from alpha = 1's, the Q step does not depend on it
+    (its target is the initial target V), and log alpha then moves by about lr."""
     low = Networks(SMALL.replace(auto_entropy=True, init_alpha=0.2), OBS, A)
     one = Networks(SMALL.replace(auto_entropy=True), OBS, A)
     s_low, s_one = (
