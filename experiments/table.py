@@ -973,22 +973,13 @@ def render_seed_curves(
 # preset, 75 iterations), each on the seeds listed: label, ((seed, folder under
 # results/restaurant), ...).
 # Commands: experiments/campaigns/main-*.json (`python -m experiments.campaign FILE`).
+# the recipes run on all ten seeds 0-9: (seed, folder under results/restaurant)
+MAIN_DEFAULT = ((0, "main-default"), *((s, f"main-seeds/default-s{s}") for s in range(1, 10)))
+MAIN_RS1 = tuple((s, f"main-seeds/rs1-alpha02-s{s}") for s in range(10))
+MAIN_IT95 = tuple((s, f"main-seeds/default-it95-s{s}") for s in range(10))
+MAIN_RS1_IT95 = tuple((s, f"main-seeds/rs1-alpha02-it95-s{s}") for s in range(10))
 MAIN_SEEDS: tuple[tuple[str, tuple[tuple[int, str], ...]], ...] = (
-    (
-        "`default`",
-        (
-            (0, "main-default"),
-            (1, "main-seeds/default-s1"),
-            (2, "main-seeds/default-s2"),
-            (3, "main-seeds/default-s3"),
-            (4, "main-seeds/default-s4"),
-            (5, "main-seeds/default-s5"),
-            (6, "main-seeds/default-s6"),
-            (7, "main-seeds/default-s7"),
-            (8, "main-seeds/default-s8"),
-            (9, "main-seeds/default-s9"),
-        ),
-    ),
+    ("`default`", MAIN_DEFAULT),
     (
         "+ MPC warm start for 20 iterations (`train.mpc_demo_share=1.0`, "
         "`train.mpc_demo_iterations=20`)",
@@ -1029,17 +1020,17 @@ MAIN_SEEDS: tuple[tuple[str, tuple[tuple[int, str], ...]], ...] = (
         "`pearl.init_alpha=0.2`: for the same Q the actor's and alpha's steps are those of scale 5 "
         "and alpha 1, while the Q and V targets are 5x smaller; its alpha is on the scale-1 "
         "footing, x5 to compare)",
-        tuple((s, f"main-seeds/rs1-alpha02-s{s}") for s in range(10)),
+        MAIN_RS1,
     ),
     (
         "`default`, 95 iterations (`--iterations 95`; seeds 2-9 resumed from their 75-iteration "
         "checkpoints)",
-        tuple((s, f"main-seeds/default-it95-s{s}") for s in range(10)),
+        MAIN_IT95,
     ),
     (
         "reward scale 1, alpha starting at 0.2, 95 iterations (resumed from the 75-iteration "
         "checkpoints)",
-        tuple((s, f"main-seeds/rs1-alpha02-it95-s{s}") for s in range(10)),
+        MAIN_RS1_IT95,
     ),
 )
 
@@ -1099,24 +1090,14 @@ def render_main_seeds(rec: Records, groups=MAIN_SEEDS) -> str:
 
 
 # the recipes of the main command run on all ten seeds 0-9, compared with seeds as the unit
-MAIN_SEED_SUMMARY: tuple[tuple[str, tuple[str, ...]], ...] = (
-    (
-        "`default`",
-        ("restaurant/main-default",)
-        + tuple(f"restaurant/main-seeds/default-s{s}" for s in range(1, 10)),
-    ),
-    (
-        "reward scale 1, init alpha 0.2",
-        tuple(f"restaurant/main-seeds/rs1-alpha02-s{s}" for s in range(10)),
-    ),
-    (
-        "`default`, 95 iterations",
-        tuple(f"restaurant/main-seeds/default-it95-s{s}" for s in range(10)),
-    ),
-    (
-        "reward scale 1, init alpha 0.2, 95 iterations",
-        tuple(f"restaurant/main-seeds/rs1-alpha02-it95-s{s}" for s in range(10)),
-    ),
+MAIN_SEED_SUMMARY: tuple[tuple[str, tuple[str, ...]], ...] = tuple(
+    (name, tuple(f"restaurant/{run}" for _, run in runs))
+    for name, runs in (
+        ("`default`", MAIN_DEFAULT),
+        ("reward scale 1, init alpha 0.2", MAIN_RS1),
+        ("`default`, 95 iterations", MAIN_IT95),
+        ("reward scale 1, init alpha 0.2, 95 iterations", MAIN_RS1_IT95),
+    )
 )
 MAIN_SEED_SETS = (("val8", "192 validation tasks"), ("test", "24 test tasks"))
 MAIN_PASS = 0.3  # the main command's threshold on test and validation SR
@@ -1135,15 +1116,16 @@ def render_main_seed_summary(
         "|---|---|",
     ]
     for name, runs in groups:
-        ok = []
-        for run in runs:
-            t = run_value(rec, run, "test", "SR")
-            v = run_value(rec, run, "val8", "SR")
-            if t is None or v is None:
-                ok = None
-                break
-            ok.append(t.value >= MAIN_PASS and v.value >= MAIN_PASS)
-        cell = MISSING if ok is None else f"{sum(ok)} of {len(ok)}"
+        e = Entry(name, tuple(runs))
+        test, val = entry_values(rec, e, "test", "SR"), entry_values(rec, e, "val8", "SR")
+        if isinstance(test, str) or isinstance(val, str):
+            cell = MISSING
+        else:
+            passed = sum(
+                t.value >= MAIN_PASS and v.value >= MAIN_PASS
+                for t, v in zip(test, val, strict=True)
+            )
+            cell = f"{passed} of {len(test)}"
         lines.append(f"| {name} | {cell} |")
     return "\n".join(lines)
 
