@@ -21,7 +21,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from mpcpearl_jax.machine import available_cores, machine_info, print_table  # noqa: F401 (re-exported)
+from mpcpearl_jax.training.machine import available_cores, machine_info, print_table  # noqa: F401 (re-exported)
 
 DEFAULT_OUT = Path("benchmarks") / "results"
 SIZES = ("tiny", "default", "full")

@@ -49,7 +49,7 @@ SIZES: dict[str, dict[str, Any]] = {
 
 def build(sz: dict[str, Any], eps: float = 0.2):
     from mpcpearl_jax.config import preset
-    from mpcpearl_jax.trainer import Trainer
+    from mpcpearl_jax.training.trainer import Trainer
 
     cfg = preset(sz["preset"])
     changes: dict[str, Any] = {"eps": eps}

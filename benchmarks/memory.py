@@ -68,7 +68,7 @@ def child_run(preset_name: str, seeds: int, iterate: bool) -> dict[str, Any]:
     """Build a trainer, init its state (and run one iteration); report bytes and RSS."""
     import jax
 
-    from mpcpearl_jax.trainer import Trainer
+    from mpcpearl_jax.training.trainer import Trainer
 
     jax.block_until_ready(jax.numpy.zeros(1))
     cfg = experiment(preset_name, seeds)

@@ -32,9 +32,9 @@ def save_untrained_run(run_dir: Path, preset_name: str) -> None:
     import jax
 
     from mpcpearl_jax import make_env
-    from mpcpearl_jax.checkpoint import Checkpointer, save_config
     from mpcpearl_jax.config import preset
     from mpcpearl_jax.pearl.networks import Networks
+    from mpcpearl_jax.training.checkpoint import Checkpointer, save_config
 
     cfg = preset(preset_name)
     env = make_env(cfg.env)
@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     try:
         from mpcpearl_jax import load_policy
     except ImportError:  # older layout: only in the checkpoint module
-        from mpcpearl_jax.policy import load_policy
+        from mpcpearl_jax.deploy.policy import load_policy
 
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(args.run) if args.run else Path(tmp) / "run"

@@ -62,7 +62,7 @@ def child(size: str, devices: int, out: Path) -> None:
     """One device count, in this process (the device count is fixed when JAX starts)."""
     import jax
 
-    from mpcpearl_jax.trainer import Trainer
+    from mpcpearl_jax.training.trainer import Trainer
 
     sz = SIZES[size]
     cfg = build_config(sz, devices)

@@ -15,9 +15,9 @@ from mpcpearl_jax.config import PRESETS, ExperimentConfig, TrainConfig, preset, 
 from mpcpearl_jax.envs import can_redraw, mpc_defaults
 from mpcpearl_jax.envs.types import NavConfig
 from mpcpearl_jax.errors import ConfigError
+from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.mpc.config import MPCConfig
 from mpcpearl_jax.pearl.config import PearlConfig
-from mpcpearl_jax.report import run_label
 
 # Config extras each environment's entry point passes to `build_config` (and `main`).
 ENV_EXTRAS: dict[str, dict] = {
@@ -248,7 +248,7 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
     line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (resumable)."""
     args = parser(env).parse_args(argv)
     from mpcpearl_jax.errors import CheckpointError, RunDirError
-    from mpcpearl_jax.run import prepare
+    from mpcpearl_jax.training.run import prepare
 
     def fail(e: BaseException, code: int = 2) -> int:
         if args.debug:
@@ -257,7 +257,7 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         return code
 
     if args.tensorboard:
-        from mpcpearl_jax.livelog import LiveLogError, missing
+        from mpcpearl_jax.training.livelog import LiveLogError, missing
 
         if missing():
             return fail(LiveLogError(missing()))
@@ -304,7 +304,7 @@ def out_of_memory(e: BaseException) -> str:
 
 def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
     from mpcpearl_jax.errors import CheckpointError, RunDirError, TrainingDiverged
-    from mpcpearl_jax.run import RunInterrupted, final_evaluation, train_session
+    from mpcpearl_jax.training.run import RunInterrupted, final_evaluation, train_session
 
     cfg, out = sess.cfg, sess.run_dir
     t0 = time.perf_counter()

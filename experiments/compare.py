@@ -16,8 +16,8 @@ import json
 import sys
 from pathlib import Path
 
-from mpcpearl_jax.metrics import METRIC_NAMES
-from mpcpearl_jax.report import comparison_table, plot_learning_curves, run_label
+from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
+from mpcpearl_jax.evaluation.report import comparison_table, plot_learning_curves, run_label
 
 
 class NotARun(ValueError):
@@ -33,7 +33,7 @@ def _json(path: Path) -> dict:
 
 def _load(run: Path) -> tuple[dict, list[dict], dict | None]:
     from mpcpearl_jax.errors import CheckpointError
-    from mpcpearl_jax.run import LOG_FILE, read_log
+    from mpcpearl_jax.training.run import LOG_FILE, read_log
 
     if not run.is_dir():
         raise NotARun(f"{run}: no such run directory")

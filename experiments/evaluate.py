@@ -48,14 +48,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mpcpearl_jax.checkpoint import write_json
 from mpcpearl_jax.envs import SPLITS, make_env, make_tasks
 from mpcpearl_jax.envs.perturb import parse_perturbation, perturb_tasks
 from mpcpearl_jax.envs.types import NavConfig, TaskParams
 from mpcpearl_jax.errors import ConfigError
-from mpcpearl_jax.metrics import METRIC_NAMES
-from mpcpearl_jax.scoring import failure_line, failures, per_task_metrics, pooled
-from mpcpearl_jax.shield import ShieldConfig
+from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
+from mpcpearl_jax.evaluation.scoring import failure_line, failures, per_task_metrics, pooled
+from mpcpearl_jax.mpc.shield import ShieldConfig
+from mpcpearl_jax.training.checkpoint import write_json
 
 CONTROLLERS = ("policy", "gp-mpc", "policy+mpc")
 EVAL_SEED = 12345  # the trainer's evaluation key: same numbers as the run's results.json
@@ -135,7 +135,7 @@ def make_parser() -> argparse.ArgumentParser:
         "--shield",
         action="store_true",
         help="policy: execute the actions through the test-time safety shield (extension, "
-        "mpcpearl_jax.shield; docs/extensions.md)",
+        "mpcpearl_jax.mpc.shield; docs/extensions.md)",
     )
     p.add_argument(
         "--shield-margin",
@@ -355,11 +355,11 @@ def _grbal_setup(args: argparse.Namespace) -> Setup:
 
 def setup(args: argparse.Namespace) -> Setup:
     """Resolve the command line; raises UsageError (and CheckpointError) with a one-line reason."""
-    from mpcpearl_jax.checkpoint import load_config
+    from mpcpearl_jax.deploy.policy import load_policy
     from mpcpearl_jax.envs import mpc_defaults
+    from mpcpearl_jax.evaluation.report import run_label
     from mpcpearl_jax.grbal.run import is_grbal_run
-    from mpcpearl_jax.policy import load_policy
-    from mpcpearl_jax.report import run_label
+    from mpcpearl_jax.training.checkpoint import load_config
 
     ctrl = args.controller
     cfg = None
@@ -497,10 +497,10 @@ _EVALUATORS: dict[tuple, Any] = {}
 
 
 def policy_evaluator(s: Setup, episodes: int, online: bool):
-    """The jitted `mpcpearl_jax.evaluate.make_evaluator` program for `s`, built once per
+    """The jitted `mpcpearl_jax.evaluation.evaluate.make_evaluator` program for `s`, built once per
     (environment config, networks, protocol) and reused across task sets."""
-    from mpcpearl_jax import evaluate as eval_lib
     from mpcpearl_jax.envs.navigation import NavEnv
+    from mpcpearl_jax.evaluation import evaluate as eval_lib
 
     nets = s.policies[0].nets
     t_update = s.run_config.train.t_update
@@ -515,7 +515,8 @@ def policy_evaluator(s: Setup, episodes: int, online: bool):
 
 
 def run_policy(s: Setup, key: jax.Array, episodes: int, online: bool) -> dict:
-    """The meta-test protocol through `mpcpearl_jax.evaluate.make_evaluator`; arrays [S, N, ...]."""
+    """The meta-test protocol through `mpcpearl_jax.evaluation.evaluate.make_evaluator`; arrays [S,
+    N, ...]."""
     fn = policy_evaluator(s, episodes, online)
     return jax.device_get(fn(key, _stacked_params(s.policies), s.tasks))
 
@@ -554,11 +555,11 @@ def run_gp_mpc(s: Setup, key: jax.Array) -> tuple[dict, dict]:
 
 
 def run_policy_mpc(s: Setup, key: jax.Array, eps: float) -> tuple[dict, dict]:
-    """Training-style episodes (`mpcpearl_jax.collect.make_collector`): prior z, stochastic
+    """Training-style episodes (`mpcpearl_jax.training.collect.make_collector`): prior z, stochastic
     policy, the MPC on an event with probability eps; arrays [S, N, ...]."""
-    from mpcpearl_jax import collect as collect_lib
     from mpcpearl_jax.envs.navigation import NavEnv
     from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
+    from mpcpearl_jax.training import collect as collect_lib
 
     env = NavEnv(s.env_config)
     nets = s.policies[0].nets
@@ -617,8 +618,8 @@ def tables(record: dict) -> str:
 def write_figures(s: Setup, result: dict, animate: bool) -> list[Path]:
     """A trajectory PNG (and a GIF with animate) of the first evaluated seed on each figure
     task, in the family's style (its registered viewer)."""
-    from mpcpearl_jax import animate as anim_lib
     from mpcpearl_jax.envs import save_trajectory
+    from mpcpearl_jax.evaluation import animate as anim_lib
 
     written = []
     who = f"seed {s.seed_ids[0]}" if s.seed_ids else s.label
@@ -640,7 +641,7 @@ def write_figures(s: Setup, result: dict, animate: bool) -> list[Path]:
 
 def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
     """Run the controller on the tasks; -> (record for results.json, raw arrays [S, N, ...])."""
-    from mpcpearl_jax import evaluate as eval_lib
+    from mpcpearl_jax.evaluation import evaluate as eval_lib
 
     key = jax.random.PRNGKey(args.eval_seed)
     stats = None

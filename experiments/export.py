@@ -4,7 +4,8 @@
     python -m experiments.export RUN_DIR --out policy.export --seed-index 1
 
 Writes the policy's `act` and the encoder's `infer_z`, serialized with `jax.export`, and a JSON
-sidecar; `mpcpearl_jax.load_exported` (one file: `mpcpearl_jax/exported.py`, jax only) runs them
+sidecar; `mpcpearl_jax.load_exported` (one file: `mpcpearl_jax/deploy/exported.py`, jax only) runs
+them
 without flax or the project's networks. A bad folder or seed index is a one-line error (exit 2).
 """
 
@@ -33,9 +34,9 @@ def make_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = make_parser().parse_args(argv)
+    from mpcpearl_jax.deploy.export import export_policy
+    from mpcpearl_jax.deploy.exported import load_exported, sidecar_path
     from mpcpearl_jax.errors import CheckpointError
-    from mpcpearl_jax.export import export_policy
-    from mpcpearl_jax.exported import load_exported, sidecar_path
 
     if not args.run.is_dir():
         print(f"error: {args.run}: no such directory", file=sys.stderr)

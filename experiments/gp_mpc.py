@@ -19,10 +19,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from mpcpearl_jax import metrics
 from mpcpearl_jax.envs import make_env, make_tasks, mpc_defaults
+from mpcpearl_jax.evaluation import metrics
+from mpcpearl_jax.evaluation.report import PAPER, metrics_table
 from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
-from mpcpearl_jax.report import PAPER, metrics_table
 
 
 def parse_overrides(items: list[str]) -> dict:

@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     from experiments.common import error_line, out_of_memory
     from mpcpearl_jax.errors import CheckpointError, RunDirError
     from mpcpearl_jax.grbal.run import final_evaluation, load_config, train
-    from mpcpearl_jax.runlock import RunLock
+    from mpcpearl_jax.training.runlock import RunLock
 
     out = args.out or Path("runs") / f"{args.env}-{args.preset}-grbal"
     g = cfg.grbal

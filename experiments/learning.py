@@ -21,7 +21,8 @@ points so far), config.json, the policy and training state as `run.train` saves 
 continues the run), and what `run.final_evaluation` writes (results.json, learning_curves.png,
 trajectory figures).
 
-A learning run is a run (`mpcpearl_jax.run.prepare`: one writer per folder, the same checks,
+A learning run is a run (`mpcpearl_jax.training.run.prepare`: one writer per folder, the same
+checks,
 checkpoints and log): the training state is checkpointed every `train.checkpoint_interval`
 iterations and after every evaluation, so a crash (kill -9) loses at most the work since then.
 Ctrl-C stops at the next phase boundary, saves, and exits 130; `--resume` (the same options;
@@ -48,9 +49,9 @@ from pathlib import Path
 from typing import Any
 
 from experiments.common import ENV_EXTRAS, add_config_options, build_config
-from mpcpearl_jax.checkpoint import write_json
 from mpcpearl_jax.envs.restaurant.scenarios import VAL_IDS, check_val_split, uses_scenarios
-from mpcpearl_jax.report import run_label
+from mpcpearl_jax.evaluation.report import run_label
+from mpcpearl_jax.training.checkpoint import write_json
 
 METRICS = ("SR", "CFR", "TT", "SPL", "MGD", "return")
 SPLITS = ("test", "val")
@@ -206,7 +207,7 @@ def check_out(out: Path, overwrite: bool) -> str | None:
     """Check that `out` can take a new run (create it and prove it writable; a non-empty folder
     only with overwrite, whose old outputs `clear_outputs` removes once the folder is locked).
     Returns a one-line error, or None."""
-    from mpcpearl_jax.runlock import LOCK_FILE
+    from mpcpearl_jax.training.runlock import LOCK_FILE
 
     if out.exists() and not out.is_dir():
         return f"--out {out}: exists and is not a folder"
@@ -323,7 +324,7 @@ def main(argv: Sequence[str] | None = None, clock=time.perf_counter) -> int:
         print(f"error: --eval-minutes must be positive, got {args.eval_minutes}", file=sys.stderr)
         return 2
     if args.tensorboard:
-        from mpcpearl_jax.livelog import missing
+        from mpcpearl_jax.training.livelog import missing
 
         if missing():
             print(f"error: {missing()}", file=sys.stderr)
@@ -346,7 +347,7 @@ def _locked_run(args: argparse.Namespace, cfg, label: str, out: Path, clock) -> 
     line."""
     from experiments.common import error_line, out_of_memory
     from mpcpearl_jax.errors import CheckpointError, ConfigError, RunDirError
-    from mpcpearl_jax.runlock import RunLock
+    from mpcpearl_jax.training.runlock import RunLock
 
     lock = None
     try:
@@ -412,7 +413,8 @@ def train_for(
     every `every_s` training seconds and at the end (evaluation is off the clock).
 
     Appends one JSON line per iteration to `log_path` (and writes it to `tensorboard`, a
-    `mpcpearl_jax.livelog.TensorBoardLog`, if given) and one per eval point to `points_path`.
+    `mpcpearl_jax.training.livelog.TensorBoardLog`, if given) and one per eval point to
+    `points_path`.
     `save(iteration, state)` checkpoints every `checkpoint_every` iterations, after every
     evaluation and when stopping on `stop()` (Ctrl-C, polled between iterations and inside
     them). `start` continues an earlier process: {points, train_s, wall_s, first_iteration_s,
@@ -423,9 +425,9 @@ def train_for(
     under way was abandoned, and `saved` is the iteration a resume starts from).
     """
     from mpcpearl_jax.errors import TrainingDiverged
-    from mpcpearl_jax.loop import Progress, train_loop
-    from mpcpearl_jax.run import append_log
-    from mpcpearl_jax.trainer import IterationAbandoned
+    from mpcpearl_jax.training.loop import Progress, train_loop
+    from mpcpearl_jax.training.run import append_log
+    from mpcpearl_jax.training.trainer import IterationAbandoned
 
     start = start or {}
     ups = trainer.cfg.train.updates_per_iteration
@@ -508,7 +510,7 @@ def train_for(
 
 
 def run(args: argparse.Namespace, cfg, label: str, out: Path, clock=time.perf_counter) -> int:
-    from mpcpearl_jax.run import prepare
+    from mpcpearl_jax.training.run import prepare
 
     budget_s = args.minutes * 60.0
     every_s = eval_every_minutes(args.minutes, args.eval_minutes) * 60.0
@@ -540,8 +542,8 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path, clock=time.perf_co
 def _start_from(sess, points_path: Path) -> dict[str, Any]:
     """What `train_for` continues from: the eval points, training seconds and wall seconds of
     the restored checkpoint (all zero for a new run); curve-points.jsonl is cut back to it."""
-    from mpcpearl_jax.checkpoint import atomic_write
-    from mpcpearl_jax.run import read_log
+    from mpcpearl_jax.training.checkpoint import atomic_write
+    from mpcpearl_jax.training.run import read_log
 
     points = read_log(points_path, sess.done) if sess.done or sess.saved >= 0 else []
     atomic_write(points_path, "".join(json.dumps(p) + "\n" for p in points))
@@ -563,10 +565,10 @@ def _run_session(
 
     import jax
 
-    from mpcpearl_jax.checkpoint import POLICY_FILE, save_config, save_params
     from mpcpearl_jax.envs import make_tasks
-    from mpcpearl_jax.machine import available_cores, machine_info, print_table
-    from mpcpearl_jax.run import (
+    from mpcpearl_jax.training.checkpoint import POLICY_FILE, save_config, save_params
+    from mpcpearl_jax.training.machine import available_cores, machine_info, print_table
+    from mpcpearl_jax.training.run import (
         LOG_FILE,
         RunInterrupted,
         _sigint_flag,
@@ -595,7 +597,7 @@ def _run_session(
     start = _start_from(sess, points_path)
     tb = None
     if args.tensorboard:
-        from mpcpearl_jax.livelog import TB_DIR, TensorBoardLog
+        from mpcpearl_jax.training.livelog import TB_DIR, TensorBoardLog
 
         tb = TensorBoardLog(out / TB_DIR, purge_step=sess.done + 1 if sess.done else None)
 

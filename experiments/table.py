@@ -9,7 +9,8 @@ two adaptation episodes, online, OOD), `curve.json` (budget, gradient steps, the
 point; `metrics.jsonl` and `config.json` where a run has no curve), its
 `eval/policy-val-seeds1-8/results.json` (192 validation tasks, pooled) and
 `eval/policy-scenarios-{test,ood}/results.json` (the paper's 25 test and 25 OOD scenarios); the
-GP-MPC's from `results/gp_mpc/`; the paper's from `mpcpearl_jax.report.PAPER`. A table lists its
+GP-MPC's from `results/gp_mpc/`; the paper's from `mpcpearl_jax.evaluation.report.PAPER`. A table
+lists its
 rows (or columns) in `README_QUALITY` and `RESTAURANT`: a label and one run folder, or several
 folders of one configuration (one per seed), shown as mean +- standard error over the seeds and
 the worst seed. A missing record is reported by name (exit 1), never filled in.
@@ -32,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mpcpearl_jax.report import PAPER
+from mpcpearl_jax.evaluation.report import PAPER
 
 VAL8 = "eval/policy-val-seeds1-8/results.json"  # 192 validation tasks (task seeds 1-8), pooled
 SCENARIOS = {  # the paper's 25 test and 25 OOD scenarios
@@ -399,7 +400,7 @@ def render_quality(rec: Records, entries: Sequence[Entry] = README_QUALITY) -> s
         "SR ... MGD: the 24 test tasks after two adaptation episodes; val SR: the 192 validation "
         "tasks; the scenario rows: the paper's own 25 test and 25 OOD crowds (`--scenarios`). "
         "Paper columns: the paper's table, measured on its 25 test scenarios "
-        "(`mpcpearl_jax.report.PAPER`). "
+        "(`mpcpearl_jax.evaluation.report.PAPER`). "
         + SEEDS_NOTE
         + " Records, under `results/`: "
         + "; ".join(f"{e.label}: {run_ref(e)}" for e in entries if e.sources())
@@ -573,7 +574,8 @@ def render_restaurant(rec: Records, entries: Sequence[Entry] = RESTAURANT) -> st
         "SR ... MGD: the 24 test tasks after two adaptation episodes; online: the same tasks with "
         "online adaptation; OOD: the 24 out-of-distribution tasks; val (end): the run's last "
         "validation point (24 tasks); the scenario columns: the paper's own 25 test and 25 OOD "
-        "crowds (`--scenarios`). Paper rows: the paper's table (`mpcpearl_jax.report.PAPER`), on "
+        "crowds (`--scenarios`). Paper rows: the paper's table "
+        "(`mpcpearl_jax.evaluation.report.PAPER`), on "
         "its own 25 test scenarios. " + SEEDS_NOTE,
     ]
     return "\n".join(lines + notes)

@@ -38,7 +38,7 @@ def main(argv: list[str]) -> int:
     jax.config.update("jax_compilation_cache_dir", cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    from mpcpearl_jax.run import prepare, train_session
+    from mpcpearl_jax.training.run import prepare, train_session
 
     cfg = build_config(args, "restaurant")
     sess = prepare(cfg, args.out, resume=args.resume)

@@ -1,4 +1,4 @@
-"""Animated episodes (mpcpearl_jax.animate)."""
+"""Animated episodes (mpcpearl_jax.evaluation.animate)."""
 
 import jax
 import jax.numpy as jnp
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from mpcpearl_jax import animate
 from mpcpearl_jax.envs import make_env, make_tasks
+from mpcpearl_jax.evaluation import animate
 
 
 def _gif(path):

@@ -176,9 +176,9 @@ def test_runs_of_removed_options_evaluate_but_do_not_resume(tmp_path, folder, op
     import json
 
     from mpcpearl_jax import load_policy
-    from mpcpearl_jax.checkpoint import load_config
     from mpcpearl_jax.config import REMOVED_OPTIONS, removed_options_on
     from mpcpearl_jax.errors import CheckpointError
+    from mpcpearl_jax.training.checkpoint import load_config
 
     run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / folder
     raw = json.loads((run / "config.json").read_text())

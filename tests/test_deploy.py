@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mpcpearl_jax.deploy import Frame, Layout, Scene, check_frame, observe, reward
+from mpcpearl_jax.deploy.adapter import Frame, Layout, Scene, check_frame, observe, reward
 from mpcpearl_jax.envs import EnvState, make_env, make_tasks
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,11 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mpcpearl_jax import evaluate as eval_lib
-from mpcpearl_jax import metrics
-from mpcpearl_jax.deploy import Adapter, Frame, Layout, Scene
+from mpcpearl_jax.deploy.adapter import Adapter, Frame, Layout, Scene
+from mpcpearl_jax.deploy.policy import load_policy
 from mpcpearl_jax.envs import make_env, make_tasks
-from mpcpearl_jax.policy import load_policy
+from mpcpearl_jax.evaluation import evaluate as eval_lib
+from mpcpearl_jax.evaluation import metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNS = {

@@ -273,7 +273,7 @@ def test_task_to_numpy_errors():
 @pytest.mark.parametrize("sign", [1.0, -1.0])
 def test_full_steering_is_the_limit_of_near_full_steering(sign):
     """delta = +-pi/2 (where tan is infinite) continues the motion of |delta| slightly smaller."""
-    from mpcpearl_jax.dynamics import bicycle_step, to_physical
+    from mpcpearl_jax.envs.dynamics import bicycle_step, to_physical
 
     pose = jnp.array([0.0, 0.0, 0.3], jnp.float32)
     u_full = to_physical(jnp.array([1.0, sign]), 7.0)

@@ -17,12 +17,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import mpcpearl_jax.exported as exported_module
-from mpcpearl_jax.deploy import Adapter, Frame, Scene
+import mpcpearl_jax.deploy.exported as exported_module
+from mpcpearl_jax.deploy.adapter import Adapter, Frame, Scene
+from mpcpearl_jax.deploy.export import export_policy
+from mpcpearl_jax.deploy.exported import ExportError, load_exported, sidecar_path
+from mpcpearl_jax.deploy.policy import load_policy
 from mpcpearl_jax.envs import make_env, make_tasks
-from mpcpearl_jax.export import export_policy
-from mpcpearl_jax.exported import ExportError, load_exported, sidecar_path
-from mpcpearl_jax.policy import load_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 HEADLINE = ROOT / "results/restaurant/mpc-pearl-eps0.2"

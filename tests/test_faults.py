@@ -27,12 +27,19 @@ import numpy as np
 import pytest
 
 from experiments.common import build_config, main, parser
-from mpcpearl_jax.checkpoint import CheckpointError
+from mpcpearl_jax.deploy.policy import load_policy
 from mpcpearl_jax.envs.sidewalk.loader import DataFormatError, load_eth_ucy
 from mpcpearl_jax.envs.types import ConfigError
-from mpcpearl_jax.policy import load_policy
-from mpcpearl_jax.run import LOG_FILE, RunDirError, check_writable, prepare, read_log, train
-from mpcpearl_jax.trainer import IterationAbandoned, Trainer
+from mpcpearl_jax.training.checkpoint import CheckpointError
+from mpcpearl_jax.training.run import (
+    LOG_FILE,
+    RunDirError,
+    check_writable,
+    prepare,
+    read_log,
+    train,
+)
+from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 ZARA = ROOT.parent / "shared" / "data" / "crowds_zara01.txt"
@@ -64,7 +71,7 @@ TIMING = {"collect_s", "update_s", "train_s", "wall_s", "eval_s", "mpc_solve_s",
 DRIVER = (
     "import sys\n"
     "from experiments.common import build_config, parser\n"
-    "from mpcpearl_jax.run import train\n"
+    "from mpcpearl_jax.training.run import train\n"
     "a = parser('restaurant').parse_args(sys.argv[1:])\n"
     "train(build_config(a, 'restaurant'), a.out, resume=a.resume, progress=False,"
     " handle_sigint=True)\n"
@@ -660,7 +667,9 @@ def test_learning_run_stops_on_ctrl_c_and_resumes_exactly(tmp_path, monkeypatch,
     curve points (the budget counts the 4 s already trained)."""
     from experiments import learning
 
-    monkeypatch.setattr("mpcpearl_jax.run.final_evaluation", lambda *a, **k: {})  # not needed
+    monkeypatch.setattr(
+        "mpcpearl_jax.training.run.final_evaluation", lambda *a, **k: {}
+    )  # not needed
     ref, run = tmp_path / "ref", tmp_path / "run"
     assert learning.main(learning_args(ref, 0.1, 0.05), clock=_Tick()) == 0
     capsys.readouterr()
@@ -705,7 +714,7 @@ def test_learning_run_ctrl_c_then_kill9_then_resume(tmp_path, monkeypatch):
         )
     assert kill_when(proc, rows_at_least(run, n + 2))
     before = read_log(run / "curve-points.jsonl")
-    monkeypatch.setattr("mpcpearl_jax.run.final_evaluation", lambda *a, **k: {})
+    monkeypatch.setattr("mpcpearl_jax.training.run.final_evaluation", lambda *a, **k: {})
     # a budget already spent: no further iteration, the last point evaluated, the curve written
     assert learning.main(learning_args(run, 0.01, 0.005, "--resume")) == 0
     rows = read_log(run / LOG_FILE)
@@ -736,7 +745,7 @@ def test_resume_with_nothing_to_resume_is_an_error(tmp_path, ref0, capsys):
 
 def _hold_lock(folder: Path) -> subprocess.Popen:
     code = (
-        "import sys, time\nfrom mpcpearl_jax.runlock import RunLock\n"
+        "import sys, time\nfrom mpcpearl_jax.training.runlock import RunLock\n"
         "RunLock(sys.argv[1])\nprint('locked', flush=True)\ntime.sleep(600)\n"
     )
     proc = subprocess.Popen(
@@ -751,7 +760,7 @@ def test_one_writer_per_run_folder(tmp_path, ref0, capsys):
     GrBAL each stop with one line naming the holder's PID and write nothing; once the holder is
     killed (SIGKILL), its lock file no longer blocks anyone."""
     from experiments import grbal, learning
-    from mpcpearl_jax.runlock import LOCK_FILE, RunLock
+    from mpcpearl_jax.training.runlock import LOCK_FILE, RunLock
 
     new, old = tmp_path / "new", tmp_path / "old"
     shutil.copytree(ref0, old)
@@ -792,7 +801,7 @@ def _nan_policy(run: Path) -> Path:
 
 def test_non_finite_parameters_are_refused_on_save_and_load(tmp_path, ref0, capsys):
     from experiments import evaluate
-    from mpcpearl_jax.checkpoint import Checkpointer, save_params
+    from mpcpearl_jax.training.checkpoint import Checkpointer, save_params
 
     run = tmp_path / "run"
     shutil.copytree(ref0, run)
@@ -827,7 +836,7 @@ def test_results_json_never_holds_nan_or_infinity(tmp_path, ref0, capsys):
     """One task: the standard error over tasks is undefined (NaN); results.json says null and
     why, in strict JSON."""
     from experiments import evaluate
-    from mpcpearl_jax.checkpoint import strict_json
+    from mpcpearl_jax.training.checkpoint import strict_json
 
     doc = _strict(strict_json({"a": float("nan"), "b": [1.0, float("-inf")], "c": 2}))
     assert doc["a"] is None and doc["b"] == [1.0, None] and doc["c"] == 2
@@ -952,7 +961,7 @@ def test_evaluate_checks_its_output_folder_and_ranges_first(tmp_path, ref0, caps
 
 def test_size_fields_are_bounded_before_anything_is_written(tmp_path, capsys):
     from experiments import grbal
-    from mpcpearl_jax.resources import check_fits
+    from mpcpearl_jax.training.resources import check_fits
 
     out = tmp_path / "g"
 

@@ -79,7 +79,7 @@ class _FakeTrainer:
         self.eval_tasks = []
 
     def iteration(self, state):
-        from mpcpearl_jax.trainer import TrainingDiverged
+        from mpcpearl_jax.training.trainer import TrainingDiverged
 
         if state + 1 == self.diverge_at:
             raise TrainingDiverged("non-finite losses ['q_loss']")
@@ -227,7 +227,7 @@ def test_smoke_run_writes_curve_policy_and_results(tmp_path, fast_compile, capsy
 
 
 def test_the_old_command_name_runs_the_same_program():
-    """`python -m benchmarks.learning` (the name recorded with older results) is this harness."""
-    import benchmarks.learning
+    """`python -m experiments.learning` (the name recorded with older results) is this harness."""
+    import experiments.learning
 
-    assert benchmarks.learning.main is learning.main
+    assert experiments.learning.main is learning.main

@@ -1,10 +1,10 @@
-"""Live logs: the optional TensorBoard mirror of metrics.jsonl (mpcpearl_jax.livelog)."""
+"""Live logs: the optional TensorBoard mirror of metrics.jsonl (mpcpearl_jax.training.livelog)."""
 
 import json
 
 import pytest
 
-from mpcpearl_jax import livelog
+from mpcpearl_jax.training import livelog
 
 
 def test_tensorboard_log_holds_the_metrics_rows(tmp_path):

@@ -10,9 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import mpcpearl_jax.checkpoint as checkpoint
-from mpcpearl_jax.checkpoint import NETWORK_FILE, CheckpointError, save_network
-from mpcpearl_jax.policy import load_policy
+import mpcpearl_jax.training.checkpoint as checkpoint
+from mpcpearl_jax.deploy.policy import load_policy
+from mpcpearl_jax.training.checkpoint import NETWORK_FILE, CheckpointError, save_network
 
 ROOT = Path(__file__).resolve().parents[1]
 SIDEWALK_RUN = ROOT / "results" / "sidewalk" / "ablation" / "cpu-10min"  # no network.json

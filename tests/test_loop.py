@@ -1,4 +1,5 @@
-"""mpcpearl_jax.loop.train_loop, the one training loop, with a fake trainer and a fake clock:
+"""mpcpearl_jax.training.loop.train_loop, the one training loop, with a fake trainer and a fake
+clock:
 its rules (until, evaluation, checkpoints), rows, Ctrl-C between and inside iterations, and
 errors propagating with the progress telling the last checkpoint."""
 
@@ -7,8 +8,8 @@ from __future__ import annotations
 import pytest
 
 from mpcpearl_jax.errors import TrainingDiverged
-from mpcpearl_jax.loop import Progress, train_loop
-from mpcpearl_jax.trainer import IterationAbandoned
+from mpcpearl_jax.training.loop import Progress, train_loop
+from mpcpearl_jax.training.trainer import IterationAbandoned
 
 
 class Clock:

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mpcpearl_jax import metrics
+from mpcpearl_jax.evaluation import metrics
 
 F, T_ = False, True
 

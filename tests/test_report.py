@@ -6,7 +6,7 @@ import argparse
 from experiments.common import add_config_options, build_config
 from mpcpearl_jax.config import preset
 from mpcpearl_jax.envs import mpc_defaults
-from mpcpearl_jax.report import PAPER, comparison_table, results_table, run_label
+from mpcpearl_jax.evaluation.report import PAPER, comparison_table, results_table, run_label
 
 
 def test_run_label_of_configs_and_saved_dicts():

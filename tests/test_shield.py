@@ -1,4 +1,4 @@
-"""The test-time safety shield (`mpcpearl_jax.shield`): NumPy reference of the clearance and of
+"""The test-time safety shield (`mpcpearl_jax.mpc.shield`): NumPy reference of the clearance and of
 the choice, invariants, the evaluator path, the goal-seeking control behind it, and the command
 line."""
 
@@ -19,7 +19,7 @@ from mpcpearl_jax.envs.numpy_ref import (
     rounded_box_clearance,
     task_to_numpy,
 )
-from mpcpearl_jax.shield import ShieldConfig, clearance, filter_action, shield_step
+from mpcpearl_jax.mpc.shield import ShieldConfig, clearance, filter_action, shield_step
 
 
 def _clearance_ref(pose, action, people, prev, seen, task, goal, cfg, lookahead):
@@ -144,9 +144,10 @@ def test_bad_shield_settings_name_the_field(kwargs, field):
 
 def test_goal_seeking_control_collides_alone_and_not_behind_the_shield():
     """End to end through the environment: the straight-at-the-goal control of
-    benchmarks.shield hits a table on every one of these tasks; behind the shield the same
+    experiments.diagnostics.shield hits a table on every one of these tasks; behind the shield the
+    same
     control reaches the goal without a contact, and the shield acts on a minority of steps."""
-    from benchmarks.shield import goal_seeking_evaluator
+    from experiments.diagnostics.shield import goal_seeking_evaluator
 
     env = make_env("restaurant", sensing_radius=3.0)
     tasks = jax.tree_util.tree_map(lambda x: x[:6], make_tasks("restaurant", "val", 1))
@@ -161,8 +162,8 @@ def test_goal_seeking_control_collides_alone_and_not_behind_the_shield():
 
 
 def test_evaluator_with_shield_reports_the_replaced_steps_and_changes_nothing_without():
-    from mpcpearl_jax import evaluate as eval_lib
     from mpcpearl_jax.config import PearlConfig
+    from mpcpearl_jax.evaluation import evaluate as eval_lib
     from mpcpearl_jax.pearl.networks import Networks
 
     env = make_env("restaurant", sensing_radius=3.0)

@@ -9,8 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mpcpearl_jax import physics
-from mpcpearl_jax.envs import EnvState, make_env, make_tasks
+from mpcpearl_jax.envs import EnvState, make_env, make_tasks, physics
 from mpcpearl_jax.envs.numpy_ref import NumpyNavEnv, rounded_box_clearance, task_to_numpy
 from mpcpearl_jax.envs.sidewalk import SIDEWALK_CONFIG, sidewalk_boxes
 

@@ -168,7 +168,8 @@ def test_paired_difference_is_over_the_same_tasks():
 def test_referenced_paths_reads_code_brackets_and_links_but_not_outputs():
     text = (
         "see `results/restaurant/pearl` and [`ablation/x`, `restaurant/y`] or [a](earlier/z.png);"
-        " `python -m benchmarks.imitation --out results/new/folder` `runs/<run>` `docs/a.md`\n"
+        " `python -m experiments.diagnostics.imitation --out results/new/folder`"
+        " `runs/<run>` `docs/a.md`\n"
         "```bash\npython -m x results/in/code\n```\n"
     )
     assert table.referenced_paths(text) == [

@@ -35,7 +35,7 @@ def _warm_start_config(**train_changes) -> ExperimentConfig:
 
 
 def test_warm_start_rows_fill_the_mpc_buffer_with_exactly_the_mpc_transitions():
-    from mpcpearl_jax.trainer import Trainer
+    from mpcpearl_jax.training.trainer import Trainer
 
     tr = Trainer(_warm_start_config())
     state = tr.init_state()
@@ -61,7 +61,7 @@ def test_warm_start_rows_fill_the_mpc_buffer_with_exactly_the_mpc_transitions():
 
 
 def test_pearl_baseline_never_builds_the_mpc_even_with_extensions_set():
-    from mpcpearl_jax.trainer import Trainer
+    from mpcpearl_jax.training.trainer import Trainer
     from tests.test_training import TINY
 
     tc = dataclasses.replace(
@@ -72,7 +72,7 @@ def test_pearl_baseline_never_builds_the_mpc_even_with_extensions_set():
 
 
 def test_task_options_reach_the_builder_and_bad_ones_name_the_field():
-    from mpcpearl_jax.trainer import Trainer
+    from mpcpearl_jax.training.trainer import Trainer
     from tests.test_training import TINY
 
     tr = Trainer(TINY.replace(task_options={"train_behaviours": 2}))
@@ -84,7 +84,7 @@ def test_task_options_reach_the_builder_and_bad_ones_name_the_field():
 
 
 def test_redraw_behaviours_changes_only_the_visited_tasks_and_needs_a_family_that_can():
-    from mpcpearl_jax.trainer import Trainer
+    from mpcpearl_jax.training.trainer import Trainer
     from tests.test_training import TINY
 
     tc = dataclasses.replace(TINY.train, redraw_behaviours=True)
@@ -127,7 +127,7 @@ def _delays_of(orig: np.ndarray, got: np.ndarray, top: int) -> np.ndarray:
 
 @pytest.mark.parametrize("redraw", [False, True])
 def test_crowd_delays_shift_only_the_visited_paths_and_never_accumulate(redraw):
-    from mpcpearl_jax.trainer import Trainer
+    from mpcpearl_jax.training.trainer import Trainer
     from tests.test_training import TINY
 
     top = 20
@@ -167,7 +167,7 @@ def test_crowd_delays_shift_only_the_visited_paths_and_never_accumulate(redraw):
 
 def test_exploring_starts_change_only_the_marked_rows_and_never_the_encoder_context():
     from mpcpearl_jax.envs.types import EnvState
-    from mpcpearl_jax.trainer import Trainer
+    from mpcpearl_jax.training.trainer import Trainer
     from tests.test_training import TINY
 
     tc = dataclasses.replace(TINY.train, explore_start_share=0.9)

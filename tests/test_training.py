@@ -8,12 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mpcpearl_jax.checkpoint import CheckpointError
 from mpcpearl_jax.config import ExperimentConfig, PearlConfig, TrainConfig, preset
+from mpcpearl_jax.deploy.policy import load_policy
 from mpcpearl_jax.envs.types import ConfigError
-from mpcpearl_jax.policy import load_policy
-from mpcpearl_jax.run import train
-from mpcpearl_jax.trainer import Trainer
+from mpcpearl_jax.training.checkpoint import CheckpointError
+from mpcpearl_jax.training.run import train
+from mpcpearl_jax.training.trainer import Trainer
 
 TINY = ExperimentConfig(
     seeds=2,

@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mpcpearl_jax import viz
 from mpcpearl_jax.envs import make_env, make_tasks
+from mpcpearl_jax.evaluation import viz
 
 
 def _episode(env, params, policy_seed):

@@ -2,14 +2,25 @@
 
 Public entry points: `make_env`, `make_tasks` (environments), `load_policy` (a trained policy
 from a run directory), `metrics`; `Adapter`, `Frame`, `Scene`, `observe` (a policy in your own
-control loop, from raw sensor arrays: `deploy`), `export_policy` and `load_exported` (a portable
-artifact run with jax alone: `export`, `exported`); see the subpackages `envs`, `mpc`, `pearl`.
+control loop, from raw sensor arrays), `export_policy` and `load_exported` (a portable artifact
+run with jax alone).
+
+The packages mirror the layers (lowest first; `tests/test_layers.py` checks that no import runs
+back up):
+
+- `envs`: the robot (dynamics, physics), the navigation env and the task families;
+- `pearl`, `mpc`: the learner (networks, losses, buffers) and the risk-aware MPC (GP, SQP,
+  the host bridge, the safety shield);
+- `config`: the experiment configuration, its presets and `resolve`;
+- `evaluation`: meta-test rollouts (Algorithm 2), the method's metrics, the controller runners,
+  tables and figures;
+- `training`: the trainer (Algorithm 1), the run session (checkpoints, logs, Ctrl-C) and the
+  one training loop; `grbal`: the GrBAL baseline on the same session;
+- `deploy`: a trained policy in your own code (`load_policy`, `Adapter`, `export_policy`,
+  `load_exported`).
 """
 
 from typing import Any
-
-from mpcpearl_jax import metrics
-from mpcpearl_jax.envs import make_env, make_tasks
 
 __version__ = "0.1.0"
 
@@ -27,24 +38,26 @@ __all__ = [
     "__version__",
 ]
 
-# lazy: checkpointing and exporting pull in orbax
+# every name is loaded on first use: `from mpcpearl_jax.deploy import load_exported` pulls in
+# jax alone (no flax, no orbax)
 _LAZY = {
-    "Adapter": "deploy",
-    "Frame": "deploy",
-    "Scene": "deploy",
-    "observe": "deploy",
-    "export_policy": "export",
-    "load_exported": "exported",
+    "make_env": "envs",
+    "make_tasks": "envs",
+    "Adapter": "deploy.adapter",
+    "Frame": "deploy.adapter",
+    "Scene": "deploy.adapter",
+    "observe": "deploy.adapter",
+    "export_policy": "deploy.export",
+    "load_exported": "deploy.exported",
+    "load_policy": "deploy.policy",
 }
 
 
 def __getattr__(name: str) -> Any:
-    if name == "load_policy":
-        from mpcpearl_jax.policy import load_policy
+    import importlib
 
-        return load_policy
+    if name == "metrics":
+        return importlib.import_module("mpcpearl_jax.evaluation.metrics")
     if name in _LAZY:
-        import importlib
-
         return getattr(importlib.import_module(f"mpcpearl_jax.{_LAZY[name]}"), name)
     raise AttributeError(f"module 'mpcpearl_jax' has no attribute {name!r}")

@@ -24,7 +24,8 @@ class TrainingDiverged(RuntimeError):
 
 class RunDirError(RuntimeError):
     """A run directory cannot be created or written (permissions, a full disk, an I/O error), or
-    another process is writing it (`mpcpearl_jax.runlock`); the message names the folder."""
+    another process is writing it (`mpcpearl_jax.training.runlock`); the message names the
+    folder."""
 
 
 __all__ = ["CheckpointError", "ConfigError", "DataFormatError", "RunDirError", "TrainingDiverged"]

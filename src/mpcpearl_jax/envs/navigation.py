@@ -12,9 +12,8 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from mpcpearl_jax import physics
-from mpcpearl_jax.dynamics import bicycle_step, to_physical
-from mpcpearl_jax.envs import observation
+from mpcpearl_jax.envs import observation, physics
+from mpcpearl_jax.envs.dynamics import bicycle_step, to_physical
 from mpcpearl_jax.envs.types import EnvState, NavConfig, StepInfo, TaskParams
 
 ACTION_DIM = 2

@@ -1,7 +1,8 @@
 """The policy's observation from plain arrays, shared by `NavEnv.observe` and `deploy.observe`.
 
 Everything a navigation policy sees is computed here, once: the env reads its arrays from
-`TaskParams` and `EnvState`, a robot's control loop from its sensors (`mpcpearl_jax.deploy`).
+`TaskParams` and `EnvState`, a robot's control loop from its sensors
+(`mpcpearl_jax.deploy.adapter`).
 """
 
 from __future__ import annotations

@@ -27,8 +27,8 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from mpcpearl_jax import physics
-from mpcpearl_jax.dynamics import bicycle_step, to_physical
+from mpcpearl_jax.envs import physics
+from mpcpearl_jax.envs.dynamics import bicycle_step, to_physical
 from mpcpearl_jax.envs.types import NavConfig, TaskParams
 from mpcpearl_jax.grbal.config import GrbalConfig
 from mpcpearl_jax.grbal.model import DynamicsModel, Normalizer, ObsLayout

@@ -1,5 +1,5 @@
 """Run GrBAL: train with checkpoints and a metrics log, evaluate, write figures and the results
-table (the same files as `mpcpearl_jax.run`, so `experiments.compare` reads both).
+table (the same files as `mpcpearl_jax.training.run`, so `experiments.compare` reads both).
 
 Used by `python -m experiments.grbal`.
 """
@@ -16,7 +16,11 @@ from typing import Any
 import jax
 import numpy as np
 
-from mpcpearl_jax.checkpoint import (
+from mpcpearl_jax.errors import CheckpointError
+from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
+from mpcpearl_jax.grbal.config import GrbalExperimentConfig
+from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
+from mpcpearl_jax.training.checkpoint import (
     CONFIG_FILE,
     Checkpointer,
     atomic_write,
@@ -24,13 +28,15 @@ from mpcpearl_jax.checkpoint import (
     save_config,
     write_json,
 )
-from mpcpearl_jax.errors import CheckpointError
-from mpcpearl_jax.grbal.config import GrbalExperimentConfig
-from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
-from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
-from mpcpearl_jax.resources import check_fits, tree_bytes
-from mpcpearl_jax.run import LOG_FILE, append_log, check_nothing_lost, read_log, write_error
-from mpcpearl_jax.runlock import RunLock
+from mpcpearl_jax.training.resources import check_fits, tree_bytes
+from mpcpearl_jax.training.run import (
+    LOG_FILE,
+    append_log,
+    check_nothing_lost,
+    read_log,
+    write_error,
+)
+from mpcpearl_jax.training.runlock import RunLock
 
 LABEL = "GrBAL"
 # The paper prints no GrBAL numbers (its restaurant bar charts only); its text (Sec. IV-A):
@@ -66,7 +72,7 @@ def load_model(run_dir: Path, data: str | None = None) -> tuple[GrbalTrainer, di
     match the config's model, or holds NaN or inf."""
     from flax import serialization
 
-    from mpcpearl_jax.checkpoint import POLICY_FILE, non_finite_leaves
+    from mpcpearl_jax.training.checkpoint import POLICY_FILE, non_finite_leaves
 
     run_dir = Path(run_dir)
     cfg = load_config(run_dir)
@@ -205,7 +211,7 @@ def _loop(
     """`loop.train_loop` for `grbal.iterations` (or until `budget_s` wall seconds of this
     process have passed): evaluation every `eval_interval` iterations and at the end,
     checkpoints every `checkpoint_interval` and at the end."""
-    from mpcpearl_jax.loop import Progress, train_loop
+    from mpcpearl_jax.training.loop import Progress, train_loop
 
     g = trainer.cfg.grbal
     done = int(np.asarray(state.iteration)[0])

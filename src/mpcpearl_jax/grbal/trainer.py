@@ -14,7 +14,7 @@
     every step from the last M transitions (GrBAL's own mode), which is the first of those
     adaptation episodes, so one program gives both.
 The whole `GrbalState` is a pytree with a leading seed axis, checkpointed by
-`mpcpearl_jax.checkpoint`.
+`mpcpearl_jax.training.checkpoint`.
 """
 
 from __future__ import annotations
@@ -29,10 +29,10 @@ import optax
 from flax import struct
 from jax import Array
 
-from mpcpearl_jax import evaluate as eval_lib
 from mpcpearl_jax.envs import make_env, make_tasks
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.errors import ConfigError, TrainingDiverged
+from mpcpearl_jax.evaluation import evaluate as eval_lib
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.model import (
     DynamicsModel,

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from mpcpearl_jax.dynamics import to_normalized
+from mpcpearl_jax.envs.dynamics import to_normalized
 from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import EnvState, TaskParams
 from mpcpearl_jax.mpc.config import MPCConfig

@@ -1,6 +1,7 @@
 """NumPy twin of the bicycle model (method §1) and its linearization, for the host-side SQP.
 
-`bicycle_step` equals `mpcpearl_jax.dynamics.bicycle_step` (tested); the plan itself is rolled out
+`bicycle_step` equals `mpcpearl_jax.envs.dynamics.bicycle_step` (tested); the plan itself is rolled
+out
 with `wrap=False` so that the heading is continuous along the horizon.
 """
 

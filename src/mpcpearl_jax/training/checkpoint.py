@@ -6,7 +6,7 @@ A run directory holds:
                       network config), written with config.json
   checkpoints/<it>/   orbax checkpoints of the whole TrainState (last few kept)
   policy.msgpack      policy + encoder parameters of every seed (flax serialization)
-`mpcpearl_jax.policy.load_policy` reads config.json, network.json and policy.msgpack only.
+`mpcpearl_jax.deploy.policy.load_policy` reads config.json, network.json and policy.msgpack only.
 
 Every file is written atomically (a temporary file renamed over the old one; orbax commits a
 checkpoint the same way), so a process killed at any moment leaves the previous version intact.

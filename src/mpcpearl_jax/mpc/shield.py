@@ -16,7 +16,8 @@ call next to the policy (shielding in the sense of Alshiekh et al., "Safe reinfo
 via shielding", AAAI 2018, with a hand-written geometric model instead of a synthesised one).
 
 It is an evaluation and deployment option (`experiments.evaluate --shield`,
-`mpcpearl_jax.evaluate.make_evaluator(..., shield=ShieldConfig())`); training never uses it.
+`mpcpearl_jax.evaluation.evaluate.make_evaluator(..., shield=ShieldConfig())`); training never uses
+it.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from mpcpearl_jax import physics
-from mpcpearl_jax.dynamics import bicycle_step, to_physical
+from mpcpearl_jax.envs import physics
+from mpcpearl_jax.envs.dynamics import bicycle_step, to_physical
 from mpcpearl_jax.envs.types import EnvState, NavConfig, TaskParams
 from mpcpearl_jax.validate import is_int, is_number
 

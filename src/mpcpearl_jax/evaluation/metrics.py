@@ -14,7 +14,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jax import Array
 
-from mpcpearl_jax import physics
+from mpcpearl_jax.envs import physics
 
 METRIC_NAMES = ("SR", "TT", "CFR", "SPL", "MGD")
 

@@ -18,7 +18,8 @@ The BC MLP at the step count with the lowest validation error is then run closed
 on the `val` split of each of `--task-seeds` (method §8 metrics), the same 192 tasks on which
 `python -m experiments.evaluate RUN --split val --task-seeds 1-8` scores the run's policy.
 
-    python -m benchmarks.imitation [--tiny | --full] [--out DIR] [--threads N] [--run DIR]
+    python -m experiments.diagnostics.imitation [--tiny | --full] [--out DIR] [--threads N] [--run
+    DIR]
 """
 
 from __future__ import annotations
@@ -98,7 +99,7 @@ def closed_loop(env, net):
     import jax
     import jax.numpy as jnp
 
-    from mpcpearl_jax import metrics
+    from mpcpearl_jax.evaluation import metrics
 
     def episode(params, task):
         obs, state = env.reset(None, task)

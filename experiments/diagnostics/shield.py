@@ -1,11 +1,12 @@
 """What does the test-time safety shield add, and how much of it is the learned policy's?
 
-A diagnostic for the shield extension (`mpcpearl_jax.shield`, docs/extensions.md). On the `val`
+A diagnostic for the shield extension (`mpcpearl_jax.mpc.shield`, docs/extensions.md). On the `val`
 split of each of `--task-seeds` (the 192 tasks of task seeds 1-8 by default, the same on which
 `python -m experiments.evaluate RUN --split val --task-seeds 1-8` scores a run), it evaluates
 
 * every run of `--runs` by the meta-test protocol (two adaptation episodes, then the scored one;
-  `mpcpearl_jax.evaluate.make_evaluator`), without the shield and with each shield setting of
+  `mpcpearl_jax.evaluation.evaluate.make_evaluator`), without the shield and with each shield
+  setting of
   the margin x lookahead grid;
 * a goal-seeking controller with the same shield settings, the control that tells how much of a
   shielded score is the shield's: it steers the direction of motion straight at the goal (the
@@ -17,7 +18,8 @@ out of time without a contact, and the share of steps whose action the shield re
 over the task seeds with the standard error over tasks. Settings are chosen on this split; the
 test split is for reporting (`experiments.evaluate RUN --shield ...`).
 
-    python -m benchmarks.shield [--tiny | --full] [--out DIR] [--threads N] [--runs DIR ...]
+    python -m experiments.diagnostics.shield [--tiny | --full] [--out DIR] [--threads N] [--runs
+    DIR ...]
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ def goal_seeking_action(pose, goal, cfg):
     """Normalised action [2] that moves the robot straight at the goal (see module doc)."""
     import jax.numpy as jnp
 
-    from mpcpearl_jax.dynamics import DELTA_MAX, wrap_angle
+    from mpcpearl_jax.envs.dynamics import DELTA_MAX, wrap_angle
 
     d = goal - pose[:2]
     dist = jnp.linalg.norm(d)
@@ -60,7 +62,7 @@ def goal_seeking_evaluator(env, shield):
     import jax
     import jax.numpy as jnp
 
-    from mpcpearl_jax.shield import shield_step
+    from mpcpearl_jax.mpc.shield import shield_step
 
     cfg = env.config
 
@@ -86,7 +88,7 @@ def episode_outcomes(result: dict, tasks, robot_radius: float) -> dict[str, Any]
     """Per-task success, collision-free, timeout (no contact, goal never reached), shield rate."""
     import numpy as np
 
-    from mpcpearl_jax import metrics
+    from mpcpearl_jax.evaluation import metrics
 
     m = metrics.episode_metrics(
         result["position"], result["collision"], result["in_goal"], tasks.goal, robot_radius
@@ -138,11 +140,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import jax
 
     from experiments.evaluate import EVAL_SEED  # the unshielded rows reproduce its numbers
-    from mpcpearl_jax import evaluate as eval_lib
     from mpcpearl_jax import load_policy
-    from mpcpearl_jax.checkpoint import load_config
     from mpcpearl_jax.envs import make_env, make_tasks
-    from mpcpearl_jax.shield import ShieldConfig
+    from mpcpearl_jax.evaluation import evaluate as eval_lib
+    from mpcpearl_jax.mpc.shield import ShieldConfig
+    from mpcpearl_jax.training.checkpoint import load_config
 
     policies = [load_policy(r) for r in args.runs]
     env_names = {pol.config.env for pol in policies} | {load_config(args.env_from).env}
@@ -239,7 +241,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "env_from": _relative(args.env_from),
         "margins": list(sz["margins"]),
         "lookaheads": list(sz["lookaheads"]),
-        "goal_seeking": "direction of motion at the goal, full speed (benchmarks.shield doc)",
+        "goal_seeking": "direction of motion at the goal, full speed "
+        "(experiments.diagnostics.shield doc)",
     }
     harness.write_record("shield", config, record_rows, args.out)
     return {"config": config, "rows": record_rows}

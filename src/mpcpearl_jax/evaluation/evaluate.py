@@ -12,12 +12,12 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from mpcpearl_jax import metrics
 from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import TaskParams
+from mpcpearl_jax.evaluation import metrics
+from mpcpearl_jax.mpc.shield import ShieldConfig, shield_step
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import Transitions, context_from
-from mpcpearl_jax.shield import ShieldConfig, shield_step
 
 
 def _episode(
@@ -51,7 +51,7 @@ def _episode(
             z = jnp.where((t % t_update == 0) & (t > 0), z_new, z)
         a = nets.act(params["policy"], obs, z, None)
         shielded = jnp.zeros((), bool)
-        if shield is not None:  # extension: test-time safety shield (mpcpearl_jax.shield)
+        if shield is not None:  # extension: test-time safety shield (mpcpearl_jax.mpc.shield)
             a, shielded = shield_step(env, state, a, task, shield)
         nobs, nstate, r, _, info = env.step(k, state, a, task)
         row = context_from(Transitions(obs, a, r, nobs, jnp.zeros(())))
@@ -83,7 +83,7 @@ def make_evaluator(
     Adaptation mode (paper Table II "X"): z from the prior for episode 1, then from the posterior
     of all transitions so far; the returned episode is number num_adapt_episodes + 1.
     Online mode ("O"): a single episode with z re-inferred every t_update steps.
-    With `shield` (extension, `mpcpearl_jax.shield`) every episode, adaptation ones included,
+    With `shield` (extension, `mpcpearl_jax.mpc.shield`) every episode, adaptation ones included,
     executes the shielded action, and the context holds what was executed.
     """
     horizon = env.config.horizon

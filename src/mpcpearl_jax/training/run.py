@@ -24,7 +24,12 @@ from typing import Any
 import jax
 import numpy as np
 
-from mpcpearl_jax.checkpoint import (
+from mpcpearl_jax.config import ExperimentConfig, validate
+from mpcpearl_jax.distributed import first_local, is_primary, to_host
+from mpcpearl_jax.errors import CheckpointError, RunDirError
+from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
+from mpcpearl_jax.pearl.learner import acting_params
+from mpcpearl_jax.training.checkpoint import (
     Checkpointer,
     atomic_write,
     check_resumable,
@@ -33,16 +38,11 @@ from mpcpearl_jax.checkpoint import (
     save_network,
     write_json,
 )
-from mpcpearl_jax.config import ExperimentConfig, validate
-from mpcpearl_jax.distributed import first_local, is_primary, to_host
-from mpcpearl_jax.errors import CheckpointError, RunDirError
-from mpcpearl_jax.loop import Progress, train_loop
-from mpcpearl_jax.machine import machine_info
-from mpcpearl_jax.pearl.learner import acting_params
-from mpcpearl_jax.report import PAPER, plot_learning_curves, results_table
-from mpcpearl_jax.resources import check_state_fits
-from mpcpearl_jax.runlock import RunLock
-from mpcpearl_jax.trainer import IterationAbandoned, Trainer, TrainState
+from mpcpearl_jax.training.loop import Progress, train_loop
+from mpcpearl_jax.training.machine import machine_info
+from mpcpearl_jax.training.resources import check_state_fits
+from mpcpearl_jax.training.runlock import RunLock
+from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer, TrainState
 
 LOG_FILE = "metrics.jsonl"
 
@@ -147,7 +147,9 @@ class Session:
     rows: list[dict]
     done: int
     saved: int  # the iteration of the newest checkpoint (-1: none)
-    lock: RunLock  # this process writes run_dir (mpcpearl_jax.runlock); release() when done
+    lock: (
+        RunLock  # this process writes run_dir (mpcpearl_jax.training.runlock); release() when done
+    )
 
 
 def prepare(
@@ -272,7 +274,7 @@ def train(
     With handle_sigint, Ctrl-C abandons the current phase at its next boundary (at most one update
     chunk, ~10 s), saves a checkpoint of the last finished iteration if it is still in memory,
     and raises RunInterrupted. With tensorboard, every metrics row also goes to out/tensorboard
-    (`mpcpearl_jax.livelog`)."""
+    (`mpcpearl_jax.training.livelog`)."""
     sess = prepare(cfg, out, resume)
     try:
         return train_session(sess, progress, handle_sigint, tensorboard)
@@ -288,7 +290,7 @@ def train_session(
     progress = progress and is_primary()
     # a resumed run hides its earlier points from the first iteration redone
     if tensorboard and is_primary():
-        from mpcpearl_jax.livelog import TB_DIR, TensorBoardLog
+        from mpcpearl_jax.training.livelog import TB_DIR, TensorBoardLog
 
         tb = TensorBoardLog(sess.run_dir / TB_DIR, purge_step=sess.done + 1 if sess.done else None)
     with _sigint_flag(handle_sigint) as stop:
@@ -416,8 +418,9 @@ def final_evaluation(
 
 
 def _episode_gif(trainer: Trainer, raw: dict, run_dir: Path, label: str) -> Path:
-    """episode_test0.gif: seed 0's evaluated episode on test task 0 (`mpcpearl_jax.animate`)."""
-    from mpcpearl_jax.animate import animate_result
+    """episode_test0.gif: seed 0's evaluated episode on test task 0
+    (`mpcpearl_jax.evaluation.animate`)."""
+    from mpcpearl_jax.evaluation.animate import animate_result
 
     title = f"{label} (seed 0), {trainer.cfg.env} test task 0"
     path = run_dir / "episode_test0.gif"

@@ -1,6 +1,7 @@
 """Scoring evaluated episodes: per-task metrics, how episodes ended, pooling over task sets.
 
-`per_task_metrics` turns the arrays of an evaluation (`mpcpearl_jax.evaluate.make_evaluator`, the
+`per_task_metrics` turns the arrays of an evaluation
+(`mpcpearl_jax.evaluation.evaluate.make_evaluator`, the
 GP-MPC rollout, training-style episodes) into the per-seed, per-task method §8 metrics and the
 first contact of each episode (`metrics.first_contact`); `failures` counts how the episodes of
 one or more such records ended; `pooled` pools the per-task metrics of several task sets (mean,
@@ -17,13 +18,13 @@ import jax
 import numpy as np
 
 from mpcpearl_jax.envs.types import NavConfig, TaskParams
-from mpcpearl_jax.metrics import METRIC_NAMES
+from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 
 
 @functools.partial(jax.jit, static_argnums=(4, 5))
 def _first_contacts(position, collision, in_goal, tasks, robot_radius, human_radius):
     """`metrics.first_contact` of every episode [S, N] (compiled once per shape and radii)."""
-    from mpcpearl_jax import metrics
+    from mpcpearl_jax.evaluation import metrics
 
     one = lambda p, c, g, k: metrics.first_contact(p, c, g, k, robot_radius, human_radius)
     return jax.vmap(jax.vmap(one), in_axes=(0, 0, 0, None))(position, collision, in_goal, tasks)
@@ -33,7 +34,7 @@ def per_task_metrics(result: dict, tasks: TaskParams, cfg: NavConfig) -> dict[st
     """Per seed and task [S][N]: success, collision_free, TT, SPL, MGD, return, and the first
     contact of each episode (`metrics.first_contact`): its step (-1: none), whether the nearer
     obstacle was a person, the steps in contact, whether the goal was reached after it."""
-    from mpcpearl_jax import evaluate as eval_lib
+    from mpcpearl_jax.evaluation import evaluate as eval_lib
 
     m = eval_lib.episode_metrics(result, tasks, cfg.robot_radius)
     c = _first_contacts(

@@ -3,7 +3,7 @@
 The policy's deterministic `act` (batch size symbolic) and the encoder's `infer_z` (number of
 context rows symbolic) are serialized with `jax.export` (StableHLO, the parameters folded in) into
 `out` (default `<run_dir>/policy.export`), with a JSON sidecar `out.json` describing how to feed
-them. `exported.load_exported` runs them with jax alone (see `mpcpearl_jax.exported`).
+them. `exported.load_exported` runs them with jax alone (see `mpcpearl_jax.deploy.exported`).
 """
 
 from __future__ import annotations
@@ -22,12 +22,19 @@ import jax.numpy as jnp
 from jax import export as jax_export
 
 from mpcpearl_jax import __version__
-from mpcpearl_jax.checkpoint import CONFIG_FILE, POLICY_FILE, atomic_write
-from mpcpearl_jax.deploy import Layout
-from mpcpearl_jax.dynamics import DELTA_MAX
-from mpcpearl_jax.exported import FORMAT, FORMAT_VERSION, FUNCTIONS, MANIFEST, sha256, sidecar_path
-from mpcpearl_jax.policy import load_policy
-from mpcpearl_jax.report import run_label
+from mpcpearl_jax.deploy.adapter import Layout
+from mpcpearl_jax.deploy.exported import (
+    FORMAT,
+    FORMAT_VERSION,
+    FUNCTIONS,
+    MANIFEST,
+    sha256,
+    sidecar_path,
+)
+from mpcpearl_jax.deploy.policy import load_policy
+from mpcpearl_jax.envs.dynamics import DELTA_MAX
+from mpcpearl_jax.evaluation.report import run_label
+from mpcpearl_jax.training.checkpoint import CONFIG_FILE, POLICY_FILE, atomic_write
 
 EXPORT_FILE = "policy.export"
 DEFAULT_PLATFORMS = ("cpu", "cuda")
@@ -105,7 +112,7 @@ def _results(run_dir: Path) -> dict[str, Any]:
 
 
 def sidecar(policy, run_dir: Path, seed_index: int, blobs: dict[str, bytes], platforms) -> dict:
-    """The sidecar's content (see `mpcpearl_jax.exported`)."""
+    """The sidecar's content (see `mpcpearl_jax.deploy.exported`)."""
     cfg = policy.config
     layout = Layout.of(policy)
     nav = layout.config
@@ -145,7 +152,7 @@ def sidecar(policy, run_dir: Path, seed_index: int, blobs: dict[str, bytes], pla
             ),
             "people_order": "nearest first" if nav.observe_sorted else "by identity (row)",
             "layout": layout.parts(),
-            "builder": "mpcpearl_jax.deploy.observe (equal to the env's observation)",
+            "builder": "mpcpearl_jax.deploy.adapter.observe (equal to the env's observation)",
         },
         "action": {
             "dim": 2,
@@ -177,7 +184,7 @@ def sidecar(policy, run_dir: Path, seed_index: int, blobs: dict[str, bytes], pla
         "context": {
             "dim": d,
             "row": f"(s [{o}], a [2], r [1], s' [{o}]), r the unscaled reward of eq. (2)",
-            "builder": "mpcpearl_jax.deploy.Adapter",
+            "builder": "mpcpearl_jax.deploy.adapter.Adapter",
         },
         "t_update": cfg.train.t_update,
         "functions": {
@@ -196,7 +203,7 @@ def sidecar(policy, run_dir: Path, seed_index: int, blobs: dict[str, bytes], pla
                 "sha256": sha256(blobs["infer_z"]),
             },
         },
-        "reader": "mpcpearl_jax.exported.load_exported (one file; needs jax only)",
+        "reader": "mpcpearl_jax.deploy.exported.load_exported (one file; needs jax only)",
     }
 
 

@@ -4,7 +4,8 @@ A diagnostic for the robustness table (results/README.md, docs/method.md §8a). 
 split of each of `--task-seeds` (the 192 tasks of task seeds 1-8 by default, those of
 `python -m experiments.evaluate RUN --split val --task-seeds 1-8 --perturb delay=K`), every run
 of `--runs` is scored by the meta-test protocol (two adaptation episodes, then the scored one;
-`mpcpearl_jax.evaluate.make_evaluator`) with the crowd delayed by 0 and by `--delay` steps
+`mpcpearl_jax.evaluation.evaluate.make_evaluator`) with the crowd delayed by 0 and by `--delay`
+steps
 (`envs.perturb`), under these conditions:
 
 * `as trained`: the observation the policy was trained with (reproduces experiments.evaluate).
@@ -21,7 +22,7 @@ distance over the first `--delay` steps between its positions with the delayed a
 unperturbed crowd, averaged over tasks (0 = the robot drives the same path whether or not people
 still stand at their start), and the share of episodes with a contact in those steps.
 
-    python -m benchmarks.crowd_cause [--tiny] [--delay 12] [--runs DIR ...] [--out DIR]
+    python -m experiments.diagnostics.crowd_cause [--tiny] [--delay 12] [--runs DIR ...] [--out DIR]
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import harness
-from benchmarks.shield import _relative, episode_outcomes, pool
+from experiments.diagnostics.shield import _relative, episode_outcomes, pool
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_RUNS = [
@@ -84,10 +85,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import numpy as np
 
     from experiments.evaluate import EVAL_SEED
-    from mpcpearl_jax import evaluate as eval_lib
     from mpcpearl_jax import load_policy
     from mpcpearl_jax.envs import make_env, make_tasks
     from mpcpearl_jax.envs.perturb import Perturbation, perturb_tasks
+    from mpcpearl_jax.evaluation import evaluate as eval_lib
 
     policies = [load_policy(r) for r in args.runs]
     if {pol.config.env for pol in policies} != {"restaurant"}:

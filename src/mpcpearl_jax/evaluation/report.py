@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from mpcpearl_jax.metrics import METRIC_NAMES
+from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 
 # method §8: the paper's numbers (restaurant: 24 unseen tasks after two adaptation episodes).
 PAPER = {

@@ -1,10 +1,11 @@
 """A trained policy outside training: `load_policy(run_dir)` -> `LoadedPolicy`.
 
 `load_policy` reads a run directory's config.json, network.json and policy.msgpack only
-(`mpcpearl_jax.checkpoint` writes them): no environment is built, so a run loads without its
+(`mpcpearl_jax.training.checkpoint` writes them): no environment is built, so a run loads without
+its
 data file. `LoadedPolicy` acts, infers the latent context z and does both in one call; every
-method is pure and jittable. For a robot's own control loop see `mpcpearl_jax.deploy`, for a
-file that needs neither flax nor this package `mpcpearl_jax.export`.
+method is pure and jittable. For a robot's own control loop see `mpcpearl_jax.deploy.adapter`, for a
+file that needs neither flax nor this package `mpcpearl_jax.deploy.export`.
 """
 
 from __future__ import annotations
@@ -20,10 +21,15 @@ import jax.numpy as jnp
 from flax import serialization
 from jax import Array
 
-from mpcpearl_jax.checkpoint import NETWORK_FILE, POLICY_FILE, load_config, non_finite_leaves
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.pearl.networks import Networks
+from mpcpearl_jax.training.checkpoint import (
+    NETWORK_FILE,
+    POLICY_FILE,
+    load_config,
+    non_finite_leaves,
+)
 
 
 def _is_traced(x: Any) -> bool:

@@ -36,8 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from mpcpearl_jax import physics
-from mpcpearl_jax.dynamics import bicycle_step, to_physical
+from mpcpearl_jax.envs import physics
+from mpcpearl_jax.envs.dynamics import bicycle_step, to_physical
 from mpcpearl_jax.envs.observation import layout as observation_layout
 from mpcpearl_jax.envs.observation import obs_dim as observation_dim
 from mpcpearl_jax.envs.observation import observation
