@@ -12,6 +12,7 @@ without flax or the project's networks. A bad folder or seed index is a one-line
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -34,8 +35,15 @@ def make_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = make_parser().parse_args(argv)
-    from mpcpearl_jax.deploy.export import export_policy
-    from mpcpearl_jax.deploy.exported import load_exported, sidecar_path
+    import jax
+
+    from mpcpearl_jax.deploy.export import export_policy, runs_here
+    from mpcpearl_jax.deploy.exported import (
+        check_format,
+        check_sidecar,
+        load_exported,
+        sidecar_path,
+    )
     from mpcpearl_jax.errors import CheckpointError
 
     if not args.run.is_dir():
@@ -44,16 +52,27 @@ def main(argv: list[str] | None = None) -> int:
     platforms = tuple(p.strip() for p in args.platforms.split(",") if p.strip())
     try:
         out = export_policy(args.run, args.out, args.seed_index, platforms)
-        policy = load_exported(out)  # read back: the files are usable as written
+        if runs_here(platforms):
+            meta = load_exported(out).meta  # read back: the files are usable as written
+        else:  # not loadable on this machine: check the sidecar's format and fields only
+            meta = json.loads(sidecar_path(out).read_text())
+            check_format(meta, sidecar_path(out))
+            check_sidecar(meta, sidecar_path(out))
     except (CheckpointError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     size = out.stat().st_size / 1024
     print(
-        f"[export] {policy.meta['label']} ({args.run.name}, seed {args.seed_index}): {out} "
-        f"({size:.0f} KB) and {sidecar_path(out).name}; obs {policy.obs_dim}, latent "
-        f"{policy.latent_dim}, platforms {', '.join(platforms)}"
+        f"[export] {meta['label']} ({args.run.name}, seed {args.seed_index}): {out} "
+        f"({size:.0f} KB) and {sidecar_path(out).name}; obs {meta['observation']['dim']}, latent "
+        f"{meta['latent_dim']}, platforms {', '.join(platforms)}"
     )
+    if not runs_here(platforms):
+        print(
+            f"[export] not for this machine's {jax.default_backend()}: load it where "
+            f"{', '.join(platforms)} is the backend",
+            flush=True,
+        )
     return 0
 
 

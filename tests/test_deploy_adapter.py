@@ -182,3 +182,29 @@ def test_adapter_defaults_and_errors(setup):
     np.testing.assert_allclose(np.asarray(u), [env.config.v_max, np.pi / 4], rtol=1e-6)
     parked = frame._replace(pose=jnp.concatenate([task.goal, jnp.zeros(1)]))
     assert float(adapter.command(state, parked, jnp.array([1.0, 0.5]))[0]) == 0.0
+
+
+def test_adapter_refuses_physical_actions_and_impossible_geometry(setup):
+    """`Adapter.add` used to accept the physical command (7 m/s, 0) as an action and infer z
+    from it; a goal inside a table, a negative radius and t < 0 went through too. Each is one
+    line naming the field."""
+    policy, env, tasks = setup
+    adapter = Adapter(policy)
+    task = _task(tasks, 0)
+    scene = Scene.from_task(task)
+    state = adapter.init(scene)
+    frame = Frame.start(task.start, task.human_pos[0], task.human_mask[0])
+    nxt = frame.advance(task.start, task.human_pos[1], task.human_mask[1])
+    with pytest.raises(ValueError, match=r"^action: expected a normalized .* got \[7\.0, 0\.0\]"):
+        adapter.add(state, frame, jnp.array([7.0, 0.0]), nxt)
+    adapter.add(state, frame, jnp.array([1.0, -1.0]), nxt)  # the range's ends are actions
+    with pytest.raises(ValueError, match=r"^frame\.t: expected steps .* got -1"):
+        adapter.act(state, frame._replace(t=jnp.asarray(-1)))
+    if int(np.asarray(scene.static_radius).size) == 0:
+        return  # no obstacles in this family's scenes
+    inside = scene._replace(goal=(scene.static_lo[0] + scene.static_hi[0]) / 2)
+    with pytest.raises(ValueError, match=r"^scene\.goal: .* lies inside static obstacle 0"):
+        adapter.init(inside)
+    negative = scene._replace(static_radius=scene.static_radius.at[0].set(-0.1))
+    with pytest.raises(ValueError, match=r"^scene\.static_radius: obstacle 0 has a negative"):
+        adapter.init(negative)

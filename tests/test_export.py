@@ -257,3 +257,98 @@ def test_export_is_reproducible_and_names_no_file_of_this_machine(exported, tmp_
             data = z.read(name)
             assert b".py" not in data and str(ROOT).encode() not in data, name
     assert str(ROOT) not in sidecar_path(again).read_text()
+
+
+def test_sidecar_fields_are_checked_by_name(exported, tmp_path):
+    """Every sidecar field the reader uses is checked on load, with one line naming the file and
+    the field (a t_update of "five" used to fail later in int() naming nothing)."""
+    out, side, meta = _copy(exported, tmp_path)
+    cases = [
+        ({**meta, "t_update": "five"}, "field t_update must be a positive integer, got 'five'"),
+        ({**meta, "t_update": 0}, "field t_update must be a positive integer"),
+        ({**meta, "latent_dim": True}, "field latent_dim must be a positive integer"),
+        ({k: v for k, v in meta.items() if k != "t_update"}, "field t_update is missing"),
+        ({**meta, "context": {}}, "field context.dim is missing"),
+        ({**meta, "functions": {"act": {"sha256": 5}}}, "field functions.act.sha256 must be"),
+        ({**meta, "policy_sha256": "abc"}, "field policy_sha256 must be a SHA-256"),
+    ]
+    for bad, match in cases:
+        side.write_text(json.dumps(bad))
+        with pytest.raises(ExportError, match=match) as e:
+            load_exported(out)
+        assert "\n" not in str(e.value) and side.name in str(e.value)
+
+
+def test_an_export_beside_its_run_detects_a_changed_policy_or_config(exported, tmp_path):
+    """Exported, then trained further (policy.msgpack replaced), the export beside the run is
+    stale and says so; an edited t_update (a valid number, but not the run's) is refused too.
+    Copied away from the run, the same files load."""
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("config.json", "network.json", "policy.msgpack"):
+        (run / name).write_bytes((HEADLINE / name).read_bytes())
+    out, side, meta = _copy(exported, run)
+    load_exported(run)  # made from these very files
+    policy = run / "policy.msgpack"
+    policy.write_bytes(policy.read_bytes() + b"\0")  # a newer policy after --resume
+    with pytest.raises(ExportError, match=r"stale: .*policy\.msgpack changed") as e:
+        load_exported(run)
+    assert "\n" not in str(e.value)
+    policy.write_bytes((HEADLINE / "policy.msgpack").read_bytes())
+    side.write_text(json.dumps({**meta, "t_update": 1000}))
+    with pytest.raises(ExportError, match=r"field t_update 1000 differs from the run's"):
+        load_exported(run)
+    config = run / "config.json"
+    side.write_text(json.dumps(meta))
+    config.write_text(config.read_text().replace('"t_update": 5', '"t_update": 6'))
+    with pytest.raises(ExportError, match=r"stale: .*config\.json changed"):
+        load_exported(run)
+    away = tmp_path / "robot"
+    away.mkdir()
+    (away / out.name).write_bytes(out.read_bytes())
+    (away / side.name).write_text(json.dumps(meta))
+    assert load_exported(away).t_update == meta["t_update"]
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+def test_export_never_writes_over_a_run_record(tmp_path, capsys):
+    """`experiments.export RUN --out RUN/policy.msgpack` used to replace the trained policy by
+    the zip, and `--out RUN/results` results.json by the sidecar: both are refused with one
+    line and the run folder stays byte-identical; so is any other file that is not an export."""
+    from experiments import export as cli
+
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("config.json", "network.json", "policy.msgpack", "results.json"):
+        (run / name).write_bytes((HEADLINE / name).read_bytes())
+    (run / "notes.txt").write_text("mine")
+    before = _snapshot(run)
+    for out, what in (
+        (run / "policy.msgpack", "policy.msgpack: an export may not take the name"),
+        (run / "results", "results.json: an export may not take the name"),
+        (run / "notes.txt", "notes.txt: exists and is not a policy export"),
+    ):
+        assert cli.main([str(run), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert what in err and err.count("\n") == 1, err
+        assert _snapshot(run) == before
+    # an earlier export is replaced (exporting again is what the option is for)
+    assert cli.main([str(run), "--platforms", "cpu"]) == 0
+    assert cli.main([str(run), "--platforms", "cpu"]) == 0
+    assert {k: v for k, v in _snapshot(run).items() if "export" not in k} == before
+
+
+def test_platforms_are_checked_before_anything_is_written(tmp_path, capsys):
+    from experiments import export as cli
+
+    out = tmp_path / "x" / "policy.export"
+    assert cli.main([str(HEADLINE), "--out", str(out), "--platforms", "tpu9"]) == 2
+    assert "unknown ['tpu9']" in capsys.readouterr().err and not out.parent.exists()
+    # an export for another backend is written, checked as far as this machine can, and rc 0
+    other = "cuda" if jax.default_backend() == "cpu" else "cpu"
+    assert cli.main([str(HEADLINE), "--out", str(out), "--platforms", other]) == 0
+    assert f"not for this machine's {jax.default_backend()}" in capsys.readouterr().out
+    assert json.loads(sidecar_path(out).read_text())["platforms"] == [other]

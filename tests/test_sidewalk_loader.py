@@ -210,3 +210,41 @@ def test_unknown_split_and_arguments():
         make_tasks("sidewalk", "validation")
     with pytest.raises(TypeError):
         make_tasks("sidewalk", "train", dataset="x")
+
+
+@needs_zara
+def test_tasks_for_a_sidewalk_run_read_its_data_file():
+    """`envs.tasks_for` passes the run's data file; the sidewalk has no val split, so its
+    validation set is its first `VAL_TASKS` (24) of the 25 training windows."""
+    import jax
+
+    from mpcpearl_jax.config import ExperimentConfig
+    from mpcpearl_jax.envs import tasks_for, validation_tasks
+
+    cfg = ExperimentConfig(env="sidewalk", data=str(ZARA), task_seed=3)
+    for split in ("train", "test"):
+        new, old = tasks_for(cfg, split), make_tasks("sidewalk", split, 3, data=str(ZARA))
+        jax.tree_util.tree_map(np.testing.assert_array_equal, new, old)
+    val, what = validation_tasks(cfg)
+    first = jax.tree_util.tree_map(lambda x: x[:24], tasks_for(cfg, "train"))
+    jax.tree_util.tree_map(np.testing.assert_array_equal, val, first)
+    assert "first 24 training tasks" in what
+    with pytest.raises(ValueError, match="no 'val' split"):
+        tasks_for(cfg, "val")
+
+
+@needs_zara
+@pytest.mark.parametrize("how", ["centimetres", "shifted 1000 m"])
+def test_a_scene_outside_the_arena_is_refused(tmp_path, how):
+    """Zara 01 in centimetres, or shifted 1000 m, used to train with every person outside the
+    arena; it is refused with one line naming the file and the arena."""
+    rows = [line.split() for line in ZARA.read_text().splitlines() if line.strip()]
+    scale, shift = (100.0, 0.0) if how == "centimetres" else (1.0, 1000.0)
+    text = "".join(
+        f"{f}\t{p}\t{float(x) * scale + shift:.6f}\t{float(y) * scale:.6f}\n" for f, p, x, y in rows
+    )
+    path = _write(tmp_path, text, "moved.txt")
+    with pytest.raises(DataFormatError, match=r"moved\.txt: only \d+% of its positions") as e:
+        make_tasks("sidewalk", "train", data=path)
+    assert "\n" not in str(e.value) and "metres in the arena's frame" in str(e.value)
+    make_tasks("sidewalk", "train", data=ZARA)  # the file itself (a few rows 0.4 m out) loads

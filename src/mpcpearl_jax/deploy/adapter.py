@@ -249,6 +249,8 @@ def check_frame(frame: Frame, name: str = "frame") -> None:
     _check(f"{name}.t", frame.t, (), "steps since the episode began")
     if not jnp.issubdtype(jnp.asarray(frame.t).dtype, jnp.integer):
         raise ValueError(f"{name}.t: expected an integer step count, got {jnp.asarray(frame.t)}")
+    if not _is_traced(frame.t) and int(frame.t) < 0:
+        raise ValueError(f"{name}.t: expected steps since the episode began (>= 0), got {frame.t}")
 
 
 def check_scene(scene: Scene, layout: Layout | None = None, name: str = "scene") -> None:
@@ -264,10 +266,39 @@ def check_scene(scene: Scene, layout: Layout | None = None, name: str = "scene")
     _check(f"{name}.static_lo", scene.static_lo, (s, 2), what)
     _check(f"{name}.static_hi", scene.static_hi, (s, 2), what)
     _check(f"{name}.static_radius", scene.static_radius, (s,), what)
+    if any(_is_traced(x) for x in scene):
+        return
+    lo, hi = np.asarray(scene.static_lo, np.float64), np.asarray(scene.static_hi, np.float64)
+    radius, goal = np.asarray(scene.static_radius, np.float64), np.asarray(scene.goal, np.float64)
+    if (radius < 0).any():
+        k = int(np.argmax(radius < 0))
+        raise ValueError(f"{name}.static_radius: obstacle {k} has a negative radius {radius[k]}")
+    if (hi < lo).any():
+        k = int(np.argmax((hi < lo).any(axis=-1)))
+        raise ValueError(f"{name}.static_hi: obstacle {k} has hi {hi[k]} below lo {lo[k]}")
+    dist = np.linalg.norm(np.maximum(np.maximum(lo - goal, goal - hi), 0.0), axis=-1)
+    inside = (dist < radius) | np.all((goal > lo) & (goal < hi), axis=-1)
+    if inside.any():
+        k = int(np.argmax(inside))
+        raise ValueError(
+            f"{name}.goal: {goal.tolist()} lies inside static obstacle {k} (box {lo[k].tolist()}"
+            f" to {hi[k].tolist()}, radius {radius[k]:g}); no robot can reach it"
+        )
 
 
 def check_action(action: Any, name: str = "action") -> None:
+    """Shape and finite values, and for a concrete action the range [-1, 1] of the policy's
+    normalized actions (a physical command such as (7 m/s, 0) is refused, naming `command`)."""
     _check(name, action, (2,), "normalized (speed, steering) in [-1, 1]")
+    if _is_traced(action):
+        return
+    a = np.asarray(action, np.float64)
+    if (np.abs(a) > 1.0 + 1e-6).any():
+        raise ValueError(
+            f"{name}: expected a normalized (speed, steering) in [-1, 1], got {a.tolist()}; "
+            "give the policy's action, not the physical command (Adapter.command maps one to "
+            "the other)"
+        )
 
 
 # ------------------------------------------------------------------------------ observe

@@ -28,6 +28,7 @@ from mpcpearl_jax.deploy.exported import (
     FORMAT_VERSION,
     FUNCTIONS,
     MANIFEST,
+    ExportError,
     sha256,
     sidecar_path,
 )
@@ -38,6 +39,19 @@ from mpcpearl_jax.training.checkpoint import CONFIG_FILE, POLICY_FILE, atomic_wr
 
 EXPORT_FILE = "policy.export"
 DEFAULT_PLATFORMS = ("cpu", "cuda")
+PLATFORMS = ("cpu", "cuda", "rocm", "tpu")  # what jax.export lowers for
+# a run folder's own records: an export or its sidecar never takes one of these names
+RUN_RECORDS = frozenset(
+    {
+        "policy.msgpack",
+        "results.json",
+        "config.json",
+        "metrics.jsonl",
+        "network.json",
+        "curve.json",
+        "curve-points.jsonl",
+    }
+)
 RESULT_KEYS = ("test_adapt", "test_online", "ood_adapt")
 METRICS = ("SR", "TT", "CFR", "SPL", "MGD")
 
@@ -207,6 +221,37 @@ def sidecar(policy, run_dir: Path, seed_index: int, blobs: dict[str, bytes], pla
     }
 
 
+def runs_here(platforms: Sequence[str]) -> bool:
+    """Whether an export for `platforms` loads on this machine's default backend."""
+    backend = jax.default_backend()
+    return bool({"gpu": {"cuda", "rocm"}}.get(backend, {backend}) & set(platforms))
+
+
+def _is_export(path: Path) -> bool:
+    """Whether `path` is a policy export file or sidecar (this module wrote it)."""
+    try:
+        if zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as z:
+                return json.loads(z.read(MANIFEST)).get("format") == FORMAT
+        return json.loads(path.read_text()).get("format") == FORMAT
+    except (OSError, KeyError, ValueError, AttributeError, zipfile.BadZipFile):
+        return False
+
+
+def check_target(out: Path) -> None:
+    """ExportError naming the file when writing an export to `out` (and its sidecar beside it)
+    would replace a run's own record (policy.msgpack, results.json, ...) or any existing file
+    that is not an earlier export."""
+    for path in (out, sidecar_path(out)):
+        if path.name in RUN_RECORDS:
+            raise ExportError(
+                f"{path}: an export may not take the name of a run's own record; choose "
+                "another --out (default RUN/policy.export)"
+            )
+        if path.is_dir() or (path.exists() and not _is_export(path)):
+            raise ExportError(f"{path}: exists and is not a policy export; choose another --out")
+
+
 def export_policy(
     run_dir: str | Path,
     out: str | Path | None = None,
@@ -214,12 +259,21 @@ def export_policy(
     platforms: Sequence[str] = DEFAULT_PLATFORMS,
 ) -> Path:
     """Export the policy of seed `seed_index` of a run (see module doc). Returns the export
-    file's path; the sidecar is that path with `.json` appended. Both are written atomically."""
+    file's path; the sidecar is that path with `.json` appended. Both are written atomically,
+    never over a run's own records or a file that is not an earlier export (`check_target`);
+    ExportError naming an unknown platform or a refused file before anything is written."""
     run_dir = Path(run_dir)
-    policy = load_policy(run_dir, seed_index)
+    unknown = [p for p in platforms if p not in PLATFORMS]
+    if unknown or not platforms:
+        raise ExportError(
+            f"platforms {list(platforms)}: unknown {unknown or 'none given'}; "
+            f"choose from {', '.join(PLATFORMS)}"
+        )
     out = Path(out) if out is not None else run_dir / EXPORT_FILE
     if out.is_dir():
         out = out / EXPORT_FILE
+    check_target(out)
+    policy = load_policy(run_dir, seed_index)
     blobs = _serialize(policy, platforms)
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:

@@ -190,10 +190,68 @@ def _check_signature(meta: dict, act: jax_export.Exported, infer_z: jax_export.E
             )
 
 
+# sidecar fields this reader uses: dotted name -> (test, what it must be)
+_POSITIVE_INT = (
+    lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1,
+    "a positive integer",
+)
+_SHA = (lambda v: isinstance(v, str) and len(v) == 64, "a SHA-256 hex string")
+SIDECAR_FIELDS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "observation.dim": _POSITIVE_INT,
+    "latent_dim": _POSITIVE_INT,
+    "context.dim": _POSITIVE_INT,
+    "t_update": _POSITIVE_INT,
+    **{f"functions.{name}.sha256": _SHA for name in FUNCTIONS},
+}
+
+
+def check_sidecar(meta: dict, where: Path) -> None:
+    """ExportError naming `where` and the field for the first sidecar field this reader uses
+    that is missing or of the wrong type (and for a `policy_sha256` that is not a hash)."""
+    for field, (ok, what) in SIDECAR_FIELDS.items():
+        value: Any = meta
+        for part in field.split("."):
+            value = value.get(part) if isinstance(value, dict) else None
+        if value is None:
+            raise ExportError(f"{where}: field {field} is missing")
+        if not ok(value):
+            raise ExportError(f"{where}: field {field} must be {what}, got {value!r}")
+    if "policy_sha256" in meta and not _SHA[0](meta["policy_sha256"]):
+        raise ExportError(f"{where}: field policy_sha256 must be {_SHA[1]}")
+
+
+def check_not_stale(meta: dict, path: Path) -> None:
+    """An export beside its run's files must have been made from them: policy.msgpack and
+    config.json with the SHA-256 the sidecar recorded (after training went on with `--resume`
+    the export is stale), and the sidecar's t_update the run's. ExportError naming the file
+    otherwise. An export copied away from its run (no such file beside it) is not checked."""
+    for name, key in (("policy.msgpack", "policy_sha256"), ("config.json", "config_sha256")):
+        beside, want = path.parent / name, meta.get(key)
+        if want is not None and beside.is_file() and sha256(beside.read_bytes()) != want:
+            raise ExportError(
+                f"{path}: stale: {beside} changed since this export was made (its SHA-256 "
+                f"differs from the sidecar's {key}); export again with python -m "
+                f"experiments.export {path.parent}"
+            )
+    config = path.parent / "config.json"
+    if meta.get("config_sha256") is not None and config.is_file():
+        try:
+            t_update = json.loads(config.read_text())["train"]["t_update"]
+        except (json.JSONDecodeError, KeyError, TypeError):
+            return
+        if t_update != meta["t_update"]:
+            raise ExportError(
+                f"{sidecar_path(path)}: field t_update {meta['t_update']!r} differs from the "
+                f"run's {config} ({t_update!r}); the sidecar was edited: export again"
+            )
+
+
 def load_exported(path: str | Path) -> ExportedPolicy:
     """The policy exported to `path` (a `policy.export` file, or the run directory holding one),
     with its sidecar `policy.export.json` beside it. ExportError naming the file if either is
-    missing, from a newer format version, or if they do not match."""
+    missing, from a newer format version, if they do not match, if a sidecar field is missing
+    or of the wrong type (naming the field), or if the run's policy.msgpack beside the export
+    has changed since it was made (a stale export)."""
     path = Path(path)
     if path.is_dir():
         path = path / "policy.export"
@@ -202,6 +260,8 @@ def load_exported(path: str | Path) -> ExportedPolicy:
     side = sidecar_path(path)
     meta = _read_json(side, f"the sidecar of {path.name}")
     check_format(meta, side)
+    check_sidecar(meta, side)
+    check_not_stale(meta, path)
     _, blobs = _read_members(path)
     for name in FUNCTIONS:
         want = meta.get("functions", {}).get(name, {}).get("sha256")
@@ -233,6 +293,8 @@ __all__ = [
     "ExportError",
     "ExportedPolicy",
     "check_format",
+    "check_not_stale",
+    "check_sidecar",
     "load_exported",
     "sidecar_path",
 ]

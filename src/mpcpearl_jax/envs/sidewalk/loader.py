@@ -152,6 +152,30 @@ def load_eth_ucy(path: str | Path, fps: float = VIDEO_FPS) -> Scene:
 
 
 # ------------------------------------------------------------------------- windowing
+def check_in_arena(
+    scene: Scene,
+    arena_lo: tuple[float, float],
+    arena_hi: tuple[float, float],
+    margin: float = 1.0,
+    min_share: float = 0.5,
+) -> None:
+    """DataFormatError naming the file unless at least `min_share` of its positions lie in the
+    arena grown by `margin` metres: a file in other units (centimetres) or another frame (shifted
+    by hundreds of metres) would otherwise train with every person outside the arena."""
+    lo = np.asarray(arena_lo, np.float64) - margin
+    hi = np.asarray(arena_hi, np.float64) + margin
+    share = float(np.mean(np.all((scene.xy >= lo) & (scene.xy <= hi), axis=1)))
+    if share < min_share:
+        span = f"x {scene.xy[:, 0].min():.4g} to {scene.xy[:, 0].max():.4g}, y "
+        span += f"{scene.xy[:, 1].min():.4g} to {scene.xy[:, 1].max():.4g}"
+        raise DataFormatError(
+            f"{scene.path}: only {share:.0%} of its positions ({span}) lie in the arena x "
+            f"[{arena_lo[0]:g}, {arena_hi[0]:g}], y [{arena_lo[1]:g}, {arena_hi[1]:g}] (+- "
+            f"{margin:g} m); positions must be metres in the arena's frame, as in UCY "
+            "crowds_zara01.txt"
+        )
+
+
 def window_frames(scene: Scene, horizon: int, dt: float) -> float:
     """Length of one window (horizon * dt seconds) in video frames."""
     return horizon * dt * scene.fps

@@ -94,6 +94,7 @@ def data_tasks(
 ) -> TaskParams:
     """Stacked tasks from an ETH/UCY file (one per window of the split)."""
     scene = loader.load_eth_ucy(data)
+    loader.check_in_arena(scene, cfg.arena_lo, cfg.arena_hi)
     starts = split_window_starts(scene, split, cfg)
     if starts.size == 0:
         raise ValueError(
