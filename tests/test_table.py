@@ -1,5 +1,6 @@
-"""experiments.table: the READMEs' results tables are the committed records, rebuilt; seed groups,
-paired differences, missing records and the results/ paths the READMEs name."""
+"""experiments.table and experiments.tables: the READMEs' results tables are the committed
+records, rebuilt; seed groups, paired differences, missing records and the results/ paths the
+READMEs name."""
 
 import json
 import math
@@ -8,7 +9,10 @@ from pathlib import Path
 import pytest
 
 from experiments import table
-from experiments.table import Entry, Records, Stat
+from experiments.tables import catalogue, render
+from experiments.tables import statistics as stats
+from experiments.tables.catalogue import Entry
+from experiments.tables.statistics import Records, Stat
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -18,6 +22,11 @@ def test_committed_tables_are_the_records():
     assert not missing, "records missing:\n" + "\n".join(missing)
     for path, (committed, generated) in files.items():
         assert committed == generated, f"{path}: run python -m experiments.table"
+
+
+def test_table_check_passes_on_the_committed_results(capsys):
+    """`python -m experiments.table --check` exits 0: tables current, no record or path missing."""
+    assert table.main([str(ROOT / "results"), "--check"]) == 0, capsys.readouterr()
 
 
 def test_every_results_path_the_readmes_name_exists():
@@ -41,10 +50,10 @@ def _run(results, name, sr, tt, val, scen=True, steps=1000):
     pooled = {k: {"mean": v, "se": 0.0} for k, v in m.items()}
     pooled["SR"] = {"mean": mean, "se": se}
     rec = {"task_seed": 1, "tasks": list(range(n)), "per_task": {"SR": [val]}}
-    val8 = run / table.VAL8
+    val8 = run / stats.VAL8
     val8.parent.mkdir(parents=True)
     val8.write_text(json.dumps({"pooled": pooled, "records": [rec]}))
-    for rel in table.SCENARIOS.values():
+    for rel in stats.SCENARIOS.values():
         if scen:
             (run / rel).parent.mkdir(parents=True)
             (run / rel).write_text(json.dumps({"metrics": m}))
@@ -60,27 +69,27 @@ def test_a_seed_group_is_mean_standard_error_over_seeds_and_worst_seed(tmp_path)
     )
     rec = Records(results)
     group = Entry("group", runs)
-    sr = table.entry_values(rec, group, "test", "SR")
+    sr = stats.entry_values(rec, group, "test", "SR")
     assert [s.value for s in sr] == srs
     se = math.sqrt(sum((v - 0.75) ** 2 for v in srs) / 2 / 3)  # ddof 1, over 3 seeds
-    assert table.seed_stats(srs, "SR") == pytest.approx((0.75, se, 0.5))
-    assert table.seed_stats(tts, "TT") == pytest.approx((50.0, se * 40, 60.0))  # worst = longest
-    assert table.fmt_metric(sr, "SR") == f"0.75 +- {se:.2f} (worst 0.50)"
-    tt = table.entry_values(rec, group, "test", "TT")
-    assert table.fmt_metric(tt, "TT") == f"50.00 +- {se * 40:.2f} (worst 60.00)"
+    assert stats.seed_stats(srs, "SR") == pytest.approx((0.75, se, 0.5))
+    assert stats.seed_stats(tts, "TT") == pytest.approx((50.0, se * 40, 60.0))  # worst = longest
+    assert render.fmt_metric(sr, "SR") == f"0.75 +- {se:.2f} (worst 0.50)"
+    tt = stats.entry_values(rec, group, "test", "TT")
+    assert render.fmt_metric(tt, "TT") == f"50.00 +- {se * 40:.2f} (worst 60.00)"
     # the validation cell of a group is over the seeds' pooled means, not over tasks
-    assert table.val8_cell(rec, group, cfr=True) == f"0.75 +- {se:.2f} (worst 0.50) (CFR 1.00)"
+    assert render.val8_cell(rec, group, cfr=True) == f"0.75 +- {se:.2f} (worst 0.50) (CFR 1.00)"
     cfr = "1.00 +- 0.00 (worst 1.00)"
-    assert table.pair_cell(rec, group, "scen_test") == f"0.75 +- {se:.2f} (worst 0.50) / {cfr}"
+    assert render.pair_cell(rec, group, "scen_test") == f"0.75 +- {se:.2f} (worst 0.50) / {cfr}"
     # counts: the range over the seeds' records
-    steps = table.entry_values(rec, group, "grad_steps", "")
-    assert table.fmt_count(steps, table._steps) == "1000-2000"
-    assert table.fmt_count(table.entry_values(rec, group, "budget", ""), table._minutes) == "60"
+    steps = stats.entry_values(rec, group, "grad_steps", "")
+    assert render.fmt_count(steps, render._steps) == "1000-2000"
+    assert render.fmt_count(stats.entry_values(rec, group, "budget", ""), render._minutes) == "60"
     one = Entry("one", runs[:1])
-    assert table.val8_cell(rec, one, cfr=False) == "0.50 +- 0.00"
-    assert table.fmt_metric([Stat(0.875)], "SR") == "0.88"  # the records' rounding
+    assert render.val8_cell(rec, one, cfr=False) == "0.50 +- 0.00"
+    assert render.fmt_metric([Stat(0.875)], "SR") == "0.88"  # the records' rounding
     with pytest.raises(ValueError):
-        table.seed_stats([0.5], "SR")
+        stats.seed_stats([0.5], "SR")
     assert not rec.missing
 
 
@@ -91,18 +100,18 @@ def test_a_missing_record_is_named_and_never_filled_in(tmp_path, monkeypatch, ca
     entries = (
         Entry("ok", (ok,)),
         Entry("gap", (gap,)),
-        Entry("none", (gap,), absent=table._NO_SCEN),
+        Entry("none", (gap,), absent=catalogue._NO_SCEN),
     )
     (tmp_path / "README.md").write_text("text\n<!-- table:t -->\nold\n<!-- /table:t -->\nend\n")
     (results / "README.md").write_text("no block here\n")
-    blocks = [("README.md", "t", lambda rec: table.render_restaurant(rec, entries))]
+    blocks = [("README.md", "t", lambda rec: render.render_restaurant(rec, entries))]
     files, missing = table.generate(results, blocks)
     new = files[tmp_path / "README.md"][1]
     assert new.startswith("text\n<!-- table:t -->\n| run |") and new.endswith("\nend\n")
     rows = {line.split(" [")[0].strip("| "): line for line in new.splitlines() if "[`" in line}
     assert rows["ok"].endswith("| 0.50 / 1.00 | 0.50 / 1.00 |")
     assert rows["gap"].endswith(
-        f"| {table.MISSING} / {table.MISSING} | {table.MISSING} / MISSING |"
+        f"| {stats.MISSING} / {stats.MISSING} | {stats.MISSING} / MISSING |"
     )
     assert rows["none"].endswith("| - / - | - / - |")
     assert missing == [
@@ -124,7 +133,7 @@ def test_check_passes_once_the_tables_are_written(tmp_path, monkeypatch, capsys)
     (tmp_path / "README.md").write_text("<!-- table:t -->\n<!-- /table:t -->\n")
     (results / "README.md").write_text("")
     monkeypatch.setattr(
-        table, "BLOCKS", (("README.md", "t", lambda r: table.render_restaurant(r, entries)),)
+        table, "BLOCKS", (("README.md", "t", lambda r: render.render_restaurant(r, entries)),)
     )
     monkeypatch.setattr(table, "missing_references", lambda root: [])
     assert table.main([str(results), "--check"]) == 1
@@ -155,14 +164,14 @@ def _pooled(per_task: list[list[float]], seeds=(1, 2)) -> dict:
 def test_paired_difference_is_over_the_same_tasks():
     a = _pooled([[1, 1, 0, 0], [1, 1, 1, 0]])
     b = _pooled([[1, 0, 0, 1], [0, 1, 1, 0]])
-    p = table.paired_difference(a, b)
+    p = stats.paired_difference(a, b)
     d = [0, 1, 0, -1, 1, 0, 0, 0]
     se = math.sqrt(sum((x - 0.125) ** 2 for x in d) / 7 / 8)
     assert (p.mean, p.tasks, p.both, p.only_a, p.only_b) == (0.125, 8, 3, 2, 1)
     assert p.se == pytest.approx(se)
     assert str(p).startswith(f"+0.12 +- {se:.2f} over 8 tasks")
     with pytest.raises(ValueError, match="same tasks"):
-        table.paired_difference(a, _pooled([[1, 1, 0, 0], [1, 1, 1, 0]], seeds=(1, 3)))
+        stats.paired_difference(a, _pooled([[1, 1, 0, 0], [1, 1, 1, 0]], seeds=(1, 3)))
 
 
 def test_referenced_paths_reads_code_brackets_and_links_but_not_outputs():
@@ -194,7 +203,7 @@ def test_seed_table_gives_seed_statistics_and_the_papers_ordering_with_seeds_as_
         group("MPC-SAC 0.2", [0.6, 0.3, 0.5]),  # PEARL - MPC-SAC: -0.1, +0.1, +0.1
     )
     rec = Records(results)
-    text = table.render_seeds(rec, groups)
+    text = render.render_seeds(rec, groups)
     rows = [line for line in text.splitlines() if line.startswith("| ")]
     first = rows[1].split(" | ")
     assert first[:5] == ["| MPC-PEARL 0.2", "3", "60", "1000", "24 test tasks"]
@@ -206,18 +215,18 @@ def test_seed_table_gives_seed_statistics_and_the_papers_ordering_with_seeds_as_
     mixed = claims[("| PEARL > MPC-SAC 0.2 (SR)", "paper's 25 test scenarios")]
     assert "+0.03 +- 0.07" in mixed and mixed.endswith("cannot be told apart |")
     # B ahead on every seed: the claim does not hold
-    d = table.seed_difference([Stat(0.1), Stat(0.2), Stat(0.3)], [Stat(0.5), Stat(0.62), Stat(0.7)])
+    d = stats.seed_difference([Stat(0.1), Stat(0.2), Stat(0.3)], [Stat(0.5), Stat(0.62), Stat(0.7)])
     assert d[:2] == pytest.approx((-0.4066667, 0.0066667), abs=1e-6) and d[2] == 3
-    assert table.verdict(d).startswith("does not hold")
-    assert table.verdict(table.seed_difference([Stat(0.5)], [Stat(0.1)])) == (
+    assert stats.verdict(d).startswith("does not hold")
+    assert stats.verdict(stats.seed_difference([Stat(0.5)], [Stat(0.1)])) == (
         "fewer than 3 seeds each: no verdict"
     )
     # two seeds that differ by the same amount (se 0) get no verdict, not 'holds'
-    two = table.seed_difference([Stat(0.9), Stat(0.8)], [Stat(0.7), Stat(0.6)])
+    two = stats.seed_difference([Stat(0.9), Stat(0.8)], [Stat(0.7), Stat(0.6)])
     assert two == pytest.approx((0.2, 0.0, 2))
-    assert table.verdict(two) == "fewer than 3 seeds each: no verdict"
+    assert stats.verdict(two) == "fewer than 3 seeds each: no verdict"
     # one seed is shown as such, never as a spread
-    one = table.render_seeds(rec, (group("solo", [0.7]),))
+    one = render.render_seeds(rec, (group("solo", [0.7]),))
     assert "0.70 (1 seed)" in one
     assert not rec.missing
 
@@ -227,9 +236,9 @@ def test_lift_off_reads_first_success_last_ten_and_lowest_alpha():
         {"iteration": i + 1, "train_success": s, "alpha": a}
         for i, (s, a) in enumerate([(0, 1.0), (0, 0.3), (0.5, 0.05), (0, 0.2)] + [(1.0, 0.9)] * 9)
     ]
-    assert table._lift_off(rows) == ("3", "0.90", "0.05 (it 3)")
+    assert render._lift_off(rows) == ("3", "0.90", "0.05 (it 3)")
     fixed = [{k: v for k, v in r.items() if k != "alpha"} for r in rows[:2]]
-    assert table._lift_off(fixed) == ("never", "0.00", "fixed")
+    assert render._lift_off(fixed) == ("never", "0.00", "fixed")
 
 
 def _curve(results: Path, name: str, points, first_success) -> str:
@@ -256,7 +265,7 @@ def test_seed_curves_read_each_evaluation_point_and_pair_seeds_at_each_minute(tm
                         for i, (v, f) in enumerate([(0.5, 4.0), (0.6, 5.0), (0.7, None)]))),
     )  # fmt: skip
     rec = Records(results)
-    text = table.render_seed_curves(rec, groups)
+    text = render.render_seed_curves(rec, groups)
     rows = {tuple(r.split(" | ")[:3]): r for r in text.splitlines() if r.startswith("| ")}
     m = rows[("| MPC-PEARL 0.2", "3", "SR, 24 validation tasks")].split(" | ")
     se = math.sqrt(2 * 0.1**2 / 2 / 3)
@@ -273,7 +282,7 @@ def test_seed_curves_read_each_evaluation_point_and_pair_seeds_at_each_minute(tm
     assert not rec.missing
     # a run without a point near a minute is named, never filled in
     _curve(results, "short", [(0.0, 0, 0, 0), (6.0, 0.1, 0.5, 0.1)], 3.0)
-    text = table.render_seed_curves(rec, (("X", ("short", "m0")),))
+    text = render.render_seed_curves(rec, (("X", ("short", "m0")),))
     assert "MISSING" in text and any("no point at 12 minutes" in m for m in rec.missing)
 
 
@@ -286,7 +295,7 @@ def test_sidewalk_seed_table_reads_the_windows_and_lists_a_method_without_seeds(
         _run(results, f"p{i}", sr, 250.0, [sr, sr]) for i, sr in enumerate([0.0, 0.17, 0.0])
     )
     rec = Records(results)
-    text = table.render_sidewalk_seeds(rec, (("MPC-PEARL 0.2", mpc), ("PEARL", pearl)))
+    text = render.render_sidewalk_seeds(rec, (("MPC-PEARL 0.2", mpc), ("PEARL", pearl)))
     rows = [line for line in text.splitlines() if line.startswith("| ")]
     online = rows[1].split(" | ")
     assert online[4] == "6 test windows, online" and online[5].startswith(
@@ -297,7 +306,7 @@ def test_sidewalk_seed_table_reads_the_windows_and_lists_a_method_without_seeds(
         r for r in rows if r.startswith("| MPC-PEARL 0.2 > PEARL (SR) | 6 test windows, online")
     )
     assert "+0.61 +- 0.11" in claim and claim.endswith("| 3 | holds |")
-    empty = table.render_sidewalk_seeds(rec, (("MPC-PEARL 0.2", mpc[:1]), ("PEARL", ())))
+    empty = render.render_sidewalk_seeds(rec, (("MPC-PEARL 0.2", mpc[:1]), ("PEARL", ())))
     assert "| PEARL | 0 | no seed finished yet |" in empty and "PEARL: none yet" in empty
     assert "0.50 (1 seed)" in empty
     assert "| MPC-PEARL 0.2 > PEARL | every set | - | 0 | no seed of PEARL finished yet |" in empty
@@ -306,14 +315,14 @@ def test_sidewalk_seed_table_reads_the_windows_and_lists_a_method_without_seeds(
 
 
 def test_grbal_is_in_the_seed_table_but_not_in_the_curve_table():
-    assert "GrBAL" in dict(table.SEED_GROUPS)
-    assert "GrBAL" not in dict(table.CURVE_SEED_GROUPS)
-    assert ("MPC-SAC 0.2", "GrBAL") in table.PAPER_ORDER
+    assert "GrBAL" in dict(catalogue.SEED_GROUPS)
+    assert "GrBAL" not in dict(catalogue.CURVE_SEED_GROUPS)
+    assert ("MPC-SAC 0.2", "GrBAL") in catalogue.PAPER_ORDER
 
 
 def test_a_difference_that_rounds_to_zero_has_no_minus_sign():
-    assert table.signed(-1e-17) == "+0.00" and table.signed(-0.004) == "+0.00"
-    assert table.signed(-0.17) == "-0.17" and table.signed(0.2) == "+0.20"
+    assert stats.signed(-1e-17) == "+0.00" and stats.signed(-0.004) == "+0.00"
+    assert stats.signed(-0.17) == "-0.17" and stats.signed(0.2) == "+0.20"
 
 
 def test_main_seed_summary_pairs_recipes_with_default_and_counts_seeds_clearing_both(tmp_path):
@@ -329,7 +338,7 @@ def test_main_seed_summary_pairs_recipes_with_default_and_counts_seeds_clearing_
         for i, (t, v) in enumerate([(0.6, 0.6), (0.7, 0.7), (0.8, 0.95)])
     )
     groups = (("`default`", default), ("better", better))
-    text = table.render_main_seed_summary(Records(results), groups)
+    text = render.render_main_seed_summary(Records(results), groups)
     assert "| `default` | 1 of 3 |" in text and "| better | 3 of 3 |" in text
     claim = next(r for r in text.splitlines() if r.startswith("| better > `default` (SR) | 192"))
     assert "+0.28 +- 0.12" in claim and claim.endswith("cannot be told apart |")
@@ -340,5 +349,5 @@ def test_lifetime_wall_time_adds_the_segments_of_a_resumed_run():
     """A record whose resumed process restarted wall_s at 0 (written before resumed runs
     carried their clocks on) counts both segments; evaluation rows without wall_s are skipped."""
     rows = [{"wall_s": 10.0}, {"wall_s": 20.0}, {"eval_SR": 0.5}, {"wall_s": 5.0}, {"wall_s": 8.0}]
-    assert table.lifetime_wall_s(rows) == 28.0
-    assert table.lifetime_wall_s([{"wall_s": 3.0}, {"wall_s": 7.5}]) == 7.5
+    assert stats.lifetime_wall_s(rows) == 28.0
+    assert stats.lifetime_wall_s([{"wall_s": 3.0}, {"wall_s": 7.5}]) == 7.5
