@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from scipy.stats import t as student_t
+
 from experiments.tables.catalogue import Entry
 from mpcpearl_jax.evaluation.report import PAPER
 
@@ -218,10 +220,6 @@ def paired_difference(a: dict, b: dict) -> Paired:
 # ---------------------------------------------------------------- seeds as the unit
 
 
-# two-sided 95 % Student t quantiles by degrees of freedom (seeds - 1)
-T95 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447}
-
-
 def seed_difference(a: Sequence[Stat], b: Sequence[Stat]) -> tuple[float, float, int] | None:
     """Mean and standard error over seeds of the per-seed difference A - B (seed i of A against
     seed i of B, over the seeds both have), and that number of seeds; None below two seeds."""
@@ -245,7 +243,7 @@ def verdict(diff: tuple[float, float, int] | None) -> str:
     if diff is None or diff[2] < MIN_VERDICT_SEEDS:
         return f"fewer than {MIN_VERDICT_SEEDS} seeds each: no verdict"
     mean, se, n = diff
-    half = T95.get(n - 1, 1.96) * se
+    half = float(student_t.ppf(0.975, n - 1)) * se  # two-sided 95 %, seeds - 1 degrees of freedom
     if mean - half > 0:
         return "holds"
     if mean + half < 0:
