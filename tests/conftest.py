@@ -1,10 +1,13 @@
 """Test configuration: a persistent XLA compilation cache shared by the test session, so that
-identical programs (e.g. trainers rebuilt from the same config) compile once."""
+identical programs (e.g. trainers rebuilt from the same config) compile once; the fault tests'
+reference run (`ref0`), trained once per session."""
 
 import os
 import tempfile
+from pathlib import Path
 
 import jax
+import pytest
 
 _CACHE = os.environ.get("MPCPEARL_TEST_JAX_CACHE") or os.path.join(
     tempfile.gettempdir(), "mpcpearl_jax_test_xla_cache"
@@ -12,3 +15,16 @@ _CACHE = os.environ.get("MPCPEARL_TEST_JAX_CACHE") or os.path.join(
 jax.config.update("jax_compilation_cache_dir", _CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+@pytest.fixture(scope="session")
+def ref0(tmp_path_factory) -> Path:
+    """The uninterrupted eps-0 run of the fault tests' small configuration (`faults_helpers`),
+    trained in this process once per session: tests/test_faults_*.py only read it or copy it."""
+    from faults_helpers import small_cfg
+
+    from mpcpearl_jax.training.run import train
+
+    out = tmp_path_factory.mktemp("ref") / "eps0"
+    train(small_cfg(0.0), out, progress=False)
+    return out
