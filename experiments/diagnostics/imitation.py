@@ -1,11 +1,11 @@
 """How well does a trained policy imitate the MPC, and how far does imitation alone get?
 
-A diagnostic for the behaviour-cloning extension (`pearl.bc_weight`, docs/extensions.md). The
-GP-MPC of the run (its own `mpc` settings, acting at every step) drives closed-loop episodes on
-the first `train_tasks` training tasks and on the `val` split of task seed `--select-seed`. On
-the MPC's own states of the validation episodes, and of the training episodes (steps before a
-collision or the goal), it measures the squared action error |a - a_mpc|^2 (summed over the two
-normalized action dimensions) of
+A diagnostic written for the behaviour-cloning extension (`pearl.bc_weight`, since removed:
+docs/extensions.md, Removed options). The GP-MPC of the run (its own `mpc` settings, acting at
+every step) drives closed-loop episodes on the first `train_tasks` training tasks and on the
+`val` split of task seed `--select-seed`. On the MPC's own states of the validation episodes, and
+of the training episodes (steps before a collision or the goal), it measures the squared action
+error |a - a_mpc|^2 (summed over the two normalized action dimensions) of
 
 * the run's deterministic policy tanh(mu(s, z)), with the prior z = 0 and with z inferred from
   the MPC episode itself as context;

@@ -38,16 +38,6 @@ class TrainConfig:
     keep_checkpoints: int = 3
     # ---- extensions beyond the paper (all off by default and in the `paper` preset; docs/
     # extensions.md describes and measures each one)
-    # MPC warm start: a share of the collection rows is driven by the MPC on every step (not
-    # only on events); the share starts at mpc_demo_share and falls linearly to 0 at iteration
-    # mpc_demo_iterations (the initial collection is iteration 0), after which only the paper's
-    # event-triggered infusion with probability eps remains.
-    mpc_demo_share: float = 0.0
-    mpc_demo_iterations: int = 0
-    # in a warm-start row the MPC acts on each step with this probability and the stochastic
-    # policy on the others (DAgger-style mixing: the MPC also acts from states the policy leads
-    # to, so its transitions cover the policy's mistakes); 1 = the MPC drives the whole episode
-    mpc_demo_step_prob: float = 1.0
     # MPC transitions kept apart: every transition the MPC produced (solved, not a fallback) is
     # also stored in a per-task MPC buffer of mpc_buffer_capacity, and this fraction of every
     # RL batch is drawn from it (symmetric sampling as in RLPD when 0.5).
@@ -85,22 +75,8 @@ class TrainConfig:
             "eval_adapt_episodes",
             "mpc_buffer_capacity",
         )
-        v.ints(
-            self,
-            "posterior_episodes",
-            "eval_interval",
-            "mpc_demo_iterations",
-            "crowd_delay_max",
-            lo=0,
-        )
-        unit = (
-            "eps",
-            "mpc_demo_share",
-            "mpc_demo_step_prob",
-            "mpc_buffer_fraction",
-            "explore_start_share",
-        )
-        v.interval(self, *unit, lo=0.0, hi=1.0)
+        v.ints(self, "posterior_episodes", "eval_interval", "crowd_delay_max", lo=0)
+        v.interval(self, "eps", "mpc_buffer_fraction", "explore_start_share", lo=0.0, hi=1.0)
         v.check(self.mpc_buffer_fraction < 1.0, self, "mpc_buffer_fraction", "must be below 1")
         v.flags(self, "redraw_behaviours")
         v.check(
@@ -121,15 +97,9 @@ class TrainConfig:
 
     @property
     def uses_mpc(self) -> bool:
-        """Whether collection calls the MPC: eps = 0 is PEARL, and then no extension that
-        relies on MPC actions (warm start, MPC buffer, behaviour cloning) has anything to act on."""
+        """Whether collection calls the MPC: eps = 0 is PEARL, and then the MPC buffer
+        (`mpc_buffer_fraction`) has nothing to hold."""
         return self.eps > 0
-
-    def demo_share(self, iteration: int) -> float:
-        """Share of collection rows driven by the MPC (warm start) at `iteration`."""
-        if self.mpc_demo_iterations <= 0 or not self.uses_mpc:
-            return 0.0
-        return self.mpc_demo_share * max(0.0, 1.0 - iteration / self.mpc_demo_iterations)
 
 
 class SerializableConfig:
@@ -211,21 +181,72 @@ class ExperimentConfig(SerializableConfig):
 # Options removed after they measured no gain (docs/extensions.md, "Removed options"), with
 # their off value: section -> {field: off value}. Every one of them acted on training only.
 REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
-    "train": {"mpc_dagger_labels": False},
-    "pearl": {"policy_ema": 0.0, "alpha_lr": None},
+    "train": {
+        "mpc_dagger_labels": False,
+        "mpc_demo_share": 0.0,
+        "mpc_demo_iterations": 0,
+        "mpc_demo_step_prob": 1.0,
+    },
+    "pearl": {
+        "policy_ema": 0.0,
+        "alpha_lr": None,
+        "bc_weight": 0.0,
+        "bc_q_filter": True,
+        "init_alpha": 1.0,
+    },
     "env_overrides": {"w_collision": 0.0},
+}
+# Removed options that acted only together with others: 'section.field' -> the options, with
+# their off value, that must all differ from it for this one to have changed training. The MPC
+# warm start ran only with a share and an iteration count above 0 and with the MPC (eps > 0);
+# its step probability and the cloning's Q filter qualified an option that had to be on, and
+# cloning read the MPC buffer's rows. So the inactive values the presets carried (step
+# probability 0.5, no Q filter) leave a committed run resumable.
+_ACTIVE_ONLY_WITH: dict[str, dict[str, Any]] = {
+    "train.mpc_demo_share": {"train.mpc_demo_iterations": 0, "train.eps": 0.0},
+    "train.mpc_demo_iterations": {"train.mpc_demo_share": 0.0, "train.eps": 0.0},
+    "train.mpc_demo_step_prob": {
+        "train.mpc_demo_share": 0.0,
+        "train.mpc_demo_iterations": 0,
+        "train.eps": 0.0,
+    },
+    "pearl.bc_weight": {"train.mpc_buffer_fraction": 0.0, "train.eps": 0.0},
+    "pearl.bc_q_filter": {
+        "pearl.bc_weight": 0.0,
+        "train.mpc_buffer_fraction": 0.0,
+        "train.eps": 0.0,
+    },
 }
 
 
 def removed_options_on(d: dict) -> list[str]:
-    """The removed options (`REMOVED_OPTIONS`) a config dict switches on, as 'section.field'."""
+    """The removed options (`REMOVED_OPTIONS`) a config dict switches on, as 'section.field':
+    set to another value than their off value, and, for those that acted only together with
+    others (`_ACTIVE_ONLY_WITH`), with every one of those on too."""
     on = []
     for section, fields in REMOVED_OPTIONS.items():
         part = d.get(section) or {}
         for field, off in fields.items():
-            if field in part and part[field] != off:
-                on.append(f"{section}.{field}")
+            name = f"{section}.{field}"
+            needs = _ACTIVE_ONLY_WITH.get(name, {})
+            if part.get(field, off) != off and all(
+                _recorded(d, other) != value for other, value in needs.items()
+            ):
+                on.append(name)
     return on
+
+
+def _recorded(d: dict, name: str) -> Any:
+    """The value of 'section.field' in a config dict: as recorded, else its default (a removed
+    option's off value)."""
+    section, field = name.split(".")
+    part = d.get(section) or {}
+    if field in part:
+        return part[field]
+    if field in REMOVED_OPTIONS.get(section, {}):
+        return REMOVED_OPTIONS[section][field]
+    defaults = {"train": TrainConfig(), "pearl": PearlConfig()}[section]
+    return getattr(defaults, field)
 
 
 def _without_removed(d: dict) -> dict:
@@ -241,11 +262,10 @@ def validate(cfg: ExperimentConfig) -> ExperimentConfig:
     touches anything (`experiments.common.main`, `run.prepare`, the learning harness; `Trainer`
     runs it too, for callers that build one directly). The type and range of each single field
     are the dataclasses' own invariants, checked when a section is built (`__post_init__`,
-    through `mpcpearl_jax.validate`); here: the seeds split evenly over the devices, behaviour
-    cloning has MPC samples in its batch, the env overrides' values on the family's own
-    NavConfig, and whether the family can re-draw its training crowds when
-    `train.redraw_behaviours` asks for it (not the sidewalk's recorded windows, not the paper's
-    fixed scenarios). Returns `cfg`; ConfigError naming the field."""
+    through `mpcpearl_jax.validate`); here: the seeds split evenly over the devices, the env
+    overrides' values on the family's own NavConfig, and whether the family can re-draw its
+    training crowds when `train.redraw_behaviours` asks for it (not the sidewalk's recorded
+    windows, not the paper's fixed scenarios). Returns `cfg`; ConfigError naming the field."""
     from mpcpearl_jax.envs import can_redraw, make_env
 
     if cfg.devices and cfg.seeds % cfg.devices:
@@ -254,11 +274,6 @@ def validate(cfg: ExperimentConfig) -> ExperimentConfig:
             "devices",
             f"{cfg.seeds} seed(s) do not split evenly over {cfg.devices} devices; give a "
             "seed count that is a multiple of it",
-        )
-    if cfg.pearl.bc_weight > 0 and cfg.train.mpc_buffer_fraction == 0:
-        raise ConfigError(
-            "PearlConfig.bc_weight: behaviour cloning needs MPC samples in the batch "
-            "(set train.mpc_buffer_fraction > 0)"
         )
     try:
         make_env(cfg.env, **cfg.env_overrides)
@@ -318,14 +333,6 @@ _CPU_SCHEDULE: dict[str, Any] = dict(
     eval_interval=25,
     checkpoint_interval=25,
 )
-# the MPC-based extensions: warm start with DAgger-style mixing (falling to 0 at iteration 400),
-# MPC buffer at half of every batch (with eps = 0 they are inactive)
-_MPC_BUNDLE: dict[str, Any] = dict(
-    mpc_demo_share=1.0,
-    mpc_demo_iterations=400,
-    mpc_demo_step_prob=0.5,
-    mpc_buffer_fraction=0.5,
-)
 # the observation options chosen on the restaurant's validation split: people's velocities,
 # 3 m sensing range, the clock, egocentric entries, people listed nearest first
 _OBSERVATION: dict[str, Any] = dict(
@@ -359,65 +366,19 @@ PRESET_CHANGES: dict[str, dict[str, dict[str, Any]]] = {
             checkpoint_interval=2,
         ),
     },
-    # the paper's algorithm (no extension) on the CPU schedule and networks
+    # the paper's algorithm (no extension) on the CPU schedule and networks: the faithful
+    # reference an extension is measured against
     "cpu-paper": {"pearl": _CPU_NETS, "train": _CPU_SCHEDULE},
-    # the CPU schedule with the extensions (docs/extensions.md): the MPC bundle, behaviour
-    # cloning without Q filter, LayerNorm critics, unsafe-plan recovery
-    "cpu": {
-        "pearl": {**_CPU_NETS, "bc_weight": 1.0, "bc_q_filter": False, "layer_norm": True},
-        "train": {**_CPU_SCHEDULE, **_MPC_BUNDLE},
-        "mpc": _MPC_RECOVERY,
-    },
-    # `cpu` plus the options chosen on the validation split: crowds re-drawn per visit,
-    # cloning weight 4, the observation options; restaurant only (the sidewalk cannot re-draw
-    # its crowds: add --set train.redraw_behaviours=false there)
-    "cpu-tuned": {
-        "pearl": {**_CPU_NETS, "bc_weight": 4.0, "bc_q_filter": False, "layer_norm": True},
-        "train": {**_CPU_SCHEDULE, **_MPC_BUNDLE, "redraw_behaviours": True},
-        "mpc": _MPC_RECOVERY,
-        "env_overrides": _OBSERVATION,
-    },
-    # the MPC-PEARL headline (results/README.md): the paper's event-triggered infusion only (no
-    # MPC bundle, no cloning), LayerNorm critics, re-drawn crowds, the observation options and
-    # exploring starts on half the posterior-phase episodes; restaurant only
+    # the recommended CPU recipe (results/README.md): the paper's event-triggered infusion,
+    # LayerNorm critics, re-drawn crowds, the observation options and exploring starts on half
+    # the posterior-phase episodes; restaurant only (the sidewalk cannot re-draw its crowds: add
+    # --set train.redraw_behaviours=false there). `--preset cpu-explore --set
+    # pearl.auto_entropy=true` is the five-seed comparison's recipe, exactly the former
+    # `cpu-auto` preset (checked equal when it was removed); `--set train.crowd_delay_max=20`
+    # the former `cpu-robust`
     "cpu-explore": {
-        "pearl": {**_CPU_NETS, "bc_q_filter": False, "layer_norm": True},
-        "train": {
-            **_CPU_SCHEDULE,
-            "redraw_behaviours": True,
-            "explore_start_share": 0.5,
-            # inactive without the warm start; kept so the committed runs' configs rebuild
-            "mpc_demo_step_prob": 0.5,
-        },
-        "mpc": _MPC_RECOVERY,
-        "env_overrides": _OBSERVATION,
-    },
-    # `cpu-explore` with automatic entropy tuning: the five-seed comparison's preset, chosen on
-    # the validation split over `cpu-explore` (results/README.md, five seeds per method);
-    # restaurant only
-    "cpu-auto": {
-        "pearl": {**_CPU_NETS, "auto_entropy": True, "bc_q_filter": False, "layer_norm": True},
-        "train": {
-            **_CPU_SCHEDULE,
-            "redraw_behaviours": True,
-            "explore_start_share": 0.5,
-            "mpc_demo_step_prob": 0.5,  # inactive without the warm start (as in cpu-explore)
-        },
-        "mpc": _MPC_RECOVERY,
-        "env_overrides": _OBSERVATION,
-    },
-    # `cpu-explore` with randomised crowd timing (every person of a visited training task waits
-    # 0-20 extra steps at its start), chosen on validation perturbations of its own
-    # (results/README.md, crowd perturbations); restaurant only
-    "cpu-robust": {
-        "pearl": {**_CPU_NETS, "bc_q_filter": False, "layer_norm": True},
-        "train": {
-            **_CPU_SCHEDULE,
-            "redraw_behaviours": True,
-            "explore_start_share": 0.5,
-            "mpc_demo_step_prob": 0.5,  # inactive without the warm start (as in cpu-explore)
-            "crowd_delay_max": 20,
-        },
+        "pearl": {**_CPU_NETS, "layer_norm": True},
+        "train": {**_CPU_SCHEDULE, "redraw_behaviours": True, "explore_start_share": 0.5},
         "mpc": _MPC_RECOVERY,
         "env_overrides": _OBSERVATION,
     },
@@ -431,7 +392,6 @@ PRESET_CHANGES: dict[str, dict[str, dict[str, Any]]] = {
             "encoder_hidden": (64, 64),
             "meta_batch": 4,
             "auto_entropy": True,
-            "bc_q_filter": False,
             "layer_norm": True,
         },
         "train": {
@@ -439,7 +399,6 @@ PRESET_CHANGES: dict[str, dict[str, dict[str, Any]]] = {
             "iterations": 75,
             "redraw_behaviours": True,
             "explore_start_share": 0.5,
-            "mpc_demo_step_prob": 0.5,  # inactive without the warm start (as in cpu-explore)
         },
         "mpc": _MPC_RECOVERY,
         "env_overrides": _OBSERVATION,

@@ -34,10 +34,6 @@ class PearlConfig:
     max_grad_norm: float | None = None  # None = no clipping (authors)
     use_context: bool = True  # False: z = 0 always, no encoder (the paper's MPC-SAC baseline)
     # ---- extensions beyond the paper (off by default and in the `paper` preset)
-    # Q-filtered behaviour cloning on MPC transitions (Nair et al. 2018): the policy loss adds
-    # bc_weight * mean over MPC samples of 1[Q(s, a_mpc) > Q(s, pi(s))] |tanh(mu(s)) - a_mpc|^2.
-    bc_weight: float = 0.0
-    bc_q_filter: bool = True  # False: clone every MPC sample (no Q filter)
     layer_norm: bool = False  # LayerNorm after every hidden layer of the Q and V networks
     # automatic entropy tuning (Haarnoja et al. 2018b, "SAC algorithms and applications"): the
     # entropy weight alpha of the actor loss and the V target (1 in the paper, whose temperature
@@ -46,18 +42,14 @@ class PearlConfig:
     # policy's entropy is pulled to the target; target_entropy None = -(action dimension)
     auto_entropy: bool = False
     target_entropy: float | None = None
-    # alpha's starting value under auto_entropy (1 = the paper's temperature). Dividing it and
-    # reward_scale by the same factor leaves the actor's and alpha's updates as they are (Adam is
-    # scale-free) and shrinks only the Q and V targets the critics must reach
-    init_alpha: float = 1.0
 
     def __post_init__(self) -> None:
         v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size")
         v.int_tuples(self, "hidden", "encoder_hidden")
-        v.positive(self, "lr", "reward_scale", "min_posterior_var", "init_alpha")
+        v.positive(self, "lr", "reward_scale", "min_posterior_var")
         v.interval(self, "gamma", "tau", lo=0.0, hi=1.0)
-        v.nonnegative(self, "kl_weight", "policy_mean_reg", "policy_std_reg", "bc_weight")
-        v.flags(self, "use_context", "layer_norm", "bc_q_filter", "auto_entropy")
+        v.nonnegative(self, "kl_weight", "policy_mean_reg", "policy_std_reg")
+        v.flags(self, "use_context", "layer_norm", "auto_entropy")
         v.check(
             self.target_entropy is None or v.is_number(self.target_entropy),
             self,
@@ -68,12 +60,6 @@ class PearlConfig:
             self.target_entropy is None or self.auto_entropy,
             self,
             "target_entropy",
-            "only used with auto_entropy: set pearl.auto_entropy=true",
-        )
-        v.check(
-            self.init_alpha == 1.0 or self.auto_entropy,
-            self,
-            "init_alpha",
             "only used with auto_entropy: set pearl.auto_entropy=true",
         )
         v.check(

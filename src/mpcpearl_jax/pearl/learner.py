@@ -6,8 +6,6 @@
 
 from __future__ import annotations
 
-import math
-
 import jax
 import jax.numpy as jnp
 import optax
@@ -64,9 +62,8 @@ def init_learner(key: Array, nets: Networks) -> LearnerState:
         "v": opt.init(params["v"]),
     }
     log_alpha = None
-    if nets.cfg.auto_entropy:
-        # alpha = init_alpha; 1 (the default) is the paper's temperature at first
-        log_alpha = jnp.asarray(math.log(nets.cfg.init_alpha), jnp.float32)
+    if nets.cfg.auto_entropy:  # alpha starts at 1, the paper's temperature
+        log_alpha = jnp.zeros((), jnp.float32)
         opt_state["alpha"] = opt.init(log_alpha)
     return LearnerState(params, params["v"], opt_state, jnp.zeros((), jnp.int32), log_alpha)
 
@@ -86,13 +83,8 @@ def _update(
     batch: Transitions,
     context: Array,
     key: Array,
-    demo_mask: Array | None = None,
 ) -> tuple[LearnerState, dict]:
-    """One PEARL gradient step (order as in the authors' code: Q+encoder, then V, policy).
-
-    demo_mask [MB, B] marks the batch rows drawn from the MPC buffer (only used by the
-    behaviour-cloning extension, `PearlConfig.bc_weight`).
-    """
+    """One PEARL gradient step (order as in the authors' code: Q+encoder, then V, policy)."""
     k_z, k_pi = jax.random.split(key)
     p = state.params
     alpha = None if state.log_alpha is None else jnp.exp(state.log_alpha)
@@ -115,10 +107,6 @@ def _update(
         k_pi,
         cfg.policy_mean_reg,
         cfg.policy_std_reg,
-        batch.action,
-        demo_mask,
-        cfg.bc_weight,
-        cfg.bc_q_filter,
         alpha,
     )
     upd, os_pi = opt.update(g_pi, state.opt_state["policy"], p["policy"])
@@ -158,16 +146,13 @@ def _update(
     }
     if alpha is not None:
         metrics["alpha"] = alpha
-    for k in ("bc_kept", "bc_error"):
-        if k in pi_aux:
-            metrics[k] = pi_aux[k]
     return new_state, metrics
 
 
 def make_update(nets: Networks, jit: bool = True):
-    """`update(state, batch [MB, B], context [MB, C, D], key, demo_mask=None) ->
-    (state, metrics)`: one gradient step of the agent `nets`; jit=False gives the plain
-    function, for composing into scans (see `trainer`)."""
+    """`update(state, batch [MB, B], context [MB, C, D], key) -> (state, metrics)`: one
+    gradient step of the agent `nets`; jit=False gives the plain function, for composing into
+    scans (see `trainer`)."""
     cfg, opt = nets.cfg, _optimizer(nets.cfg)
 
     def update(
@@ -175,8 +160,7 @@ def make_update(nets: Networks, jit: bool = True):
         batch: Transitions,
         context: Array,
         key: Array,
-        demo_mask: Array | None = None,
     ):
-        return _update(nets, cfg, opt, state, batch, context, key, demo_mask)
+        return _update(nets, cfg, opt, state, batch, context, key)
 
     return jax.jit(update) if jit else update

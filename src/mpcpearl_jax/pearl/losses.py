@@ -58,20 +58,11 @@ def policy_loss(
     key,
     mean_reg,
     std_reg,
-    demo_action=None,
-    demo_mask=None,
-    bc_weight: float = 0.0,
-    bc_q_filter: bool = True,
     alpha=None,
 ):
     """Paper's actor loss L_theta = KL(pi || exp(Q)/Z) = E[log pi - min_i Q_i] + regularisers.
 
-    z is detached (no policy gradient into the encoder). Extension (off in the paper): with
-    bc_weight > 0, a Q-filtered behaviour-cloning term on the MPC samples of the batch
-    (demo_mask [MB, B] = 1 where the stored action came from the MPC, demo_action [MB, B, A]):
-    bc_weight * mean|Q| * sum_demo 1[min Q(s, a_mpc) > min Q(s, tanh mu(s))] |tanh mu(s) - a_mpc|^2
-    / n_demo, with mean|Q| detached so that bc_weight is free of the reward scale (as TD3+BC's
-    lambda = alpha / mean|Q|; bc_weight 0.4 matches its alpha = 2.5). Extension
+    z is detached (no policy gradient into the encoder). Extension
     `PearlConfig.auto_entropy`: alpha (a detached scalar) weighs log pi in the loss and in the V
     target, E[alpha log pi - min_i Q_i]; None = 1 as in the paper. Returns (loss, aux).
     """
@@ -82,25 +73,7 @@ def policy_loss(
     entropy_term = log_pi if alpha is None else alpha * log_pi
     loss = jnp.mean(entropy_term - min_q)
     loss += mean_reg * jnp.mean(mean**2) + std_reg * jnp.mean(log_std**2)
-    aux = {"log_pi": jnp.mean(log_pi), "v_target": min_q - entropy_term}
-    if bc_weight > 0 and demo_action is not None and demo_mask is not None:
-
-        def clone(det, o, label, mask, zz):  # -> (kept rows, squared errors)
-            if bc_q_filter:
-                q_det = jnp.minimum(*nets.q_values(q_params, o, jax.lax.stop_gradient(det), zz))
-                q_demo = jnp.minimum(*nets.q_values(q_params, o, label, zz))
-                return jax.lax.stop_gradient(mask * (q_demo > q_det)), err_of(det, label)
-            return mask, err_of(det, label)
-
-        err_of = lambda det, label: jnp.sum((det - label) ** 2, axis=-1)  # noqa: E731
-        keep, err = clone(jnp.tanh(mean), obs, demo_action, demo_mask, z)
-        kept, total, n = jnp.sum(keep * err), jnp.sum(keep), jnp.sum(demo_mask)
-        aux["bc_error"] = jnp.sum(demo_mask * err) / jnp.maximum(n, 1.0)
-        n = jnp.maximum(n, 1.0)
-        q_scale = jax.lax.stop_gradient(jnp.mean(jnp.abs(min_q)))
-        loss += bc_weight * q_scale * kept / n
-        aux["bc_kept"] = total / n
-    return loss, aux
+    return loss, {"log_pi": jnp.mean(log_pi), "v_target": min_q - entropy_term}
 
 
 def temperature_loss(log_alpha, log_pi, target_entropy: float):

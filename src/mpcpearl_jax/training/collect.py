@@ -43,18 +43,16 @@ def make_collector(
     bridge: Callable | None = None,
     eps: float = 0.0,
     deterministic: bool = False,
-    demo_prob: float = 1.0,
     mesh=None,
 ) -> Callable:
-    """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R], demo=None) -> Episodes`.
+    """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R], explore=None) ->
+    Episodes`.
 
     With `bridge` (see `mpcpearl_jax.mpc.make_mpc_bridge`) and eps > 0, MPC acts on the rows where
     an event fires and a uniform draw is <= eps (paper Algorithm 1); its (normalized) actions go
-    into the episodes unmarked, except for the `used_mpc` log. `demo` [S, R] bool (the MPC warm
-    start extension, `TrainConfig.mpc_demo_share`) makes the MPC act on those rows at every step
-    with probability `demo_prob` (1 = every step). `explore` [S, R] bool (the exploring-starts
-    extension, `TrainConfig.explore_start_share`) starts those rows at `env.random_start` instead
-    of the task's start pose. `mesh` (`mpcpearl_jax.distributed`): the
+    into the episodes unmarked, except for the `used_mpc` log. `explore` [S, R] bool (the
+    exploring-starts extension, `TrainConfig.explore_start_share`) starts those rows at
+    `env.random_start` instead of the task's start pose. `mesh` (`mpcpearl_jax.distributed`): the
     seed axis, hence the flat rows, is split over its devices; the bridge then runs per shard
     (`MPCBridge.on_mesh`).
     """
@@ -74,12 +72,10 @@ def make_collector(
         policy_params,
         z: Array,
         tasks: TaskParams,
-        demo: Array | None = None,
         explore: Array | None = None,
     ) -> Episodes:
         s, r = z.shape[:2]
         flat = jax.tree_util.tree_map(lambda x: x.reshape((s * r, *x.shape[2:])), tasks)
-        demo_flat = jnp.zeros((s * r,), bool) if demo is None else demo.reshape(s * r)
         obs0, state0 = jax.vmap(env.reset)(jax.random.split(key, s * r), flat)
         if explore is not None:  # extension: exploring starts on these rows
             k_start = jax.random.split(jax.random.fold_in(key, 0x57A7), s * r)
@@ -93,7 +89,6 @@ def make_collector(
         def body(carry, k):
             obs, state = carry
             k_pi, k_eps, k_mpc = jax.random.split(k, 3)
-            k_demo = jax.random.fold_in(k_eps, 1)
             a_pi = policy_actions(policy_params, obs.reshape(s, r, -1), z, k_pi).reshape(s * r, -1)
             fire = jax.vmap(env.event)(state, flat)
             if use_mpc:
@@ -101,11 +96,9 @@ def make_collector(
                     fire = fire & (jax.random.uniform(k_eps, (s * r,)) <= eps)
                 else:
                     fire = jnp.zeros_like(fire)
-                act_demo = demo_flat & (jax.random.uniform(k_demo, (s * r,)) < demo_prob)
-                execute = fire | act_demo
-                a_mpc, used, _ = bridge(k_mpc, execute, state, flat, a_pi, stamp)
-                action = jnp.where(execute[:, None], a_mpc, a_pi)
-                used = used & execute
+                a_mpc, used, _ = bridge(k_mpc, fire, state, flat, a_pi, stamp)
+                action = jnp.where(fire[:, None], a_mpc, a_pi)
+                used = used & fire
             else:
                 action = a_pi
                 used = jnp.zeros((s * r,), bool)

@@ -107,12 +107,7 @@ class Trainer:
 
             self.bridge = make_mpc_bridge(self.env, cfg.mpc)
         self._collector = collect_lib.make_collector(
-            self.env,
-            self.nets,
-            self.bridge,
-            tc.eps,
-            demo_prob=tc.mpc_demo_step_prob,
-            mesh=self.mesh,
+            self.env, self.nets, self.bridge, tc.eps, mesh=self.mesh
         )
         self._update_body = make_update(self.nets, jit=False)
         self.collect_phase = jax.jit(
@@ -181,13 +176,8 @@ class Trainer:
         posterior: bool,
         to_encoder: bool,
         clear_encoder: bool,
-        demo_share: Array | float = 0.0,
     ) -> tuple[TrainState, dict]:
-        """Collect `episodes` per task of task_ids [S, k] and store them. Returns (state, stats).
-
-        demo_share: probability that a row is driven by the MPC on every step (warm start
-        extension; 0 = the paper's event-triggered infusion only).
-        """
+        """Collect `episodes` per task of task_ids [S, k] and store them. Returns (state, stats)."""
         keys, sub = _split_keys(state.key, 2)
         rows = jnp.repeat(task_ids, episodes, axis=1)  # [S, k * E]
         enc = state.enc
@@ -196,16 +186,12 @@ class Trainer:
         state = state.replace(enc=enc)
         z = self._row_z(state, sub[:, 0], rows, posterior)
         tasks = jax.vmap(collect_lib.rows_of)(state.tasks, rows)
-        demo = None
-        if self.bridge is not None:
-            k_demo = jax.random.fold_in(sub[0, 1], 7)
-            demo = jax.random.uniform(k_demo, rows.shape) < demo_share
         share = self.cfg.train.explore_start_share
         explore = None
         if share > 0 and posterior and not to_encoder:  # extension: exploring starts
             k_explore = jax.random.fold_in(sub[0, 1], 11)
             explore = jax.random.uniform(k_explore, rows.shape) < share
-        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, demo, explore)
+        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, explore)
         s, k = task_ids.shape
         to_task = lambda x: x.reshape((s, k, episodes * self.horizon, *x.shape[3:]))  # noqa: E731
         per_task = jax.tree_util.tree_map(to_task, ep.transitions)
@@ -227,7 +213,6 @@ class Trainer:
             "collision_free": on_start(~jnp.any(ep.collision, -1)),
             "event_rate": jnp.mean(ep.event, axis=(-1, -2)),
             "mpc_share": jnp.mean(ep.used_mpc, axis=(-1, -2)),
-            "demo_rows": jnp.mean(demo, axis=-1) if demo is not None else jnp.zeros(s),
             "explore_rows": jnp.mean(x_rows, axis=-1),
             "explore_success": mean_over(x_rows, success),
             "steps": jnp.asarray(ep.transitions.reward[0].size),
@@ -339,17 +324,15 @@ class Trainer:
                     return self._update_body(learner, batch, ctx, k_u)
                 # extension: the last n_mpc rows of each task's batch come from its MPC buffer
                 # (tasks whose MPC buffer is still empty keep their RL rows)
-                demo = buffers.sample(mpc, jax.random.fold_in(k_b, 1), tids, n_mpc)
+                from_mpc = buffers.sample(mpc, jax.random.fold_in(k_b, 1), tids, n_mpc)
                 has = (mpc.size[tids] > 0)[:, None]  # [MB, 1]
                 mix = (
                     lambda b, d: b.at[:, -n_mpc:].set(  # noqa: E731
                         jnp.where(has.reshape(has.shape + (1,) * (d.ndim - 2)), d, b[:, -n_mpc:])
                     )
                 )
-                batch = jax.tree_util.tree_map(mix, batch, demo)
-                col = jnp.arange(cfg.batch_size)[None, :] >= cfg.batch_size - n_mpc
-                demo_mask = (col & has).astype(jnp.float32)
-                return self._update_body(learner, batch, ctx, k_u, demo_mask)
+                batch = jax.tree_util.tree_map(mix, batch, from_mpc)
+                return self._update_body(learner, batch, ctx, k_u)
 
             return jax.lax.scan(body, learner, keys)
 
@@ -360,10 +343,7 @@ class Trainer:
     def initial_collection(self, state: TrainState) -> tuple[TrainState, dict]:
         """Iteration 0: every training task, prior z, RL + encoder buffers."""
         ids = jnp.broadcast_to(jnp.arange(self.num_train), (self.cfg.seeds, self.num_train))
-        share = jnp.float32(self.cfg.train.demo_share(0))
-        return self.collect_phase(
-            state, ids, self.cfg.train.initial_episodes, False, True, True, share
-        )
+        return self.collect_phase(state, ids, self.cfg.train.initial_episodes, False, True, True)
 
     def iteration(
         self, state: TrainState, stop: Callable[[], bool] | None = None
@@ -380,10 +360,9 @@ class Trainer:
           and the losses L_phi, L_theta, L_psi (lines 22-23; `pearl.learner`).
 
         The extensions (docs/extensions.md) hook in where named: re-drawn or delayed crowds
-        before collection, warm-start and exploring-start rows in it, the MPC buffer in the
-        batches. stop (e.g. set by Ctrl-C) is polled before the updates and between update chunks;
-        once true the iteration is abandoned with IterationAbandoned (the state passed in is
-        consumed).
+        before collection, exploring-start rows in it, the MPC buffer in the batches. stop (e.g.
+        set by Ctrl-C) is polled before the updates and between update chunks; once true the
+        iteration is abandoned with IterationAbandoned (the state passed in is consumed).
         """
         tc = self.cfg.train
         log: dict[str, Any] = {}
@@ -393,18 +372,15 @@ class Trainer:
         it = int(first_local(state.iteration))
         if it == 0:
             state, _ = self.initial_collection(state)
-        share = jnp.float32(tc.demo_share(it + 1))
         state, ids = self._choose_tasks(state, tc.tasks_per_iteration)
         if tc.redraw_behaviours:
             state = self._redraw(state, ids, it + 1)
         if tc.crowd_delay_max > 0:
             state = self._delay_crowds(state, ids)
-        state, prior = self.collect_phase(state, ids, tc.prior_episodes, False, True, True, share)
+        state, prior = self.collect_phase(state, ids, tc.prior_episodes, False, True, True)
         post = None
         if tc.posterior_episodes > 0:
-            state, post = self.collect_phase(
-                state, ids, tc.posterior_episodes, True, False, False, share
-            )
+            state, post = self.collect_phase(state, ids, tc.posterior_episodes, True, False, False)
         jax.block_until_ready(state.rl.size)
         t1 = time.perf_counter()
         state, losses = self._chunked_update_phase(state, stop)
@@ -427,7 +403,6 @@ class Trainer:
             "collision_free",
             "event_rate",
             "mpc_share",
-            "demo_rows",
             "explore_rows",
             "explore_success",
         )
