@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-import experiments.evaluate as evaluate_cli
 from experiments.evaluate import UsageError, main, parse_indices
+from mpcpearl_jax.evaluation import runners
 
 ROOT = Path(__file__).resolve().parents[1]
 RESTAURANT_RUN = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"
@@ -61,7 +61,7 @@ def test_policy_on_each_split(tmp_path, split):
 
 def test_task_seeds_pool_the_splits_of_several_task_set_seeds(tmp_path, capsys, monkeypatch):
     evaluators: dict = {}
-    monkeypatch.setattr(evaluate_cli, "_EVALUATORS", evaluators)
+    monkeypatch.setattr(runners, "_EVALUATORS", evaluators)
     singles = []
     for ts in (1, 2):
         out = tmp_path / f"seed{ts}"

@@ -10,7 +10,9 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "mpcpearl_jax"
 
 # lowest first; every module of the package is ranked, by its longest listed prefix (a
 # package's name ranks its modules not listed on their own). The packages are the layers:
-# envs < pearl, mpc < config < evaluation < training, grbal < deploy.
+# envs < pearl, mpc < config < evaluation < training, grbal < deploy. The evaluation command's
+# controller runners sit with training: one of them collects training-style episodes
+# (`training.collect`), and the trainers read the evaluation key from them.
 LAYERS = [
     ["errors", "validate", "distributed"],
     ["envs.types", "envs.dynamics", "envs.physics", "pearl.types", "pearl.config", "mpc.config"],
@@ -18,7 +20,7 @@ LAYERS = [
     ["mpc"],
     ["config", "grbal.config", "grbal.model", "grbal.planner"],
     ["evaluation"],
-    ["training", "trainer", "grbal.trainer"],
+    ["training", "trainer", "grbal.trainer", "evaluation.runners"],
     ["training.run", "grbal.run", "grbal"],
     ["deploy"],
 ]
