@@ -3,42 +3,88 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import json
 import os
 import sys
 import time
-import typing
 from pathlib import Path
 
-from mpcpearl_jax.config import PRESETS, ExperimentConfig, TrainConfig, preset, validate
-from mpcpearl_jax.envs import can_redraw, mpc_defaults
-from mpcpearl_jax.envs.types import NavConfig
+from mpcpearl_jax.config import PRESETS, ExperimentConfig, read_config, resolve, validate
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.evaluation.report import run_label
-from mpcpearl_jax.mpc.config import MPCConfig
-from mpcpearl_jax.pearl.config import PearlConfig
 
-# Config extras each environment's entry point passes to `build_config` (and `main`).
-ENV_EXTRAS: dict[str, dict] = {
-    "restaurant": {},
-    # online adaptation is the sidewalk headline (as in the paper); the family's MPC defaults
-    # (`envs.mpc_defaults`) come with its registration
-    "sidewalk": {"online_eval": True},
-}
+# Config extras each environment's entry point passes to `build_config` (and `main`): none; the
+# family's own settings (its MPC defaults, online adaptation as the sidewalk's headline) are
+# `mpcpearl_jax.config.resolve`'s, from the family's registration.
+ENV_EXTRAS: dict[str, dict] = {"restaurant": {}, "sidewalk": {}}
+
+
+def add_task_source_options(
+    p: argparse.ArgumentParser,
+    env: str | None = None,
+    *,
+    hold_out_val: bool = False,
+    from_run: bool = False,
+) -> None:
+    """--scenarios (restaurant: the paper's own tasks) and --data (sidewalk: a trajectory file),
+    where a command's tasks come from: only the family's own option when `env` is given, both
+    when the command picks the family (--env, a run). `hold_out_val` adds --hold-out-val
+    (training); `from_run`: the default is the evaluated run's task source."""
+    default = "the run's" if from_run else None
+    if env in (None, "restaurant"):
+        p.add_argument(
+            "--scenarios",
+            type=Path,
+            metavar="DIR",
+            help="restaurant: the paper's own scenarios (a clone of the authors' repository or "
+            "a folder with scenarios/X.npy and optionally scenarios_out_of_distribution/X.npy) "
+            "instead of the generated crowds; splits train 0-179, val 150-179, test 180-204, "
+            f"ood the 25 shifted ones (default: {default or 'the generated crowds'})",
+        )
+        if hold_out_val:
+            p.add_argument(
+                "--hold-out-val",
+                action="store_true",
+                help="--scenarios: train on tasks 0-149 only, keeping 150-179 as the val split",
+            )
+    if env in (None, "sidewalk"):
+        p.add_argument(
+            "--data",
+            type=Path,
+            help="sidewalk: an ETH/UCY trajectory file (e.g. UCY crowds_zara01.txt; default: "
+            f"{default or 'the built-in synthetic crowd'})",
+        )
+
+
+class _RunConfigAction(argparse.Action):
+    """--config FILE: the file, and the run's folder name as the name runs are labelled with
+    in place of a preset's."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        path = Path(values)
+        setattr(namespace, self.dest, path)
+        namespace.preset = path.parent.name if path.name == "config.json" else path.name
 
 
 def add_config_options(
     p: argparse.ArgumentParser, env: str, default_preset: str = "default"
 ) -> None:
-    """The options `build_config` reads: --preset, --eps, --seeds, --seed, --algo, --set
-    (and --data for the sidewalk). Shared with `experiments.learning`."""
-    p.add_argument(
+    """The options `build_config` reads: --preset or --config, --eps, --seeds, --seed, --algo,
+    --set (and --scenarios, --hold-out-val for the restaurant, --data for the sidewalk). Shared
+    with `experiments.learning`."""
+    base = p.add_mutually_exclusive_group()
+    base.add_argument(
         "--preset",
         default=default_preset,
         choices=sorted(PRESETS),
         help="smoke: ~2 min pipeline check; default: a few minutes on a laptop CPU; "
         "cpu: an hours-long CPU schedule; paper: method §7 exactly",
+    )
+    base.add_argument(
+        "--config",
+        action=_RunConfigAction,
+        metavar="RUN/config.json",
+        help="start from a run's recorded config instead of a preset (the other options apply "
+        "on top; the run is named after RUN's folder where a preset's name would go)",
     )
     p.add_argument("--eps", type=float, help="MPC probability on an event (0 = PEARL)")
     p.add_argument("--seeds", type=int, help="independent seeds trained in one program")
@@ -67,27 +113,7 @@ def add_config_options(
     p.add_argument(
         "--debug", action="store_true", help="show the traceback of an error, not one line"
     )
-    if env == "restaurant":
-        p.add_argument(
-            "--scenarios",
-            type=Path,
-            metavar="DIR",
-            help="train and evaluate on the paper's own scenarios: a clone of the authors' "
-            "repository or a folder with scenarios/X.npy (and optionally "
-            "scenarios_out_of_distribution/X.npy); default: the project's crowd generator",
-        )
-        p.add_argument(
-            "--hold-out-val",
-            action="store_true",
-            help="--scenarios: train on tasks 0-149 only, keeping 150-179 as the val split",
-        )
-    if env == "sidewalk":
-        p.add_argument(
-            "--data",
-            type=Path,
-            help="an ETH/UCY trajectory file (e.g. UCY "
-            "crowds_zara01.txt); default: the built-in synthetic crowd",
-        )
+    add_task_source_options(p, env, hold_out_val=True)
 
 
 def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser:
@@ -121,115 +147,38 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
     return p
 
 
-def _parse_value(text: str):
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
-
-
-_SECTION_CLASSES = {
-    "pearl": PearlConfig,
-    "train": TrainConfig,
-    "mpc": MPCConfig,
-    "env_overrides": NavConfig,
-    "": ExperimentConfig,
-}
-_TRUE, _FALSE = ("true", "True", "1"), ("false", "False", "0")
-
-
-def _field_value(item: str, section: str, field: str, text: str):
-    """The value of `--set item` for a field, read by the field's type: booleans (true/false,
-    True/False, 1/0) only for bool fields, never for numbers; None/null for optional fields."""
-    cls = _SECTION_CLASSES[section]
-    hints = typing.get_type_hints(cls)
-    if field not in hints or field not in {f.name for f in dataclasses.fields(cls)}:
-        raise ConfigError(f"--set {item}: {cls.__name__} has no field(s) {[field]}")
-    hint = hints[field]
-    name = f"{cls.__name__}.{field}"
-    args = typing.get_args(hint)
-    if hint is bool:
-        if text in _TRUE:
-            return True
-        if text in _FALSE:
-            return False
-        raise ConfigError(f"--set {item}: {name} must be true or false, got {text!r}")
-    if type(None) in args and text in ("None", "null"):
-        return None
-    v = _parse_value(text)
-    numeric = {int, float} & ({hint} | set(args))
-    if numeric and (isinstance(v, bool) or text in ("True", "False")):
-        kind = "an int" if numeric == {int} else "a number"
-        raise ConfigError(f"--set {item}: {name} must be {kind}, not a boolean")
-    return tuple(v) if isinstance(v, list) else v
-
-
 def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfig:
-    base = preset(args.preset)
-    scenarios = getattr(args, "scenarios", None)
-    if getattr(args, "hold_out_val", False) and scenarios is None:
-        raise ConfigError("--hold-out-val applies to --scenarios")
-    if args.preset == "default" and (scenarios is not None or not can_redraw(env)):
-        # the main command runs on every family: the default re-draws crowds where the family
-        # can (the restaurant); a recorded crowd (the sidewalk, the paper's scenarios) is kept
-        base = base.replace(train=dataclasses.replace(base.train, redraw_behaviours=False))
-    if scenarios is not None:
-        from mpcpearl_jax.envs.restaurant import scenario_options
-
-        # checks the folder and its files now, and records their sha256 in config.json
-        extra = {**extra, "task_options": scenario_options(scenarios, args.hold_out_val)}
-    # the family's MPC defaults (its registration), then the caller's, on top of the preset's
-    extra = {**extra, "mpc": base.mpc.replace(**{**mpc_defaults(env), **extra.get("mpc", {})})}
-    cfg = base.replace(env=env, **extra)
-    sections: dict[str, dict] = {
-        "pearl": {},
-        "train": {},
-        "mpc": {},
-        "env_overrides": dict(cfg.env_overrides),
-        "": {},
-    }
-    if args.eps is not None:
-        sections["train"]["eps"] = args.eps
-    if getattr(args, "iterations", None) is not None:
-        sections["train"]["iterations"] = args.iterations
-    if args.seeds is not None:
-        sections[""]["seeds"] = args.seeds
-    if args.seed is not None:
-        sections[""]["seed"] = args.seed
-    if getattr(args, "devices", None) is not None:
-        sections[""]["devices"] = args.devices
-    if getattr(args, "data", None) is not None:
-        if not Path(args.data).is_file():
-            raise ConfigError(f"--data {args.data}: no such file")
-        sections[""]["data"] = str(args.data)
-    if args.algo == "sac":
-        sections["pearl"]["use_context"] = False
-    for item in args.set:
-        if "=" not in item:
-            raise ConfigError(f"--set {item!r}: expected SECTION.FIELD=VALUE")
-        key, value = item.split("=", 1)
-        section, _, field = key.rpartition(".")
-        if section == "env":
-            section = "env_overrides"
-        if section not in sections:
+    """The config of the command line `args` for family `env` (`mpcpearl_jax.config.resolve`):
+    --preset or --config, the task source, then --eps, --iterations, --seeds, --seed,
+    --devices, --algo and `extra` (top-level fields; `mpc`: a dict of MPCConfig fields), then
+    --set. Not validated across fields (`validate`)."""
+    base: str | ExperimentConfig = args.preset
+    if getattr(args, "config", None) is not None:
+        base = read_config(args.config)
+        if base.env != env:
             raise ConfigError(
-                f"--set {item!r}: unknown section {section!r}; use pearl, train, "
-                "mpc, env or a top-level field"
+                f"--config {args.config}: a {base.env} run, not {env} (train it with the "
+                f"{base.env} command)"
             )
-        sections[section][field] = _field_value(item, section, field, value)
-    for name, cls in (("pearl", type(cfg.pearl)), ("train", type(cfg.train))):
-        unknown = set(sections[name]) - {f.name for f in dataclasses.fields(cls)}
-        if unknown:
-            raise ConfigError(f"{cls.__name__} has no field(s) {sorted(unknown)}")
-    top_unknown = set(sections[""]) - {f.name for f in dataclasses.fields(ExperimentConfig)}
-    if top_unknown:
-        raise ConfigError(f"ExperimentConfig has no field(s) {sorted(top_unknown)}")
-    return cfg.replace(
-        pearl=cfg.pearl.replace(**sections["pearl"]),
-        train=dataclasses.replace(cfg.train, **sections["train"]),
-        mpc=cfg.mpc.replace(**sections["mpc"]),
-        env_overrides=sections["env_overrides"],
-        **sections[""],
+    changes = {f"mpc.{k}": v for k, v in extra.pop("mpc", {}).items()}
+    changes.update(extra)
+    options = (
+        ("train.eps", args.eps),
+        ("train.iterations", getattr(args, "iterations", None)),
+        ("seeds", args.seeds),
+        ("seed", args.seed),
+        ("devices", getattr(args, "devices", None)),
+        ("pearl.use_context", False if args.algo == "sac" else None),
+    )
+    changes.update({key: value for key, value in options if value is not None})
+    return resolve(
+        base,
+        env,
+        changes=changes,
+        overrides=args.set,
+        scenarios=getattr(args, "scenarios", None),
+        hold_out_val=getattr(args, "hold_out_val", False),
+        data=getattr(args, "data", None),
     )
 
 

@@ -36,7 +36,6 @@ results.json.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -47,7 +46,9 @@ from typing import Any
 import jax
 import numpy as np
 
-from mpcpearl_jax.envs import SPLITS, make_env, make_tasks
+from experiments.common import add_task_source_options
+from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.envs import SPLITS, make_env, tasks_for
 from mpcpearl_jax.envs.perturb import parse_perturbation, perturb_tasks
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
@@ -93,16 +94,7 @@ def make_parser() -> argparse.ArgumentParser:
         help="several task-set seeds, e.g. 1-8 or 1,5: the split drawn with each, pooled into "
         "one mean with its standard error over tasks (a lower-variance estimate; no figures)",
     )
-    p.add_argument("--data", type=Path, help="ETH/UCY file for the sidewalk (default: the run's)")
-    p.add_argument(
-        "--scenarios",
-        type=Path,
-        metavar="DIR",
-        help="restaurant: the paper's own scenarios (a clone of the authors' repository or a "
-        "folder with scenarios/X.npy and scenarios_out_of_distribution/X.npy) instead of the "
-        "generated crowds; splits train 0-179, val 150-179, test 180-204, ood the 25 shifted "
-        "ones (default: the run's task source)",
-    )
+    add_task_source_options(p, from_run=True)
     p.add_argument(
         "--perturb",
         default="none",
@@ -204,18 +196,18 @@ def parse_indices(text: str, n: int, what: str) -> list[int]:
 
 
 def _mpc_overrides(items: list[str], base: dict) -> dict:
-    from mpcpearl_jax.config import mpc_config
+    """The MPCConfig fields `base` with the --set FIELD=VALUE `items` on top (read by each
+    field's type, `mpcpearl_jax.config.parse_override`), checked; UsageError in one line."""
+    from mpcpearl_jax.config import mpc_config, parse_override
     from mpcpearl_jax.mpc import MPCConfig
 
     out = dict(base)
-    for item in items:
-        key, eq, raw = item.partition("=")
-        if not eq or key not in MPCConfig.__dataclass_fields__:
-            raise UsageError(f"--set {item!r}: expected FIELD=VALUE with an MPCConfig field")
-        try:
-            out[key] = json.loads(raw)
-        except json.JSONDecodeError:
-            out[key] = raw
+    try:
+        for item in items:
+            _, field, value = parse_override(item, {"": MPCConfig})
+            out[field] = value
+    except ConfigError as e:
+        raise UsageError(str(e)) from e
     try:
         mpc_config(out)  # the one check of MPCConfig fields and values
     except ValueError as e:
@@ -227,13 +219,12 @@ def _task_setup(args: argparse.Namespace, cfg: Any, env: Any, env_name: str, dat
     """The evaluated tasks of `args` for a run config: (task seed, scenario source, tasks, task
     ids, figure ids, perturbation)."""
     task_seed = args.task_seed if args.task_seed is not None else (cfg.task_seed if cfg else 0)
-    kw: dict[str, Any] = {"data": data} if data else {}
-    kw.update(cfg.task_options if cfg else {})
-    scenarios = _scenario_source(args, cfg, env_name, kw)
-    if scenarios is not None:
-        kw = dict(scenarios)
+    source = (cfg or ExperimentConfig(env=env_name)).replace(data=data)
+    scenarios = _scenario_source(args, cfg, env_name, source.task_options)
+    if scenarios is not None:  # the paper's scenarios, in place of the run's task source
+        source = source.replace(data=None, task_options=scenarios)
     try:
-        all_tasks = make_tasks(env_name, args.split, task_seed, config=env.config, **kw)
+        all_tasks = tasks_for(source, args.split, config=env.config, seed=task_seed)
     except (ValueError, TypeError, OSError) as e:
         if isinstance(e, OSError) and scenarios is None:
             raise
@@ -438,13 +429,15 @@ def setup(args: argparse.Namespace) -> Setup:
     )
 
 
-def _scenario_source(args: argparse.Namespace, cfg: Any, env_name: str, kw: dict) -> dict | None:
+def _scenario_source(
+    args: argparse.Namespace, cfg: Any, env_name: str, task_options: dict
+) -> dict | None:
     """The task options of the paper's scenarios when they are the task source (--scenarios, or
     the run trained on them), else None. A run that trained on every training scenario is not
     scored on the val split (its tasks 150-179 were training tasks)."""
     from mpcpearl_jax.envs.restaurant.scenarios import check_val_split, scenario_options
 
-    if args.scenarios is None and not kw.get("scenarios"):
+    if args.scenarios is None and not task_options.get("scenarios"):
         return None
     if env_name != "restaurant":
         raise UsageError(f"--scenarios: the paper's scenarios are restaurant tasks, not {env_name}")
@@ -455,7 +448,7 @@ def _scenario_source(args: argparse.Namespace, cfg: Any, env_name: str, kw: dict
         if args.scenarios is not None:
             out = scenario_options(args.scenarios)
         else:  # the run's own scenarios: the same files it recorded
-            out = {k: v for k, v in kw.items() if k in ("scenarios", "scenario_sha256")}
+            out = {k: v for k, v in task_options.items() if k in ("scenarios", "scenario_sha256")}
         check_val_split(trained, args.split)
     except (ValueError, OSError) as e:
         raise UsageError(f"--scenarios: {e}") from e

@@ -10,7 +10,6 @@ writes a JSON record and a trajectory figure (one task) under --out.
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import sys
 import time
@@ -19,24 +18,12 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from mpcpearl_jax.envs import make_env, make_tasks, mpc_defaults
+from experiments.common import add_task_source_options
+from mpcpearl_jax.config import ExperimentConfig, apply_overrides, task_source
+from mpcpearl_jax.envs import make_env, mpc_defaults, tasks_for
 from mpcpearl_jax.evaluation import metrics
 from mpcpearl_jax.evaluation.report import PAPER, metrics_table
 from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
-
-
-def parse_overrides(items: list[str]) -> dict:
-    """`field=value` strings -> MPCConfig overrides (values parsed as Python literals)."""
-    out = {}
-    for item in items:
-        key, _, raw = item.partition("=")
-        if key not in MPCConfig.__dataclass_fields__:
-            raise SystemExit(f"--set: MPCConfig has no field {key!r}")
-        try:
-            out[key] = ast.literal_eval(raw)
-        except (ValueError, SyntaxError):
-            out[key] = raw
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -50,40 +37,25 @@ def main(argv: list[str] | None = None) -> int:
         action="append",
         default=[],
         metavar="FIELD=VALUE",
-        help="override an MPCConfig field (repeatable)",
+        help="override an MPCConfig field (repeatable; values read by the field's type)",
     )
     ap.add_argument("--out", type=Path, default=Path("runs") / "gp_mpc")
     ap.add_argument("--plot-task", type=int, default=0)
     ap.add_argument("--max-tasks", type=int, help="only the first N tasks of the split")
-    ap.add_argument(
-        "--data", type=Path, help="ETH/UCY file for the sidewalk env (default: the synthetic crowd)"
-    )
-    ap.add_argument(
-        "--scenarios",
-        type=Path,
-        metavar="DIR",
-        help="restaurant: the paper's own scenarios (a clone of the authors' repository or a "
-        "folder with scenarios/X.npy) instead of the generated crowds",
-    )
+    add_task_source_options(ap)
     args = ap.parse_args(argv)
 
     env = make_env(args.env)
-    kw: dict = {"data": str(args.data)} if args.data else {}
     try:
-        if args.scenarios is not None:
-            if args.env != "restaurant":
-                raise ValueError("--scenarios: the paper's scenarios are restaurant tasks")
-            from mpcpearl_jax.envs.restaurant import scenario_options
-
-            kw = scenario_options(args.scenarios)
-        tasks = make_tasks(args.env, args.split, seed=args.seed, **kw)
+        # the family's MPC defaults, then --set (ConfigError naming the field)
+        cfg = apply_overrides(MPCConfig(**mpc_defaults(args.env)), args.set)
+        source = task_source(args.env, args.scenarios, data=args.data)
+        tasks = tasks_for(ExperimentConfig(env=args.env, **source), args.split, seed=args.seed)
     except (ValueError, TypeError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     if args.max_tasks:
         tasks = jax.tree_util.tree_map(lambda a: a[: args.max_tasks], tasks)
-    overrides = parse_overrides(args.set)
-    cfg = MPCConfig(**{**mpc_defaults(args.env), **overrides})
     bridge = make_mpc_bridge(env, cfg)
     t0 = time.perf_counter()
     traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(args.sample_seed), tasks)
@@ -106,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         "env": args.env,
         "split": args.split,
         "data": str(args.data) if args.data else None,
-        "scenarios": kw if args.scenarios is not None else None,
+        "scenarios": source.get("task_options"),
         "seed": None if args.scenarios is not None else args.seed,
         "sample_seed": args.sample_seed,
         "mpc": cfg.to_dict(),

@@ -17,16 +17,13 @@ Any field of `GrbalConfig` can be changed with --set grbal.FIELD=VALUE, a NavCon
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
 
+from experiments.common import add_task_source_options
 from mpcpearl_jax.errors import ConfigError
-from mpcpearl_jax.grbal.config import PRESETS, GrbalExperimentConfig, preset
-
-ONLINE_HEADLINE = {"sidewalk": True}  # online adaptation is the sidewalk headline (paper)
+from mpcpearl_jax.grbal.config import PRESETS, GrbalExperimentConfig, resolve
 
 
 def parser() -> argparse.ArgumentParser:
@@ -45,19 +42,7 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seeds", type=int, help="independent seeds trained in one program")
     p.add_argument("--seed", type=int, help="base seed (seed s uses seed + s)")
-    p.add_argument("--data", type=Path, help="sidewalk: an ETH/UCY file (default: synthetic)")
-    p.add_argument(
-        "--scenarios",
-        type=Path,
-        metavar="DIR",
-        help="restaurant: the paper's own scenarios (a clone of the authors' repository or a "
-        "folder with scenarios/X.npy) instead of the generated crowds",
-    )
-    p.add_argument(
-        "--hold-out-val",
-        action="store_true",
-        help="--scenarios: train on tasks 0-149 only, keeping 150-179 as the val split",
-    )
+    add_task_source_options(p, hold_out_val=True)
     p.add_argument(
         "--set",
         action="append",
@@ -71,58 +56,27 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def _value(text: str):
-    try:
-        v = json.loads(text)
-    except json.JSONDecodeError:
-        return text
-    return tuple(v) if isinstance(v, list) else v
-
-
 def build_config(args: argparse.Namespace) -> GrbalExperimentConfig:
-    g = preset(args.preset)
-    top: dict = {"env": args.env, "online_eval": ONLINE_HEADLINE.get(args.env, False)}
-    env_over: dict = {}
-    grbal: dict = {}
-    if args.iterations is not None:
-        grbal["iterations"] = args.iterations
-    if args.seeds is not None:
-        top["seeds"] = args.seeds
-    if args.seed is not None:
-        top["seed"] = args.seed
-    if args.data is not None:
-        if args.env != "sidewalk":
-            raise ConfigError("--data: only the sidewalk env reads a data file")
-        if not args.data.is_file():
-            raise ConfigError(f"--data {args.data}: no such file")
-        top["data"] = str(args.data)
-    if args.hold_out_val and args.scenarios is None:
-        raise ConfigError("--hold-out-val applies to --scenarios")
-    if args.scenarios is not None:
-        if args.env != "restaurant":
-            raise ConfigError("--scenarios: the paper's scenarios are restaurant tasks")
-        from mpcpearl_jax.envs.restaurant import scenario_options
-
-        try:  # checks the folder and files now; config.json records their sha256
-            top["task_options"] = scenario_options(args.scenarios, args.hold_out_val)
-        except OSError as e:
-            raise ConfigError(str(e)) from e
-    for item in args.set:
-        key, sep, raw = item.partition("=")
-        if not sep:
-            raise ConfigError(f"--set {item!r}: expected SECTION.FIELD=VALUE")
-        section, _, field = key.rpartition(".")
-        target = {"grbal": grbal, "env": env_over, "": top}.get(section)
-        if target is None:
-            raise ConfigError(f"--set {item!r}: unknown section {section!r}; use grbal or env")
-        target[field] = _value(raw)
-    known = {f.name for f in dataclasses.fields(type(g))}
-    if set(grbal) - known:
-        raise ConfigError(f"GrbalConfig has no field(s) {sorted(set(grbal) - known)}")
-    top_known = {f.name for f in dataclasses.fields(GrbalExperimentConfig)} - {"grbal"}
-    if set(top) - top_known:
-        raise ConfigError(f"GrbalExperimentConfig has no field(s) {sorted(set(top) - top_known)}")
-    return GrbalExperimentConfig(grbal=g.replace(**grbal), env_overrides=env_over, **top)
+    if args.data is not None and args.env != "sidewalk":
+        raise ConfigError("--data: only the sidewalk env reads a data file")
+    changes = {
+        key: value
+        for key, value in (
+            ("grbal.iterations", args.iterations),
+            ("seeds", args.seeds),
+            ("seed", args.seed),
+        )
+        if value is not None
+    }
+    return resolve(
+        args.preset,
+        args.env,
+        changes=changes,
+        overrides=args.set,
+        scenarios=args.scenarios,
+        hold_out_val=args.hold_out_val,
+        data=args.data,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

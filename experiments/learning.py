@@ -49,13 +49,13 @@ from pathlib import Path
 from typing import Any
 
 from experiments.common import ENV_EXTRAS, add_config_options, build_config
+from mpcpearl_jax.envs import VAL_TASKS  # no 'val' split: the first VAL_TASKS training tasks
 from mpcpearl_jax.envs.restaurant.scenarios import VAL_IDS, check_val_split, uses_scenarios
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.checkpoint import write_json
 
 METRICS = ("SR", "CFR", "TT", "SPL", "MGD", "return")
 SPLITS = ("test", "val")
-VAL_TASKS = 24  # the first VAL_TASKS training tasks are the validation set
 LOAD_WARN = 1.5  # 1-minute load average above which another job is probably running
 # (name, metric, threshold, strict): the first eval point with metric > / >= threshold
 TARGETS = (
@@ -81,6 +81,7 @@ OUTPUTS = (
 
 # ------------------------------------------------------------------------------ CLI
 def make_parser(env: str = "restaurant") -> argparse.ArgumentParser:
+    """The parser of the learning harness for family `env` (the default of --env)."""
     p = argparse.ArgumentParser(
         prog="python -m experiments.learning",
         description="Learning curve against wall-clock training time (SR / CFR / return on "
@@ -89,7 +90,7 @@ def make_parser(env: str = "restaurant") -> argparse.ArgumentParser:
     p.add_argument(
         "--env",
         choices=sorted(ENV_EXTRAS),
-        default="restaurant",
+        default=env,
         help="task family (the sidewalk adds --data FILE, as in experiments.sidewalk)",
     )
     add_config_options(p, env)
@@ -138,11 +139,23 @@ def make_parser(env: str = "restaurant") -> argparse.ArgumentParser:
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     argv = list(sys.argv[1:] if argv is None else argv)
     pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--env", choices=sorted(ENV_EXTRAS), default="restaurant")
-    env = pre.parse_known_args(argv)[0].env  # the sidewalk has an extra option (--data)
+    pre.add_argument("--env", choices=sorted(ENV_EXTRAS))
+    pre.add_argument("--config", type=Path)
+    known = pre.parse_known_args(argv)[0]  # the sidewalk has an extra option (--data)
+    env = known.env or _recorded_env(known.config) or "restaurant"
     args = make_parser(env).parse_args(argv)
     args.argv = argv
     return args
+
+
+def _recorded_env(config: Path | None) -> str | None:
+    """The family of a --config file, the default of --env (None when unreadable: building the
+    config names the problem)."""
+    try:
+        env = json.loads(Path(config).read_text()).get("env") if config else None
+    except (OSError, ValueError, AttributeError):
+        return None
+    return env if env in ENV_EXTRAS else None
 
 
 # ------------------------------------------------------------------- pure helpers

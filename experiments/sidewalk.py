@@ -8,7 +8,7 @@ evaluation here, as in the paper; the MPC speed cap is the env's v_max (1.8 m/s)
 
 import sys
 
-from experiments.common import ENV_EXTRAS, main
+from experiments.common import main
 
 if __name__ == "__main__":
-    sys.exit(main("sidewalk", **ENV_EXTRAS["sidewalk"]))
+    sys.exit(main("sidewalk"))

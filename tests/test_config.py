@@ -9,7 +9,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import pytest
 
-from mpcpearl_jax.config import ExperimentConfig, PearlConfig, TrainConfig, preset
+from mpcpearl_jax.config import ExperimentConfig, PearlConfig, TrainConfig, preset, validate
 from mpcpearl_jax.envs.types import ConfigError
 
 
@@ -261,3 +261,131 @@ def test_removed_training_options_load_named_and_round_trip_off(tmp_path, change
         *json.loads(cfg.to_json())["train"],
         *json.loads(cfg.to_json())["pearl"],
     }
+
+
+# ------------------------------------------------------------------ resolve and --set
+def test_resolve_gives_the_family_its_settings():
+    """`config.resolve`: the default preset on the sidewalk validates (its recorded crowd kept,
+    its MPC defaults, online adaptation as its headline), where the bare preset does not."""
+    from mpcpearl_jax.config import PRESETS, resolve
+
+    with pytest.raises(ConfigError, match="redraw_behaviours"):
+        validate(preset("default").replace(env="sidewalk"))
+    side = validate(resolve("default", env="sidewalk"))
+    assert side.env == "sidewalk" and side.train.redraw_behaviours is False
+    assert side.online_eval is True and side.mpc.v_max is None
+    rest = validate(resolve("default"))
+    assert rest.env == "restaurant" and rest.train.redraw_behaviours is True
+    assert rest.online_eval is False and rest.mpc == preset("default").mpc
+    # an explicit preset is not rewritten: the sidewalk refuses its re-drawn crowds
+    redraws = [n for n, c in PRESETS.items() if c.train.redraw_behaviours and n != "default"]
+    with pytest.raises(ConfigError, match="redraw_behaviours"):
+        validate(resolve(redraws[0], env="sidewalk"))
+    cfg = resolve(
+        "smoke",
+        "restaurant",
+        changes={"train.eps": 0.0, "seed": 3, "mpc.v_max": 2.0},
+        overrides=["seed=4", "env.observe_time=true"],
+    )
+    assert (cfg.train.eps, cfg.seed, cfg.mpc.v_max) == (0.0, 4, 2.0)  # --set comes last
+    assert cfg.env_overrides == {"observe_time": True}
+    with pytest.raises(ConfigError, match=r"TrainConfig has no field\(s\) \['nope'\]"):
+        resolve("smoke", changes={"train.nope": 1})
+    with pytest.raises(ConfigError, match="--data .*: no such file"):
+        resolve("smoke", "sidewalk", data="/nonexistent/zara.txt")
+    with pytest.raises(ConfigError, match="config is of 'restaurant'"):
+        resolve(preset("smoke"), env="sidewalk")
+
+
+def test_one_typed_parser_for_every_set_option():
+    """`config.parse_override` / `apply_overrides`: values read by the field's type, for the
+    MPC-PEARL config, GrBAL's and a bare MPCConfig, errors one line naming the field."""
+    from mpcpearl_jax.config import apply_overrides, override_sections, parse_override
+    from mpcpearl_jax.grbal.config import GrbalExperimentConfig
+    from mpcpearl_jax.mpc.config import MPCConfig
+
+    sections = override_sections(ExperimentConfig)
+    assert list(sections) == ["pearl", "train", "mpc", "env", ""]
+    assert parse_override("pearl.hidden=[8,8]", sections) == ("pearl", "hidden", (8, 8))
+    assert parse_override("mpc.r_safe=null", sections) == ("mpc", "r_safe", None)
+    assert parse_override("train.redraw_behaviours=0", sections)[2] is False
+    assert parse_override("train.eps=1", sections)[2] == 1
+    for item, needle in [
+        ("train.redraw_behaviours=2", "TrainConfig.redraw_behaviours must be true or false"),
+        ("train.iterations=true", "TrainConfig.iterations must be an int, not a boolean"),
+        ("train.eps=True", "TrainConfig.eps must be a number, not a boolean"),
+        ("pearl.nope=1", "PearlConfig has no field(s) ['nope']"),
+        ("kitchen.x=1", "unknown section 'kitchen'; use pearl, train, mpc, env or a top-level"),
+        ("train.eps", "expected SECTION.FIELD=VALUE"),
+    ]:
+        with pytest.raises(ConfigError) as e:
+            parse_override(item, sections)
+        assert needle in str(e.value) and "\n" not in str(e.value), item
+    g = apply_overrides(
+        GrbalExperimentConfig(),
+        ["grbal.hidden=[8,8]", "grbal.robot_model=known", "env.observe_time=true", "seed=2"],
+    )
+    assert g.grbal.hidden == (8, 8) and g.grbal.robot_model == "known" and g.seed == 2
+    assert g.env_overrides == {"observe_time": True}
+    with pytest.raises(ConfigError, match="GrbalConfig.iterations must be an int"):
+        apply_overrides(g, ["grbal.iterations=true"])
+    with pytest.raises(ConfigError, match=r"GrbalConfig has no field\(s\) \['nope'\]"):
+        apply_overrides(g, ["grbal.nope=1"])
+    with pytest.raises(ConfigError, match="GrbalConfig.past"):
+        apply_overrides(g, ["grbal.past=0"])
+    mpc = apply_overrides(MPCConfig(), ["unsafe_recovery=True", "v_max=3", "r_safe=None"])
+    assert mpc.unsafe_recovery is True and mpc.v_max == 3 and mpc.r_safe is None
+    with pytest.raises(ConfigError, match=r"MPCConfig has no field\(s\) \['nope'\]"):
+        apply_overrides(mpc, ["nope=1"])
+
+
+CONFIG_RUNS = [
+    "restaurant/main-default",
+    "restaurant/mpc-sac",
+    "restaurant/paper-scenarios/cpu-explore-eps0.2",
+    "sidewalk/pearl",
+    "sidewalk/seeds/mpc-pearl-s0",
+]
+
+
+@pytest.mark.parametrize("run", CONFIG_RUNS)
+def test_config_option_builds_the_recorded_run(run):
+    """--config RUN/config.json (training commands and the learning harness): exactly the run's
+    config, the other options on top (--seed changes the seed only)."""
+    import json
+
+    from experiments import learning
+    from experiments.common import build_config, parser
+
+    path = Path(__file__).resolve().parents[1] / "results" / run / "config.json"
+    ref = ExperimentConfig.from_dict(json.loads(path.read_text()))
+    env = ref.env
+    for extra in ([], ["--seed", "3"]):
+        want = ref.replace(seed=3) if extra else ref
+        args = parser(env).parse_args(["--config", str(path), *extra])
+        assert args.preset == path.parent.name  # the run's name where a preset's would go
+        assert build_config(args, env).to_dict() == want.to_dict()
+        args = learning.parse_args(["--config", str(path), "--minutes", "1", *extra])
+        assert args.env == env  # the harness takes the family from the file
+        assert build_config(args, args.env).to_dict() == want.to_dict()
+
+
+def test_config_option_refuses_what_it_cannot_repeat(tmp_path, capsys):
+    from experiments.common import build_config, main, parser
+
+    root = Path(__file__).resolve().parents[1] / "results"
+    removed = root / "restaurant/ablation/policy-ema-60min/config.json"
+    with pytest.raises(ConfigError, match=r"switched on .*pearl\.policy_ema.*since removed"):
+        build_config(parser("restaurant").parse_args(["--config", str(removed)]), "restaurant")
+    side = root / "sidewalk/pearl/config.json"
+    with pytest.raises(ConfigError, match="a sidewalk run, not restaurant"):
+        build_config(parser("restaurant").parse_args(["--config", str(side)]), "restaurant")
+    grbal = root / "restaurant/grbal/config.json"
+    for bad, needle in [(grbal, "a grbal run's config"), (tmp_path / "none.json", "none.json")]:
+        out = tmp_path / "run"
+        assert main("restaurant", ["--config", str(bad), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("error: --config") and needle in err and "\n" not in err
+        assert not out.exists()
+    with pytest.raises(SystemExit):  # a preset or a run's config, not both
+        parser("restaurant").parse_args(["--preset", "smoke", "--config", str(side)])

@@ -254,3 +254,33 @@ def test_redrawn_tasks_keep_the_layout_and_change_the_crowd_deterministically():
     d = np.linalg.norm(pos[:, :, :, None, :] - tables[:, None, None, :, :], axis=-1)
     assert d.min() > 0.5
     np.testing.assert_allclose(pos[:, -1], pos[:, -5], atol=1e-5)
+
+
+def _old_idiom(cfg, split, config, seed=None):
+    """The task set as the commands built it before `envs.tasks_for`."""
+    kw = {"data": cfg.data} if cfg.data else {}
+    kw.update(cfg.task_options)
+    seed = cfg.task_seed if seed is None else seed
+    return make_tasks(cfg.env, split, seed, config=config, **kw)
+
+
+def _same(a, b):
+    jax.tree_util.tree_map(np.testing.assert_array_equal, a, b)
+
+
+def test_tasks_for_a_run_config_are_the_old_idiom_s():
+    """`envs.tasks_for`: the run's family, task seed, task options and env overrides; the
+    validation set (`envs.validation_tasks`) is the family's val split."""
+    from mpcpearl_jax.config import ExperimentConfig
+    from mpcpearl_jax.envs import VAL_TASKS, tasks_for, validation_tasks
+
+    cfg = ExperimentConfig(
+        task_seed=2, task_options={"train_behaviours": 4}, env_overrides={"observe_time": True}
+    )
+    config = make_env("restaurant", observe_time=True).config
+    for split in ("train", "test", "val"):
+        _same(tasks_for(cfg, split), _old_idiom(cfg, split, config))
+    _same(tasks_for(cfg, "ood", config=CFG, seed=5), _old_idiom(cfg, "ood", CFG, seed=5))
+    val, what = validation_tasks(cfg)
+    _same(val, _old_idiom(cfg, "val", config))
+    assert "'val' split" in what and VAL_TASKS == 24

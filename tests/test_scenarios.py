@@ -182,6 +182,30 @@ def test_config_records_the_source_and_refuses_redraw(synthetic):
         build_config(parser("restaurant").parse_args(["--hold-out-val"]), "restaurant")
 
 
+def test_resolve_keeps_the_recorded_crowds_of_the_scenarios(synthetic):
+    """`config.resolve` with the paper's scenarios: the default preset keeps their fixed crowds;
+    the validation set is tasks 150-179 when they were held out of training, else (the run has
+    trained on them) the first 24 training tasks."""
+    from mpcpearl_jax.config import resolve, validate
+    from mpcpearl_jax.envs import tasks_for, validation_tasks
+    from mpcpearl_jax.errors import ConfigError
+
+    held = validate(resolve("default", scenarios=synthetic, hold_out_val=True))
+    assert held.train.redraw_behaviours is False and held.train.explore_start_share == 0.5
+    assert held.task_options == sc.scenario_options(synthetic, hold_out_val=True)
+    val, what = validation_tasks(held)
+    assert val.num_tasks == 30 and "scenarios 150-179" in what
+    every = validate(resolve("default", scenarios=synthetic))
+    val, what = validation_tasks(every)
+    first = jax.tree_util.tree_map(lambda x: x[:24], tasks_for(every, "train"))
+    jax.tree_util.tree_map(np.testing.assert_array_equal, val, first)
+    assert "first 24 training tasks" in what
+    with pytest.raises(ConfigError, match="redraw_behaviours"):
+        validate(resolve("cpu-explore", scenarios=synthetic))
+    with pytest.raises(ConfigError, match="restaurant tasks"):
+        resolve("default", "sidewalk", scenarios=synthetic)
+
+
 def test_training_cli_on_a_bad_folder_writes_nothing(tmp_path, capsys):
     from experiments.common import main
 

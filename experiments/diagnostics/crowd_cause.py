@@ -33,7 +33,7 @@ from typing import Any
 from benchmarks import harness
 from experiments.diagnostics.shield import _relative, episode_outcomes, pool
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the repository
 DEFAULT_RUNS = [
     ROOT / "results" / "restaurant" / name for name in ("mpc-pearl-eps0.2", "pearl", "mpc-sac")
 ]
@@ -84,11 +84,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import jax
     import numpy as np
 
-    from experiments.evaluate import EVAL_SEED
     from mpcpearl_jax import load_policy
-    from mpcpearl_jax.envs import make_env, make_tasks
+    from mpcpearl_jax.envs import make_env, tasks_for
     from mpcpearl_jax.envs.perturb import Perturbation, perturb_tasks
     from mpcpearl_jax.evaluation import evaluate as eval_lib
+    from mpcpearl_jax.evaluation.runners import EVAL_SEED
 
     policies = [load_policy(r) for r in args.runs]
     if {pol.config.env for pol in policies} != {"restaurant"}:
@@ -101,10 +101,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         cfg = pol.config
         env = make_env(cfg.env, **cfg.env_overrides)
         params = jax.tree_util.tree_map(lambda x: x[None], pol.params)
-        kw = dict(cfg.task_options)
         base = {}
         for s in seeds:
-            t = make_tasks("restaurant", "val", s, config=env.config, **kw)
+            t = tasks_for(cfg, "val", config=env.config, seed=s)
             if sz["tasks"] is not None:
                 t = jax.tree_util.tree_map(lambda a, n=sz["tasks"]: a[:n], t)
             base[s] = t

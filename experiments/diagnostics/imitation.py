@@ -29,7 +29,7 @@ from typing import Any
 
 from benchmarks import harness
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the repository
 DEFAULT_RUN = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"
 SIZES: dict[str, dict[str, Any]] = {
     "tiny": dict(train_tasks=2, val_tasks=2, fit_steps=(5, 10), task_seeds=(1,)),

@@ -29,7 +29,7 @@ from typing import Any
 
 from benchmarks import harness
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the repository
 DEFAULT_RUNS = [
     ROOT / "results" / "restaurant" / name for name in ("mpc-pearl-eps0.2", "mpc-sac", "pearl")
 ]
@@ -139,10 +139,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     import jax
 
-    from experiments.evaluate import EVAL_SEED  # the unshielded rows reproduce its numbers
     from mpcpearl_jax import load_policy
-    from mpcpearl_jax.envs import make_env, make_tasks
+    from mpcpearl_jax.config import ExperimentConfig
+    from mpcpearl_jax.envs import make_env, tasks_for
     from mpcpearl_jax.evaluation import evaluate as eval_lib
+    from mpcpearl_jax.evaluation.runners import EVAL_SEED  # the unshielded rows reproduce it
     from mpcpearl_jax.mpc.shield import ShieldConfig
     from mpcpearl_jax.training.checkpoint import load_config
 
@@ -155,9 +156,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ]
     seeds = list(sz["task_seeds"])
 
-    def tasks_for(env, pol_cfg, seed):
-        kw = dict(pol_cfg.task_options) if pol_cfg else {}
-        tasks = make_tasks("restaurant", "val", seed, config=env.config, **kw)
+    def val_tasks(env, pol_cfg, seed):  # the restaurant's val split of a task-set seed
+        tasks = tasks_for(pol_cfg or ExperimentConfig(), "val", config=env.config, seed=seed)
         if sz["tasks"] is not None:
             tasks = jax.tree_util.tree_map(lambda a: a[: sz["tasks"]], tasks)
         return tasks
@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     # the goal-seeking control, in the environment of --env-from (its sensing radius bounds what
     # the shield sees)
     env0 = make_env("restaurant", **dict(load_config(args.env_from).env_overrides))
-    task_sets = {s: tasks_for(env0, None, s) for s in seeds}
+    task_sets = {s: val_tasks(env0, None, s) for s in seeds}
     for shield in shields:
         fn = goal_seeking_evaluator(env0, shield)
         per_seed, wall = [], 0.0
@@ -206,7 +206,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         cfg = pol.config
         env = make_env(cfg.env, **cfg.env_overrides)
         params = jax.tree_util.tree_map(lambda x: x[None], pol.params)
-        task_sets = {s: tasks_for(env, cfg, s) for s in seeds}
+        task_sets = {s: val_tasks(env, cfg, s) for s in seeds}
         for shield in shields:
             fn = eval_lib.make_evaluator(
                 env,

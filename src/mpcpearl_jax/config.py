@@ -8,7 +8,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from typing import Any, Self
+import os
+import typing
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any, Self, TypeVar
 
 from mpcpearl_jax import validate as v
 from mpcpearl_jax.envs.types import NavConfig
@@ -17,6 +21,7 @@ from mpcpearl_jax.mpc.config import MPCConfig
 from mpcpearl_jax.pearl.config import PearlConfig
 
 NAV_FIELDS = frozenset(f.name for f in dataclasses.fields(NavConfig))
+C = TypeVar("C")  # a run-config dataclass (ExperimentConfig, GrbalExperimentConfig)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -424,3 +429,198 @@ def preset(name: str) -> ExperimentConfig:
     if name not in PRESETS:
         raise ConfigError(f"unknown preset {name!r}; known: {sorted(PRESETS)}")
     return PRESETS[name]
+
+
+# ---------------------------------------------------------------------- resolving a run's config
+# What every command line builds its config with: a preset (or a run's recorded config.json),
+# the task family's own settings, the task source and the command line's changes (typed values
+# or `--set SECTION.FIELD=VALUE` strings, read by each field's type). GrBAL's
+# `grbal.config.resolve` uses the same pieces.
+
+_TRUE, _FALSE = ("true", "True", "1"), ("false", "False", "0")
+
+
+def override_sections(cls: type) -> dict[str, type]:
+    """The `--set` sections of a run-config dataclass (`ExperimentConfig`,
+    `GrbalExperimentConfig`): each nested config by its field name, 'env' for the NavConfig
+    fields of `env_overrides`, '' for the top-level fields."""
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    sections = {n: hints[n] for n in names if dataclasses.is_dataclass(hints[n])}
+    if "env_overrides" in names:
+        sections["env"] = NavConfig
+    return {**sections, "": cls}
+
+
+def field_value(item: str, cls: type, field: str, text: str) -> Any:
+    """The value of `--set item` for `cls.field`, read by the field's type: booleans (true/false,
+    True/False, 1/0) only for bool fields and never for numbers, None/null for optional fields,
+    JSON otherwise (a list becomes a tuple; text that is not JSON stays a string). ConfigError
+    naming the field."""
+    hints = typing.get_type_hints(cls)
+    if field not in hints or field not in {f.name for f in dataclasses.fields(cls)}:
+        raise ConfigError(f"--set {item}: {cls.__name__} has no field(s) {[field]}")
+    hint = hints[field]
+    name = f"{cls.__name__}.{field}"
+    args = typing.get_args(hint)
+    if hint is bool:
+        if text in _TRUE:
+            return True
+        if text in _FALSE:
+            return False
+        raise ConfigError(f"--set {item}: {name} must be true or false, got {text!r}")
+    if type(None) in args and text in ("None", "null"):
+        return None
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        value = text
+    numeric = {int, float} & ({hint} | set(args))
+    if numeric and (isinstance(value, bool) or text in ("True", "False")):
+        kind = "an int" if numeric == {int} else "a number"
+        raise ConfigError(f"--set {item}: {name} must be {kind}, not a boolean")
+    return tuple(value) if isinstance(value, list) else value
+
+
+def parse_override(item: str, sections: Mapping[str, type]) -> tuple[str, str, Any]:
+    """One `--set SECTION.FIELD=VALUE` item -> (section, field, value), the value read by the
+    field's type (`field_value`); `sections` as `override_sections` gives them ('' for fields
+    without a section: `--set FIELD=VALUE`). ConfigError naming the item."""
+    key, sep, text = item.partition("=")
+    if not sep:
+        form = "SECTION.FIELD=VALUE" if set(sections) - {""} else "FIELD=VALUE"
+        raise ConfigError(f"--set {item!r}: expected {form}")
+    section, _, field = key.rpartition(".")
+    if section not in sections:
+        names = [s for s in sections if s] + (["a top-level field"] if "" in sections else [])
+        use = " or ".join(filter(None, (", ".join(names[:-1]), names[-1])))
+        raise ConfigError(f"--set {item!r}: unknown section {section!r}; use {use}")
+    return section, field, field_value(item, sections[section], field, text)
+
+
+def apply_overrides(
+    cfg: C, items: Iterable[str] = (), changes: Mapping[str, Any] | None = None
+) -> C:
+    """`cfg` (a run-config dataclass) with `changes` ('section.field' or a top-level 'field' ->
+    typed value, e.g. {'train.eps': 0.0, 'seed': 3}) and then the `--set` `items`
+    ('SECTION.FIELD=VALUE' strings, `parse_override`) applied; a later one wins. Each section is
+    rebuilt, so a wrong value is its ConfigError naming the field."""
+    sections = override_sections(type(cfg))
+    triples = []
+    for key, value in (changes or {}).items():
+        section, _, field = key.rpartition(".")
+        cls = sections.get(section)
+        if cls is None or field not in {f.name for f in dataclasses.fields(cls)}:
+            owner = cls.__name__ if cls else f"section {section!r} of {type(cfg).__name__}"
+            raise ConfigError(f"{owner} has no field(s) {[field]}")
+        triples.append((section, field, value))
+    triples += [parse_override(item, sections) for item in items]
+    grouped: dict[str, dict[str, Any]] = {}
+    for section, field, value in triples:
+        grouped.setdefault(section, {})[field] = value
+    top = grouped.pop("", {})
+    env = grouped.pop("env", None)
+    new = {s: dataclasses.replace(getattr(cfg, s), **fields) for s, fields in grouped.items()}
+    if env is not None:
+        new["env_overrides"] = {**cfg.env_overrides, **env}  # type: ignore[attr-defined]
+    return dataclasses.replace(cfg, **{**top, **new})  # type: ignore[type-var]
+
+
+def task_source(
+    env: str,
+    scenarios: str | os.PathLike | None = None,
+    hold_out_val: bool = False,
+    data: str | os.PathLike | None = None,
+) -> dict[str, Any]:
+    """The top-level config fields of a run's task source: `task_options` for the paper's
+    scenarios in the folder `scenarios` (restaurant; its files are checked now and their sha256
+    recorded; `hold_out_val` keeps tasks 150-179 out of training), `data` for a trajectory file
+    (sidewalk; checked to exist). {} for the family's generated tasks. ConfigError in one line."""
+    out: dict[str, Any] = {}
+    if hold_out_val and scenarios is None:
+        raise ConfigError("--hold-out-val applies to --scenarios")
+    if scenarios is not None:
+        if env != "restaurant":
+            raise ConfigError("--scenarios: the paper's scenarios are restaurant tasks")
+        from mpcpearl_jax.envs.restaurant import scenario_options
+
+        try:
+            out["task_options"] = scenario_options(scenarios, hold_out_val)
+        except OSError as e:
+            raise ConfigError(str(e)) from e
+    if data is not None:
+        if not Path(data).is_file():
+            raise ConfigError(f"--data {data}: no such file")
+        out["data"] = str(data)
+    return out
+
+
+def read_config(path: str | os.PathLike) -> ExperimentConfig:
+    """A run's recorded config (RUN/config.json, or the run folder) as the base of a new run,
+    through `ExperimentConfig.from_dict`. A run that switched on a removed option
+    (`removed_options_on`) cannot be repeated: ConfigError naming the options; a file that is
+    not an MPC-PEARL run's config is a ConfigError naming it too."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "config.json"
+    try:
+        raw = json.loads(path.read_text())
+    except OSError as e:
+        raise ConfigError(f"--config {path}: {e.strerror or type(e).__name__}") from e
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"--config {path}: not a JSON config ({e})") from e
+    if not isinstance(raw, dict) or "method" in raw:
+        what = f"a {raw['method']} run's config" if isinstance(raw, dict) else "not a dict"
+        raise ConfigError(f"--config {path}: {what}, not an MPC-PEARL run's")
+    on = removed_options_on(raw)
+    if on:
+        raise ConfigError(
+            f"--config {path}: the run switched on {', '.join(on)}, option(s) since removed "
+            "(docs/extensions.md, Removed options); it cannot be trained again"
+        )
+    try:
+        return ExperimentConfig.from_dict(raw)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"--config {path}: {e}") from e
+
+
+def resolve(
+    base: str | ExperimentConfig = "default",
+    env: str | None = None,
+    *,
+    changes: Mapping[str, Any] | None = None,
+    overrides: Iterable[str] = (),
+    scenarios: str | os.PathLike | None = None,
+    hold_out_val: bool = False,
+    data: str | os.PathLike | None = None,
+) -> ExperimentConfig:
+    """The config of a run on task family `env`.
+
+    `base` is a preset name or a config. A preset gets the family's settings: the `default`
+    preset re-draws crowds only where the family can (`envs.can_redraw`) and never on the
+    paper's scenarios (a recorded crowd is kept), the family's MPC defaults
+    (`envs.mpc_defaults`) and its headline protocol (`envs.online_eval`). A config (a run's
+    config.json, `read_config`) is taken as recorded; `env`, if given, must be its family.
+    Then, in this order (a later one wins): the task source (`task_source`: `scenarios`,
+    `hold_out_val`, `data`), the typed `changes` and the `--set` `overrides`
+    (`apply_overrides`). ConfigError naming the field; checks across fields are `validate`'s,
+    which every command runs on the result, e.g. `validate(resolve("default", env="sidewalk"))`.
+    """
+    from mpcpearl_jax.envs import can_redraw, mpc_defaults, online_eval
+
+    if isinstance(base, str):
+        cfg = preset(base)
+        env = env or cfg.env
+        if base == "default" and (scenarios is not None or not can_redraw(env)):
+            cfg = cfg.replace(train=dataclasses.replace(cfg.train, redraw_behaviours=False))
+        cfg = cfg.replace(
+            env=env,
+            mpc=cfg.mpc.replace(**mpc_defaults(env)),
+            online_eval=cfg.online_eval or online_eval(env),
+        )
+    else:
+        cfg = base
+        if env is not None and env != cfg.env:
+            raise ConfigError(f"ExperimentConfig.env: the config is of {cfg.env!r}, not {env!r}")
+    cfg = cfg.replace(**task_source(cfg.env, scenarios, hold_out_val, data))
+    return apply_overrides(cfg, overrides, changes)

@@ -26,6 +26,10 @@ _REDRAW: dict[str, Callable[..., TaskParams]] = {}
 _VIEWER: dict[str, Callable[..., Path]] = {}
 # name -> MPCConfig field defaults of the family (optional; see mpc_defaults)
 _MPC_DEFAULTS: dict[str, dict[str, Any]] = {}
+# families whose headline evaluation is online adaptation (see online_eval)
+_ONLINE: set[str] = set()
+# the validation set of a family without a 'val' split: its first VAL_TASKS training tasks
+VAL_TASKS = 24
 
 
 def register(
@@ -35,6 +39,7 @@ def register(
     redraw: Callable[..., TaskParams] | None = None,
     viewer: Callable[..., Path] | None = None,
     mpc_defaults: dict[str, Any] | None = None,
+    online_eval: bool = False,
 ) -> None:
     """Register a task family so that `make_env(name)` and `make_tasks(name, ...)` know it.
 
@@ -44,9 +49,14 @@ def register(
     `viewer(path, task, robots, config, title=None)`, optional, saves the family's trajectory
     figure (see `save_trajectory`); default: `envs.drawing.save_robots_figure`.
     `mpc_defaults`, optional: MPCConfig fields this family sets unless a run overrides them
-    (see `mpc_defaults`)."""
+    (see `mpc_defaults`). `online_eval`: online adaptation is the family's headline evaluation
+    (see `online_eval`)."""
     _REGISTRY[name] = (config, builder)
     _MPC_DEFAULTS[name] = dict(mpc_defaults or {})
+    if online_eval:
+        _ONLINE.add(name)
+    else:
+        _ONLINE.discard(name)
     for table, fn in ((_REDRAW, redraw), (_VIEWER, viewer)):
         if fn is not None:
             table[name] = fn
@@ -110,6 +120,51 @@ def mpc_defaults(name: str) -> dict[str, Any]:
     return dict(_MPC_DEFAULTS.get(name, {}))
 
 
+def online_eval(name: str) -> bool:
+    """Whether online adaptation is the headline evaluation of family `name` (a run's
+    `online_eval` unless it overrides it; the sidewalk, as in the paper)."""
+    _lookup(name)
+    return name in _ONLINE
+
+
+def tasks_for(
+    cfg: Any, split: str, *, config: NavConfig | None = None, seed: int | None = None
+) -> TaskParams:
+    """The tasks of `split` for a run config (`ExperimentConfig`, `GrbalExperimentConfig`: its
+    `env`, `task_seed`, `data` file and `task_options`), stacked on a leading axis. `config`: the
+    NavConfig the tasks are built for (default: the family's with the run's `env_overrides`);
+    `seed`: a task-set seed other than the run's."""
+    kw: dict[str, Any] = {"data": cfg.data} if cfg.data else {}
+    kw.update(cfg.task_options)
+    if config is None:
+        config = make_env(cfg.env, **cfg.env_overrides).config
+    return make_tasks(cfg.env, split, cfg.task_seed if seed is None else seed, config=config, **kw)
+
+
+def validation_tasks(
+    cfg: Any, *, config: NavConfig | None = None, train_tasks: TaskParams | None = None
+) -> tuple[TaskParams, str]:
+    """The validation set of a run config, on which settings are chosen (never the test set),
+    and a line saying what it is: the family's 'val' split (the restaurant's held-out
+    behaviours; with the paper's scenarios, tasks 150-179 when the run held them out of
+    training); else the first `VAL_TASKS` training tasks (`train_tasks` when given, or all if
+    fewer): the sidewalk, and a run that trained on every scenario."""
+    import jax
+
+    from mpcpearl_jax.envs.restaurant.scenarios import VAL_IDS, check_val_split, uses_scenarios
+
+    try:
+        check_val_split(cfg.task_options, "val")  # not the scenarios the run trains on
+        tasks = tasks_for(cfg, "val", config=config)
+    except ValueError:
+        train = tasks_for(cfg, "train", config=config) if train_tasks is None else train_tasks
+        tasks = jax.tree_util.tree_map(lambda x: x[:VAL_TASKS], train)
+        return tasks, f"the first {VAL_TASKS} training tasks (or all if fewer)"
+    if uses_scenarios(cfg.task_options):
+        return tasks, f"the paper's scenarios {VAL_IDS[0]}-{VAL_IDS[-1]} (held out of training)"
+    return tasks, "the family's 'val' split (held-out behaviours, neither train nor test)"
+
+
 def save_trajectory(
     name: str,
     path: str | Path,
@@ -148,6 +203,7 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "SPLITS",
+    "VAL_TASKS",
     "BraxNavEnv",
     "ConfigError",
     "EnvState",
@@ -161,8 +217,11 @@ __all__ = [
     "make_env",
     "make_tasks",
     "mpc_defaults",
+    "online_eval",
     "redraw_tasks",
     "register",
     "save_trajectory",
     "task_to_numpy",
+    "tasks_for",
+    "validation_tasks",
 ]

@@ -29,10 +29,11 @@ import optax
 from flax import struct
 from jax import Array
 
-from mpcpearl_jax.envs import make_env, make_tasks
+from mpcpearl_jax.envs import make_env, tasks_for
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.errors import ConfigError, TrainingDiverged
 from mpcpearl_jax.evaluation import evaluate as eval_lib
+from mpcpearl_jax.evaluation.runners import EVAL_SEED
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.model import (
     DynamicsModel,
@@ -71,10 +72,8 @@ class GrbalTrainer:
         self.cfg = cfg
         g = cfg.grbal
         self.env = make_env(cfg.env, **cfg.env_overrides)
-        kw: dict[str, Any] = {"data": cfg.data} if cfg.data else {}
-        kw.update(cfg.task_options)
-        self.train_tasks = make_tasks(cfg.env, "train", cfg.task_seed, config=self.env.config, **kw)
-        self.test_tasks = make_tasks(cfg.env, "test", cfg.task_seed, config=self.env.config, **kw)
+        self.train_tasks = tasks_for(cfg, "train", config=self.env.config)
+        self.test_tasks = tasks_for(cfg, "test", config=self.env.config)
         self.num_train = int(self.train_tasks.start.shape[0])
         self.horizon = self.env.config.horizon
         if g.past + g.future > self.horizon:
@@ -376,7 +375,7 @@ class GrbalTrainer:
         run of the evaluation program; each summary holds the method §8 metrics (mean and per
         seed) and the raw arrays [S, N, ...] under "_raw"."""
         tasks = self.test_tasks if tasks is None else tasks
-        key = jax.random.PRNGKey(12345) if key is None else key
+        key = jax.random.PRNGKey(EVAL_SEED) if key is None else key
         res = jax.device_get(self._evaluate(key, state.params, state.norm, tasks))
         r = self.env.config.robot_radius
         return {k: eval_lib.summarize(v, tasks, r) | {"_raw": v} for k, v in res.items()}

@@ -380,7 +380,7 @@ def final_evaluation(
     trainer: Trainer, state: TrainState, out: str | Path, label: str
 ) -> dict[str, Any]:
     """Evaluate on test (adaptation and online) and OOD tasks; save results.json + figures."""
-    from mpcpearl_jax.envs import make_tasks
+    from mpcpearl_jax.envs import tasks_for
 
     run_dir = Path(out)
     results: dict[str, Any] = {
@@ -395,11 +395,7 @@ def final_evaluation(
     results["test_adapt"] = adapt
     results["test_online"] = online
     try:  # the OOD split of the run's own task source (its task options: e.g. the scenarios)
-        kw = {"data": trainer.cfg.data} if trainer.cfg.data else {}
-        kw.update(trainer.cfg.task_options)
-        ood = make_tasks(
-            trainer.cfg.env, "ood", trainer.cfg.task_seed, config=trainer.env.config, **kw
-        )
+        ood = tasks_for(trainer.cfg, "ood", config=trainer.env.config)
         res = trainer.evaluate(state, tasks=ood)
         res.pop("_raw")
         results["ood_adapt"] = res

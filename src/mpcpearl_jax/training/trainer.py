@@ -25,11 +25,12 @@ from jax import Array
 
 from mpcpearl_jax.config import ExperimentConfig, validate
 from mpcpearl_jax.distributed import constrain, first_local, make_mesh, sum_over_processes, to_host
-from mpcpearl_jax.envs import make_env, make_tasks, redraw_tasks
+from mpcpearl_jax.envs import make_env, redraw_tasks, tasks_for
 from mpcpearl_jax.envs.perturb import delay_people
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.errors import ConfigError, TrainingDiverged
 from mpcpearl_jax.evaluation import evaluate as eval_lib
+from mpcpearl_jax.evaluation.runners import EVAL_SEED
 from mpcpearl_jax.pearl import buffers
 from mpcpearl_jax.pearl.learner import (
     LearnerState,
@@ -78,15 +79,9 @@ class Trainer:
     def __init__(self, cfg: ExperimentConfig):
         self.cfg = cfg
         self.env = make_env(cfg.env, **cfg.env_overrides)
-        kw: dict[str, Any] = {"data": cfg.data} if cfg.data else {}
-        kw.update(cfg.task_options)
         try:
-            self.train_tasks = make_tasks(
-                cfg.env, "train", cfg.task_seed, config=self.env.config, **kw
-            )
-            self.test_tasks = make_tasks(
-                cfg.env, "test", cfg.task_seed, config=self.env.config, **kw
-            )
+            self.train_tasks = tasks_for(cfg, "train", config=self.env.config)
+            self.test_tasks = tasks_for(cfg, "test", config=self.env.config)
         except (TypeError, ValueError) as e:
             if not cfg.task_options:
                 raise
@@ -444,7 +439,7 @@ class Trainer:
         """method §8 metrics on `tasks` (default: test tasks), mean and per seed, of the deployed
         policy and encoder parameters (`acting_params`)."""
         tasks = self.test_tasks if tasks is None else tasks
-        key = jax.random.PRNGKey(12345) if key is None else key
+        key = jax.random.PRNGKey(EVAL_SEED) if key is None else key
         fn = self.evaluate_online if online else self.evaluate_adapt
         learner = state.learner
         params = acting_params(learner.params)
