@@ -19,17 +19,25 @@ baseline; `--minutes` is its budget) or `"trainer": "restaurant"` to train with 
 harness.
 
 For each run in order: a run whose results folder holds its finished record (the harness's
-curve.json; results.json for the other two) is done and skipped; a run whose work folder
-(`runs/campaign/<name>`) holds a finished record (a curve stopped on its budget; a results.json,
-written once training has ended) is copied into its results folder without checkpoints and then
-evaluated; a run with checkpoints is resumed (`--resume`; GrBAL's time budget then starts again
-in the resumed process); any other is started. Every evaluation is
+curve.json; results.json for the other two) is done and skipped; a run whose training ended
+(exit 0; the campaign then writes `campaign.json` into its work folder `runs/campaign/<name>`) is
+copied into its results folder without checkpoints and then evaluated; a run with checkpoints is
+resumed (`--resume`; GrBAL's time budget then starts again in the resumed process); any other is
+started afresh (a work folder a run killed before its first checkpoint left is cleared first).
+Before a finished run is copied or evaluated, the config its `argv` builds is compared with the
+config.json the run recorded: an entry edited since is refused with the fields that differ (give
+the changed entry another name and results folder). Every evaluation is
 `python -m experiments.evaluate RESULTS ARGS...` on the copied folder; it must name its
 `--out` (`{results}` stands for the results folder) and is skipped where that folder holds
 results.json. One training at a time, each in its own process: stop the campaign with Ctrl-C
 (the run under way saves and exits 130) and start the same command again later to continue
 where it stopped.
-A run that fails (exit code other than 0) stops the campaign with its name and code.
+A run that fails (exit code other than 0) stops the campaign with its name and code. SIGTERM or
+SIGHUP to the campaign (`timeout`, a scheduler, a closed terminal) reaches the run under way as
+Ctrl-C (it saves and exits), and the campaign ends once it has; a campaign killed outright
+(SIGKILL) takes its run with it (the run gets SIGINT from the kernel), so no training outlives
+its campaign. One campaign file is processed by one campaign at a time (a lock in
+runs/campaign/); every entry is checked (keys, names, results paths) before anything runs.
 
 Before a training with a wall-clock budget (the harness and GrBAL) starts, the campaign waits
 until the 1-minute load average is below the harness's warning level (at most SETTLE_MAX_S), so
@@ -52,6 +60,8 @@ from pathlib import Path
 
 WORK = Path("runs") / "campaign"
 NOT_COPIED = ("checkpoints", ".lock")
+TRAINED = "campaign.json"  # written into the work folder once its training exited 0
+KEYS = ("name", "argv", "results", "evaluate", "trainer")  # what an entry may hold
 SETTLE_LOAD = 1.5  # = experiments.learning.LOAD_WARN
 SETTLE_MAX_S = 120.0
 
@@ -98,15 +108,33 @@ def load_campaign(path: Path) -> list[CampaignRun]:
     runs = raw.get("runs") if isinstance(raw, dict) else None
     if not isinstance(runs, list) or not runs:
         raise ValueError(f"{path}: expected {{'runs': [...]}} with at least one run")
+    extra = sorted(set(raw) - {"runs"})
+    if extra:
+        raise ValueError(f"{path}: unknown key(s) {extra}; a campaign file holds 'runs' only")
     out, names = [], set()
     for i, r in enumerate(runs):
         where = f"{path}: runs[{i}]"
         if not isinstance(r, dict) or not {"name", "argv", "results"} <= set(r):
             raise ValueError(f"{where}: needs 'name', 'argv' and 'results'")
+        unknown = sorted(set(r) - set(KEYS))
+        if unknown:
+            raise ValueError(f"{where}: unknown key(s) {unknown}; an entry holds {list(KEYS)}")
         name = r["name"]
-        if not isinstance(name, str) or not name or "/" in name or name in names:
-            raise ValueError(f"{where}: 'name' must be a unique folder name, got {name!r}")
+        if (
+            not isinstance(name, str)
+            or not name
+            or name.startswith(".")
+            or any(c in name for c in "/\\")
+            or name in names
+        ):
+            raise ValueError(
+                f"{where}: 'name' must be a unique folder name (no '/', not starting with "
+                f"'.'), got {name!r}"
+            )
         names.add(name)
+        if not isinstance(r["results"], str) or not r["results"].strip():
+            raise ValueError(f"{where}: 'results' must be a folder path (a string)")
+        _check_results_path(Path(r["results"]), where)
         argv = r["argv"]
         if not isinstance(argv, list) or not all(isinstance(a, str) for a in argv):
             raise ValueError(f"{where}: 'argv' must be a list of strings")
@@ -126,27 +154,105 @@ def load_campaign(path: Path) -> list[CampaignRun]:
         for e in evals:
             if "--out" not in e[:-1]:
                 raise ValueError(f"{where}: every 'evaluate' entry must give --out")
+            _check_results_path(eval_out(e).parent, where, "'evaluate' --out")
         out.append(CampaignRun(name, tuple(argv), results, tuple(evals), trainer))
     return out
 
 
+def _check_results_path(results: Path, where: str, field: str = "'results'") -> None:
+    """ValueError naming the entry and its field when a folder it writes cannot be made: a file
+    on its path, or an existing folder on it that this user cannot write."""
+    what = f"{where}: {field}"
+    for parent in (results, *results.parents):
+        if parent.exists():
+            if not parent.is_dir():
+                raise ValueError(f"{what} {results}: {parent} is a file")
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise ValueError(f"{what} {results}: {parent} is not writable")
+            return
+
+
+def _has_checkpoint(run: CampaignRun) -> bool:
+    ckpts = run.work / "checkpoints"
+    return ckpts.is_dir() and any(p.name.isdigit() for p in ckpts.iterdir())
+
+
+def _legacy_finished(run: CampaignRun) -> bool:
+    """A work folder trained before the campaign wrote its mark: its record says finished."""
+    record = run.work / run.record
+    if not record.is_file():
+        return False
+    if run.record == "results.json":
+        return True
+    try:
+        return json.loads(record.read_text()).get("stopped") == "budget"
+    except (OSError, json.JSONDecodeError):
+        return False
+
+
 def state_of(run: CampaignRun) -> str:
-    """'done', 'finished' (trained, not yet copied), 'resume', or 'new'."""
+    """'done', 'finished' (trained, not yet copied), 'resume', or 'new'. A run is finished once
+    its training process exited 0 (the campaign's mark, `TRAINED`); a process killed after its
+    record but before its last file is resumed, so that it writes them all again."""
     if (run.results / run.record).is_file():
         return "done"
-    record = run.work / run.record
-    if record.is_file():
-        if run.record == "results.json":  # written once, after training and its evaluation
-            return "finished"
-        try:
-            if json.loads(record.read_text()).get("stopped") == "budget":
-                return "finished"
-        except (OSError, json.JSONDecodeError):
-            pass
-    ckpts = run.work / "checkpoints"
-    if ckpts.is_dir() and any(p.name.isdigit() for p in ckpts.iterdir()):
+    if (run.work / TRAINED).is_file() and (run.work / run.record).is_file():
+        return "finished"
+    if _has_checkpoint(run):
         return "resume"
+    if _legacy_finished(run) and not (run.work / TRAINED).exists():
+        return "finished"  # without checkpoints (e.g. --policy-only) it cannot be resumed
     return "new"
+
+
+def built_config(run: CampaignRun):
+    """The config the entry's argv builds now (as its trainer's command line would)."""
+    argv = list(run.argv)
+    try:
+        if run.trainer == "learning":
+            from experiments import learning
+            from experiments.common import build_config
+
+            args = learning.parse_args(argv)
+            return build_config(args, args.env)
+        if run.trainer == "grbal":
+            from experiments import grbal
+
+            return grbal.build_config(grbal.parser().parse_args(argv))
+        from experiments.common import build_config, parser
+
+        return build_config(parser(run.trainer).parse_args(argv), run.trainer)
+    except SystemExit as e:  # argparse's own error, printed above
+        raise ValueError(f"{run.name}: its argv is not a valid {run.module} command line") from e
+
+
+def check_unchanged(run: CampaignRun, folder: Path) -> None:
+    """ValueError naming the entry and the fields when the config its argv builds differs from
+    the one the run in `folder` recorded (config.json): the entry was edited after training."""
+    from mpcpearl_jax.errors import ConfigError
+    from mpcpearl_jax.training.checkpoint import config_differences
+
+    recorded = folder / "config.json"
+    if not recorded.is_file():
+        return
+    try:
+        now = built_config(run)
+        if run.trainer == "grbal":
+            from mpcpearl_jax.grbal.config import GrbalExperimentConfig as Config
+        else:
+            from mpcpearl_jax.config import ExperimentConfig as Config  # type: ignore[assignment]
+        then = Config.from_dict(json.loads(recorded.read_text()))
+    except (ConfigError, TypeError, ValueError) as e:
+        raise ValueError(f"{run.name}: cannot compare its argv with {recorded}: {e}") from e
+    # a learning run records the iterations it did (its budget is time); devices never matter
+    ignore = ("devices", "train.iterations") if run.trainer == "learning" else ("devices",)
+    diff = config_differences(then, now, ignore)
+    if diff:
+        raise ValueError(
+            f"{run.name}: its argv builds a config that differs from the trained run's "
+            f"{recorded} in {diff}; restore the entry, or give the changed one another name and "
+            "results folder"
+        )
 
 
 def copy_results(run: CampaignRun) -> None:
@@ -203,13 +309,48 @@ def run_child(cmd: list[str]) -> int:
     SIGINT is handled even where the campaign started with it ignored, as a shell without job
     control starts a background job (`nohup ... &` in a script)."""
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    p = subprocess.Popen(cmd, start_new_session=True)
-    while True:
-        try:
-            return p.wait()
-        except KeyboardInterrupt:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
+    ended: list[int] = []
+
+    def terminate(signum, frame):  # SIGTERM / SIGHUP: stop the child as Ctrl-C would
+        ended.append(signum)
+        raise KeyboardInterrupt
+
+    old = {s: signal.signal(s, terminate) for s in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        p = subprocess.Popen(_dies_with_parent(cmd), start_new_session=True)
+        while True:
+            try:
+                rc = p.wait()
+                return 128 + ended[0] if ended else rc
+            except KeyboardInterrupt:
+                if p.poll() is None:
+                    p.send_signal(signal.SIGINT)
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
+
+
+# the child's first act, before it becomes `cmd`: SIGINT when its parent (this campaign) dies,
+# kept across exec (Linux prctl PR_SET_PDEATHSIG = 1); exit at once if the parent is gone already
+_GUARD = (
+    "import ctypes, os, signal, sys\n"
+    "parent = int(sys.argv[1])\n"
+    "try:\n"
+    "    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGINT), 0, 0, 0)\n"
+    "except (OSError, AttributeError):\n"
+    "    pass\n"
+    "if os.getppid() != parent:\n"
+    "    sys.exit(130)\n"
+    "os.execv(sys.argv[2], sys.argv[2:])\n"
+)
+
+
+def _dies_with_parent(cmd: list[str]) -> list[str]:
+    """`cmd` started through a guard that makes the kernel send it SIGINT (save and exit) when
+    the campaign dies, even by SIGKILL (Linux; elsewhere `cmd` as it is)."""
+    if not sys.platform.startswith("linux"):
+        return cmd
+    return [sys.executable, "-c", _GUARD, str(os.getpid()), *cmd]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -229,18 +370,43 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: --only: no run named {unknown} in {args.campaign}", file=sys.stderr)
             return 2
         runs = [r for r in runs if r.name in args.only]
+    if args.dry_run:
+        return _process(runs, dry_run=True)
+    from mpcpearl_jax.errors import RunDirError
+    from mpcpearl_jax.training.runlock import RunLock
+
+    try:  # one campaign per campaign file at a time
+        lock = RunLock(WORK / f".{args.campaign.resolve().name}.campaign")
+    except RunDirError as e:
+        print(f"error: {args.campaign}: another campaign is running it ({e})", file=sys.stderr)
+        return 2
+    try:
+        return _process(runs, dry_run=False)
+    finally:
+        lock.release()
+
+
+def _process(runs: list[CampaignRun], dry_run: bool) -> int:
     for run in runs:
         state = state_of(run)
         if state == "done" and not run.evaluate:
             print(f"[campaign] {run.name}: done", flush=True)
             continue
-        if state == "finished" and not args.dry_run:
-            copy_results(run)  # trained earlier: the evaluations read the results folder
         todo = commands(run, "done" if state in ("done", "finished") else state)
+        if state in ("done", "finished") and todo:  # about to copy or evaluate a trained run
+            try:
+                check_unchanged(run, run.results if state == "done" else run.work)
+            except ValueError as e:
+                print(f"error: {e}", file=sys.stderr)
+                return 2
+        if state == "finished" and not dry_run:
+            copy_results(run)  # trained earlier: the evaluations read the results folder
+        if state == "new" and run.work.exists() and not dry_run:
+            shutil.rmtree(run.work)  # killed before its first checkpoint: start afresh
         print(f"[campaign] {run.name}: {state}, {len(todo)} process(es) to run", flush=True)
         for i, cmd in enumerate(todo):
             print("[campaign] $ " + " ".join(cmd[1:]), flush=True)
-            if args.dry_run:
+            if dry_run:
                 continue
             if i == 0 and state in ("new", "resume") and run.wall_clock:
                 waited = settle()
@@ -255,6 +421,9 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"error: {run.name}: {cmd[2]} exited {rc}", file=sys.stderr)
                 return rc
             if i == 0 and state in ("new", "resume"):
+                mark = {"name": run.name, "trainer": run.trainer, "argv": list(run.argv)}
+                run.work.mkdir(parents=True, exist_ok=True)
+                (run.work / TRAINED).write_text(json.dumps(mark, indent=1) + "\n")
                 copy_results(run)  # trained: the evaluations read the results folder
     return 0
 

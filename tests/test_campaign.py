@@ -42,6 +42,11 @@ def _run(name="a", results="res/a", evaluate=None):
         ([_run(evaluate=[["--split", "val"]])], "must give --out"),
         ([_run(evaluate="--split val")], "list of argument lists"),
         ([{**_run(), "trainer": "ppo"}], "'trainer' must be one of"),
+        ([{**_run(), "trainr": "grbal"}], r"unknown key\(s\) \['trainr'\]"),
+        ([{**_run(), "evaluat": []}], r"unknown key\(s\) \['evaluat'\]"),
+        ([_run(name="..")], "not starting with '.'"),
+        ([_run(name=".")], "not starting with '.'"),
+        ([{**_run(), "results": ["a"]}], "'results' must be a folder path"),
     ],
 )
 def test_bad_campaign_files_name_the_entry(tmp_path, runs, match):
@@ -73,10 +78,13 @@ def test_states_commands_and_copy(tmp_path, monkeypatch):
     (run.work / ".lock").write_text("")
     (run.work / "eval").mkdir()
     (run.work / "eval" / "x.json").write_text("{}")
+    # its record, but the process has not exited 0 (killed writing its last files): resumed
+    assert campaign.state_of(run) == "resume"
+    (run.work / campaign.TRAINED).write_text("{}")
     assert campaign.state_of(run) == "finished"
     campaign.copy_results(run)
     copied = sorted(p.relative_to(run.results).as_posix() for p in run.results.rglob("*"))
-    assert copied == ["curve.json", "eval", "eval/x.json", "policy.msgpack"]
+    assert copied == ["campaign.json", "curve.json", "eval", "eval/x.json", "policy.msgpack"]
     assert campaign.state_of(run) == "done"
     assert [c[2] for c in campaign.commands(run, "done")] == ["experiments.evaluate"]
     (run.results / "eval" / "v").mkdir()
@@ -127,9 +135,12 @@ def test_grbal_runs_train_with_their_own_command_and_finish_with_their_results(
     assert campaign.state_of(run) == "resume"
     (run.work / "policy.msgpack").write_bytes(b"p")
     (run.work / "results.json").write_text("{}")
+    assert campaign.state_of(run) == "resume"  # results.json is written before the figures
+    (run.work / campaign.TRAINED).write_text("{}")
     assert campaign.state_of(run) == "finished"
     campaign.copy_results(run)
-    assert sorted(p.name for p in run.results.iterdir()) == ["policy.msgpack", "results.json"]
+    names = sorted(p.name for p in run.results.iterdir())
+    assert names == ["campaign.json", "policy.msgpack", "results.json"]
     assert campaign.state_of(run) == "done"
     assert [c[2] for c in campaign.commands(run, "done")] == ["experiments.evaluate"]
 
@@ -207,3 +218,145 @@ def test_only_wall_clock_trainings_wait_for_the_load(tmp_path, monkeypatch, caps
     assert campaign.main([str(path)]) == 0
     assert calls == ["experiments.learning", "experiments.restaurant"] and settled == [1]
     assert "waited 10 s for the load average (now 1.00)" in capsys.readouterr().out
+
+
+def test_unknown_top_level_keys_and_results_under_a_file(tmp_path):
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps({"runs": [_run()], "run": []}))
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['run'\]"):
+        campaign.load_campaign(path)
+    (tmp_path / "afile").write_text("x")
+    bad = _write(tmp_path, [_run(results=str(tmp_path / "afile" / "res"))])
+    with pytest.raises(ValueError, match=r"runs\[0\]: 'results' .*afile is a file"):
+        campaign.load_campaign(bad)
+
+
+def _trained(run, cfg):
+    """A work folder as a finished learning run leaves it, with `cfg` as its config.json."""
+    run.work.mkdir(parents=True)
+    (run.work / "config.json").write_text(cfg.to_json())
+    (run.work / "curve.json").write_text(json.dumps({"stopped": "budget"}))
+    (run.work / campaign.TRAINED).write_text("{}")
+
+
+def test_an_entry_edited_after_training_is_refused_not_copied(tmp_path, monkeypatch, capsys):
+    """A finished entry whose argv was edited later used to be reported finished and its old
+    run copied into the results folder; the config its argv builds is now compared with the
+    run's config.json first (only the learning run's iteration count may differ)."""
+    monkeypatch.chdir(tmp_path)
+    ev = [["--split", "val", "--out", "{results}/eval/v"]]
+    path = _write(tmp_path, [_run(evaluate=ev)])
+    (run,) = campaign.load_campaign(path)
+    cfg = campaign.built_config(run)
+    _trained(run, cfg.replace(seed=7))
+    calls = []
+    monkeypatch.setattr(campaign, "run_child", lambda cmd: calls.append(cmd) or 0)
+    assert campaign.main([str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "a: its argv builds a config that differs" in err and "['seed']" in err
+    assert not run.results.exists() and not calls
+    import dataclasses
+
+    (run.work / "config.json").write_text(
+        cfg.replace(train=dataclasses.replace(cfg.train, iterations=17)).to_json()
+    )
+    assert campaign.main([str(path)]) == 0
+    assert (run.results / "curve.json").is_file() and calls[0][2] == "experiments.evaluate"
+
+
+def test_a_run_killed_before_its_first_checkpoint_starts_afresh(tmp_path, monkeypatch):
+    """A learning child killed before its first checkpoint left a folder every rerun refused
+    ('exists and is not empty'); the campaign, whose work folder it is, clears it first."""
+    monkeypatch.chdir(tmp_path)
+    path = _write(tmp_path, [_run()])
+    (run,) = campaign.load_campaign(path)
+    (run.work / "checkpoints").mkdir(parents=True)
+    (run.work / "metrics.jsonl").write_text('{"iteration": 1}\n')
+    seen = []
+
+    def child(cmd):
+        seen.append(sorted(p.name for p in run.work.iterdir()) if run.work.exists() else [])
+        return 130
+
+    monkeypatch.setattr(campaign, "run_child", child)
+    assert campaign.state_of(run) == "new"
+    assert campaign.main([str(path)]) == 130
+    assert seen == [[]]
+
+
+def test_one_campaign_per_campaign_file(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    path = _write(tmp_path, [_run()])
+    monkeypatch.setattr(campaign, "run_child", lambda cmd: 0)
+    # another process holds the lock: simulated by holding it from a child process
+    import subprocess
+
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from mpcpearl_jax.training.runlock import RunLock; "
+            f"RunLock({str(campaign.WORK / '.c.json.campaign')!r}); print('held', flush=True); "
+            "time.sleep(30)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert campaign.main([str(path)]) == 2
+        assert "another campaign is running it" in capsys.readouterr().err
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def _guarded_child(tmp_path):
+    saved, ready = tmp_path / "saved", tmp_path / "ready"
+    child = (
+        "import signal, sys, time, pathlib\n"
+        "def stop(*_):\n"
+        "    time.sleep(1.0)\n"
+        f"    pathlib.Path({str(saved)!r}).write_text('state')\n"
+        "    sys.exit(130)\n"
+        "signal.signal(signal.SIGINT, stop)\n"
+        f"pathlib.Path({str(ready)!r}).write_text('')\n"
+        "time.sleep(60)\n"
+    )
+    return saved, ready, child
+
+
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP", "SIGKILL"])
+def test_a_stopped_campaign_lets_its_run_save_and_leaves_no_orphan(tmp_path, signame):
+    """SIGTERM or SIGHUP to the campaign (`timeout`, a scheduler) used to leave the training
+    child running as an orphan (and the rerun failed on its run lock): the child now gets
+    SIGINT, saves, and the campaign ends after it (128 + the signal). Killed outright, the
+    campaign cannot forward anything: the kernel sends the child SIGINT (PR_SET_PDEATHSIG)."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the parent-death signal is Linux's")
+    saved, ready, child = _guarded_child(tmp_path)
+    parent = (
+        "import sys; from experiments import campaign; "
+        f"sys.exit(campaign.run_child([sys.executable, '-c', {child!r}]))"
+    )
+    root = Path(__file__).resolve().parents[1]
+    p = subprocess.Popen([sys.executable, "-c", parent], cwd=root, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while not ready.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert ready.exists(), "the child did not start"
+    sig = getattr(signal, signame)
+    os.kill(p.pid, sig)
+    rc = p.wait(timeout=30)
+    if signame != "SIGKILL":
+        assert rc == 128 + sig
+    deadline = time.monotonic() + 30
+    while not saved.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert saved.read_text() == "state"
