@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         trainer.bridge.reset_stats()
         state, log = trainer.iteration(state)
         rows.append({"iteration": i + 1, **breakdown(log, trainer.bridge.stats(), gp_s)})
-    trainer.bridge.close()
+    trainer.close()
     tc = trainer.cfg.train
     parts = ["collection_rest_s", "gp_s_est", "mpc_solves_s", "callback_overhead_s", "updates_s"]
     med = {k: harness.summarize([r[k] for r in rows])["median_s"] for k in parts + ["total_s"]}

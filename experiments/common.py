@@ -12,11 +12,6 @@ from mpcpearl_jax.config import PRESETS, ExperimentConfig, read_config, resolve,
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.evaluation.report import run_label
 
-# Config extras each environment's entry point passes to `build_config` (and `main`): none; the
-# family's own settings (its MPC defaults, online adaptation as the sidewalk's headline) are
-# `mpcpearl_jax.config.resolve`'s, from the family's registration.
-ENV_EXTRAS: dict[str, dict] = {"restaurant": {}, "sidewalk": {}}
-
 
 def add_task_source_options(
     p: argparse.ArgumentParser,
@@ -197,7 +192,7 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
     line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (resumable)."""
     args = parser(env).parse_args(argv)
     from mpcpearl_jax.errors import CheckpointError, RunDirError
-    from mpcpearl_jax.training.run import prepare
+    from mpcpearl_jax.training.run import open_session
 
     def fail(e: BaseException, code: int = 2) -> int:
         if args.debug:
@@ -222,7 +217,7 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
             f"iterations={cfg.train.iterations} out={out}",
             flush=True,
         )
-        sess = prepare(cfg, out, resume=args.resume)
+        sess = open_session(cfg, out, resume=args.resume, tensorboard=args.tensorboard)
     except CoordinatorTimeout as e:  # the runtime's start-up thread would abort the process
         print(f"error: {e}", file=sys.stderr, flush=True)
         sys.stdout.flush()
@@ -236,10 +231,8 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
     except KeyboardInterrupt:
         print("interrupted before training started", file=sys.stderr, flush=True)
         return 130
-    try:  # the run folder stays locked until its last file is written
+    with sess:  # the run folder stays locked until its last file is written
         return _train_and_evaluate(args, sess, fail)
-    finally:
-        sess.lock.release()
 
 
 def out_of_memory(e: BaseException) -> str:
@@ -253,14 +246,12 @@ def out_of_memory(e: BaseException) -> str:
 
 def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
     from mpcpearl_jax.errors import CheckpointError, RunDirError, TrainingDiverged
-    from mpcpearl_jax.training.run import RunInterrupted, final_evaluation, train_session
+    from mpcpearl_jax.training.run import RunInterrupted, final_evaluation, train_iterations
 
-    cfg, out = sess.cfg, sess.run_dir
+    cfg, out, trainer = sess.cfg, sess.run_dir, sess.trainer
     t0 = time.perf_counter()
     try:
-        trainer, state = train_session(
-            sess, progress=not args.no_progress, handle_sigint=True, tensorboard=args.tensorboard
-        )
+        state = train_iterations(sess, progress=not args.no_progress, handle_sigint=True)
     except RunInterrupted as e:
         print(str(e), file=sys.stderr, flush=True)
         return 130

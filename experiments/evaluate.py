@@ -51,9 +51,9 @@ from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.envs import SPLITS, make_env, tasks_for
 from mpcpearl_jax.envs.perturb import parse_perturbation, perturb_tasks
 from mpcpearl_jax.errors import ConfigError
+from mpcpearl_jax.evaluation.evaluate import EVAL_SEED
 from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 from mpcpearl_jax.evaluation.runners import (
-    EVAL_SEED,
     Setup,
     run_gp_mpc,
     run_policy,

@@ -48,9 +48,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from experiments.common import ENV_EXTRAS, add_config_options, build_config
-from mpcpearl_jax.envs import VAL_TASKS  # no 'val' split: the first VAL_TASKS training tasks
-from mpcpearl_jax.envs.restaurant.scenarios import VAL_IDS, check_val_split, uses_scenarios
+from experiments.common import add_config_options, build_config
+from mpcpearl_jax.envs import env_names
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.checkpoint import write_json
 
@@ -89,7 +88,7 @@ def make_parser(env: str = "restaurant") -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--env",
-        choices=sorted(ENV_EXTRAS),
+        choices=env_names(),
         default=env,
         help="task family (the sidewalk adds --data FILE, as in experiments.sidewalk)",
     )
@@ -139,7 +138,7 @@ def make_parser(env: str = "restaurant") -> argparse.ArgumentParser:
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     argv = list(sys.argv[1:] if argv is None else argv)
     pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--env", choices=sorted(ENV_EXTRAS))
+    pre.add_argument("--env", choices=env_names())
     pre.add_argument("--config", type=Path)
     known = pre.parse_known_args(argv)[0]  # the sidewalk has an extra option (--data)
     env = known.env or _recorded_env(known.config) or "restaurant"
@@ -155,7 +154,7 @@ def _recorded_env(config: Path | None) -> str | None:
         env = json.loads(Path(config).read_text()).get("env") if config else None
     except (OSError, ValueError, AttributeError):
         return None
-    return env if env in ENV_EXTRAS else None
+    return env if env in env_names() else None
 
 
 # ------------------------------------------------------------------- pure helpers
@@ -326,7 +325,7 @@ def main(argv: Sequence[str] | None = None, clock=time.perf_counter) -> int:
     from mpcpearl_jax.errors import ConfigError
 
     try:
-        cfg = validate(build_config(args, args.env, **ENV_EXTRAS[args.env]))
+        cfg = validate(build_config(args, args.env))
     except (ConfigError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -405,58 +404,45 @@ def _print_point(p: dict[str, Any]) -> None:
 
 
 def train_for(
-    trainer,
-    state,
+    sess,
     *,
     budget_s: float,
     every_s: float,
     val_tasks,
-    log_path: Path,
     online: bool = False,
     clock=time.perf_counter,
     on_point=_print_point,
-    tensorboard=None,
     save=None,
     checkpoint_every: int = 0,
-    stop=None,
-    start: dict[str, Any] | None = None,
+    handle_sigint: bool = False,
+    points: Sequence[dict[str, Any]] = (),
     points_path: Path | None = None,
 ) -> tuple[Any, list[dict[str, Any]], dict[str, Any]]:
-    """Train until `budget_s` seconds of `trainer.iteration` calls have passed; evaluate at 0,
-    every `every_s` training seconds and at the end (evaluation is off the clock).
+    """The learning curve's rules on a run session (`mpcpearl_jax.training.run.Session`): train
+    until `budget_s` seconds of `trainer.iteration` calls have passed; evaluate at 0, every
+    `every_s` training seconds and at the end (evaluation is off the clock).
 
-    Appends one JSON line per iteration to `log_path` (and writes it to `tensorboard`, a
-    `mpcpearl_jax.training.livelog.TensorBoardLog`, if given) and one per eval point to
-    `points_path`.
-    `save(iteration, state)` checkpoints every `checkpoint_every` iterations, after every
-    evaluation and when stopping on `stop()` (Ctrl-C, polled between iterations and inside
-    them). `start` continues an earlier process: {points, train_s, wall_s, first_iteration_s,
-    iterations} at the restored checkpoint. Returns (state, eval points, info) with info =
-    {iterations, saved, train_s, eval_s, first_iteration_s, stopped}; stopped is "budget",
-    "interrupted" or "diverged: ..." (then `state` is the last one evaluated and must not be used
-    any more: the failed iteration donated it; after "interrupted" it is None when the iteration
-    under way was abandoned, and `saved` is the iteration a resume starts from).
+    The session writes one line per iteration to metrics.jsonl (and TensorBoard); one line per
+    eval point goes to `points_path`. `save(iteration, state)` (e.g. `sess.save`) checkpoints
+    every `checkpoint_every` iterations, after every evaluation and when stopping on Ctrl-C
+    (`handle_sigint`). `points` are the eval points of an earlier process, continued from the
+    session's restored progress. Returns (state, eval points, info) with info = {iterations,
+    saved, train_s, eval_s, first_iteration_s, stopped}; stopped is "budget", "interrupted" or
+    "diverged: ..." (then `state` is None: the failed or abandoned iteration consumed it; after
+    "interrupted", `saved` is the iteration a resume starts from).
     """
     from mpcpearl_jax.errors import TrainingDiverged
-    from mpcpearl_jax.training.loop import Progress, train_loop
-    from mpcpearl_jax.training.run import append_log
-    from mpcpearl_jax.training.trainer import IterationAbandoned
+    from mpcpearl_jax.training.run import RunInterrupted, append_log
 
-    start = start or {}
+    trainer = sess.trainer
     ups = trainer.cfg.train.updates_per_iteration
-    points: list[dict[str, Any]] = list(start.get("points", []))
-    progress = Progress(
-        iterations=start.get("iterations", 0),
-        saved=start.get("saved", -1),
-        train_s=start.get("train_s", 0.0),
-        wall_s0=start.get("wall_s", 0.0),
-        first_iteration_s=start.get("first_iteration_s"),
-    )
+    points = list(points)
+    progress = sess.progress
     info: dict[str, Any] = {"eval_s": sum(p["eval_s"] for p in points), "stopped": "budget"}
     t_loop0 = clock() - progress.wall_s0
     schedule = {"next_eval_s": (math.floor(progress.train_s / every_s) + 1) * every_s}
 
-    def evaluate(state, p: Progress) -> dict[str, Any]:
+    def evaluate(state, p) -> dict[str, Any]:
         t = clock()
         row = _evaluate(trainer, state, val_tasks, online)
         dt = clock() - t
@@ -481,37 +467,27 @@ def train_for(
         fields = {k: v for k, v in point.items() if k.startswith(("test_", "val_"))}
         return {**fields, "eval_s": dt}
 
-    def on_row(row: dict[str, Any]) -> None:
-        append_log(log_path, row)
-        if tensorboard is not None:
-            tensorboard.write(row)
-
+    state = sess.state
     if not points:
         evaluate(state, progress)  # the untrained policy at minute 0 (compiles the evaluator)
     try:
-        state = train_loop(
-            trainer,
-            state,
-            progress,
+        state = sess.train(
             until=lambda p: p.train_s >= budget_s,
-            save=save,
-            on_row=on_row,
-            evaluate_after=lambda p: p.train_s >= schedule["next_eval_s"],
             evaluate=evaluate,
+            evaluate_after=lambda p: p.train_s >= schedule["next_eval_s"],
             checkpoint_after=lambda p, evaluated: (
                 evaluated or bool(checkpoint_every and p.iterations % checkpoint_every == 0)
             ),
-            stop=stop,
+            save=save,
+            handle_sigint=handle_sigint,
             clock=clock,
         )
-        if progress.stopped == "interrupted":
-            info["stopped"] = "interrupted"
-        elif points[-1]["iteration"] != progress.iterations:  # resumed at the end of the budget
+        if points[-1]["iteration"] != progress.iterations:  # resumed at the end of the budget
             evaluate(state, progress)
     except TrainingDiverged as e:
         info["stopped"], state = f"diverged: {e}", None
         print(f"error: {e}", file=sys.stderr, flush=True)
-    except IterationAbandoned:  # Ctrl-C inside an iteration: the state was consumed
+    except RunInterrupted:  # Ctrl-C: saved at `progress.saved`
         info["stopped"], state = "interrupted", None
     info.update(
         iterations=progress.iterations,
@@ -523,7 +499,7 @@ def train_for(
 
 
 def run(args: argparse.Namespace, cfg, label: str, out: Path, clock=time.perf_counter) -> int:
-    from mpcpearl_jax.training.run import prepare
+    from mpcpearl_jax.training.run import open_session
 
     budget_s = args.minutes * 60.0
     every_s = eval_every_minutes(args.minutes, args.eval_minutes) * 60.0
@@ -544,31 +520,22 @@ def run(args: argparse.Namespace, cfg, label: str, out: Path, clock=time.perf_co
     )
     t_wall0 = time.perf_counter()
     # the checks, lock, trainer and (restored) state, config.json and metrics.jsonl of a run
-    sess = prepare(cfg, out, resume=args.resume, until_budget=True)
-    try:
+    sess = open_session(
+        cfg, out, resume=args.resume, until_budget=True, tensorboard=args.tensorboard
+    )
+    with sess:
         return _run_session(args, sess, label, budget_s, every_s, load_start, t_wall0, clock)
-    finally:
-        sess.ckpt.close()
-        sess.lock.release()
 
 
-def _start_from(sess, points_path: Path) -> dict[str, Any]:
-    """What `train_for` continues from: the eval points, training seconds and wall seconds of
-    the restored checkpoint (all zero for a new run); curve-points.jsonl is cut back to it."""
+def _restored_points(sess, points_path: Path) -> list[dict[str, Any]]:
+    """The eval points up to the restored checkpoint (none for a new run); curve-points.jsonl
+    is cut back to them."""
     from mpcpearl_jax.training.checkpoint import atomic_write
     from mpcpearl_jax.training.run import read_log
 
     points = read_log(points_path, sess.done) if sess.done or sess.saved >= 0 else []
     atomic_write(points_path, "".join(json.dumps(p) + "\n" for p in points))
-    rows = [r for r in sess.rows if r["iteration"] <= sess.done]
-    return {
-        "points": points,
-        "iterations": sess.done,
-        "saved": sess.saved,
-        "train_s": rows[-1]["train_s"] if rows else 0.0,
-        "wall_s": rows[-1].get("wall_s", 0.0) if rows else 0.0,
-        "first_iteration_s": rows[0]["train_s"] if rows else None,
-    }
+    return points
 
 
 def _run_session(
@@ -576,74 +543,43 @@ def _run_session(
 ) -> int:
     import dataclasses
 
-    import jax
-
-    from mpcpearl_jax.envs import make_tasks
+    from mpcpearl_jax.envs import validation_tasks
     from mpcpearl_jax.training.checkpoint import POLICY_FILE, save_config, save_params
     from mpcpearl_jax.training.machine import available_cores, machine_info, print_table
     from mpcpearl_jax.training.run import (
         LOG_FILE,
         RunInterrupted,
-        _sigint_flag,
         final_evaluation,
         policy_params,
         read_log,
-        write_error,
     )
 
     cfg, trainer, out = sess.cfg, sess.trainer, sess.run_dir
     online = cfg.online_eval
     build_s = time.perf_counter() - t_wall0
-    val_set = "the family's 'val' split (held-out behaviours, neither train nor test)"
-    try:  # a held-out validation split where the family has one (restaurant)
-        kw = {"data": cfg.data} if cfg.data else {}
-        kw.update(cfg.task_options)
-        check_val_split(cfg.task_options, "val")  # not the scenarios the run trains on
-        val_tasks = make_tasks(cfg.env, "val", cfg.task_seed, config=trainer.env.config, **kw)
-        if uses_scenarios(cfg.task_options):
-            val_set = f"the paper's scenarios {VAL_IDS[0]}-{VAL_IDS[-1]} (held out of training)"
-    except ValueError:
-        val_tasks = jax.tree_util.tree_map(lambda x: x[:VAL_TASKS], trainer.train_tasks)
-        val_set = f"the first {VAL_TASKS} training tasks (or all if fewer)"
+    val_tasks, val_set = validation_tasks(
+        cfg, config=trainer.env.config, train_tasks=trainer.train_tasks
+    )
     tc = cfg.train
     log_path, points_path = out / LOG_FILE, out / POINTS_FILE
-    start = _start_from(sess, points_path)
-    tb = None
-    if args.tensorboard:
-        from mpcpearl_jax.training.livelog import TB_DIR, TensorBoardLog
 
-        tb = TensorBoardLog(out / TB_DIR, purge_step=sess.done + 1 if sess.done else None)
+    def policy_only(step: int, state) -> None:  # no orbax checkpoint (no --resume)
+        save_params(out / POLICY_FILE, policy_params(state))
 
-    def save(step: int, state) -> None:
-        if args.policy_only:  # no orbax checkpoint (no --resume): the policy only
-            save_params(out / POLICY_FILE, policy_params(state))
-        else:  # exactly as run.train: orbax checkpoint of the TrainState + policy.msgpack
-            sess.ckpt.save(step, state, policy_params(state))
-
-    try:
-        with _sigint_flag(True) as stop:
-            state, points, info = train_for(
-                trainer,
-                sess.state,
-                budget_s=budget_s,
-                every_s=every_s,
-                val_tasks=val_tasks,
-                log_path=log_path,
-                online=online,
-                clock=clock,
-                tensorboard=tb,
-                save=save,
-                checkpoint_every=tc.checkpoint_interval,
-                stop=stop,
-                start=start,
-                points_path=points_path,
-            )
-    except OSError as e:  # a full disk or an I/O error while logging
-        steps = sess.ckpt.steps()
-        raise write_error(e, steps[-1] if steps else -1) from e
-    finally:
-        if tb is not None:
-            tb.close()
+    state, points, info = train_for(
+        sess,
+        budget_s=budget_s,
+        every_s=every_s,
+        val_tasks=val_tasks,
+        online=online,
+        clock=clock,
+        # as the training command: orbax checkpoint of the TrainState + policy.msgpack
+        save=policy_only if args.policy_only else sess.save,
+        checkpoint_every=tc.checkpoint_interval,
+        handle_sigint=True,
+        points=_restored_points(sess, points_path),
+        points_path=points_path,
+    )
     done, train_s, eval_s = info["iterations"], info["train_s"], info["eval_s"]
     stopped, first_iteration_s = info["stopped"], info["first_iteration_s"]
     saved = max(info["saved"], 0)

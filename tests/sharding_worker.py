@@ -38,16 +38,15 @@ def main(argv: list[str]) -> int:
     jax.config.update("jax_compilation_cache_dir", cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    from mpcpearl_jax.training.run import prepare, train_session
+    from mpcpearl_jax.training.run import open_session, train_iterations
 
     cfg = build_config(args, "restaurant")
-    sess = prepare(cfg, args.out, resume=args.resume)
-    sess_rows = sess.rows
-    trainer, state = train_session(sess, progress=False)
+    with open_session(cfg, args.out, resume=args.resume) as sess:
+        sess_rows, trainer = sess.rows, sess.trainer
+        state = train_iterations(sess, progress=False)
     # the first EVAL_TASKS test tasks (seconds instead of a minute on a 2-core CPU)
     tasks = jax.tree_util.tree_map(lambda x: x[:EVAL_TASKS], trainer.test_tasks)
     ev = trainer.evaluate(state, tasks=tasks)
-    ev.pop("_raw")
     params = to_host(state.learner.params)
     if is_primary():
         import numpy as np

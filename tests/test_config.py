@@ -104,11 +104,11 @@ def test_cpu_explore_builds_the_committed_restaurant_runs(
     import json
 
     from experiments import learning
-    from experiments.common import ENV_EXTRAS, build_config
+    from experiments.common import build_config
 
     argv = ["--preset", "cpu-explore", "--eps", eps, "--algo", algo, "--minutes", "60"]
     args = learning.parse_args([*argv, *(x for item in sets for x in ("--set", item))])
-    cfg = build_config(args, "restaurant", **ENV_EXTRAS["restaurant"])
+    cfg = build_config(args, "restaurant")
     head = Path(__file__).parents[1] / "results/restaurant" / folder / "config.json"
     raw = json.loads(head.read_text())
     from mpcpearl_jax.config import removed_options_on
@@ -125,10 +125,10 @@ def test_cpu_explore_builds_the_committed_restaurant_runs(
 def test_default_preset_keeps_the_sidewalk_crowd():
     """The main command's preset re-draws crowds on the restaurant and leaves the sidewalk's
     recorded crowd alone (instead of refusing it, as an explicit preset is)."""
-    from experiments.common import ENV_EXTRAS, build_config, parser
+    from experiments.common import build_config, parser
 
     for env, redraw in (("restaurant", True), ("sidewalk", False)):
-        cfg = build_config(parser(env).parse_args([]), env, **ENV_EXTRAS[env])
+        cfg = build_config(parser(env).parse_args([]), env)
         assert cfg.train.redraw_behaviours is redraw and cfg.train.explore_start_share == 0.5
 
 

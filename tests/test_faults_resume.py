@@ -34,7 +34,7 @@ from faults_helpers import (
 
 from experiments.common import main
 from mpcpearl_jax.training.checkpoint import CheckpointError
-from mpcpearl_jax.training.run import LOG_FILE, prepare, read_log, train
+from mpcpearl_jax.training.run import LOG_FILE, open_session, read_log, train
 from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer
 
 
@@ -177,7 +177,7 @@ def test_torn_line_in_the_middle_of_the_log_is_an_error(tmp_path):
 def test_resume_below_the_finished_count_is_refused(ref0, capsys):
     before = (ref0 / "config.json").read_bytes()
     with pytest.raises(CheckpointError, match=f"finished {ITERATIONS} iterations; --iterations 3"):
-        prepare(small_cfg(0.0, 3), ref0, resume=True)
+        open_session(small_cfg(0.0, 3), ref0, resume=True)
     assert main("restaurant", small_args(0.0, ref0, 3, "--resume")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--iterations 3 is below" in err[0]
@@ -195,9 +195,8 @@ def test_resume_with_nothing_to_resume_is_an_error(tmp_path, ref0, capsys):
     assert f"{run}: nothing to resume: no checkpoint" in line and "logs 6 iteration(s)" in line
     assert (run / LOG_FILE).read_bytes() == before
     (run / LOG_FILE).write_text("")
-    sess = prepare(small_cfg(0.0), run, resume=True)
-    sess.ckpt.close()
-    sess.lock.release()
+    with open_session(small_cfg(0.0), run, resume=True) as sess:
+        pass
     assert sess.done == 0 and "starting at iteration 0" in capsys.readouterr().err
 
 

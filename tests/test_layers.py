@@ -11,8 +11,8 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "mpcpearl_jax"
 # lowest first; every module of the package is ranked, by its longest listed prefix (a
 # package's name ranks its modules not listed on their own). The packages are the layers:
 # envs < pearl, mpc < config < evaluation < training, grbal < deploy. The evaluation command's
-# controller runners sit with training: one of them collects training-style episodes
-# (`training.collect`), and the trainers read the evaluation key from them.
+# controller runners sit above training: one of them (the policy with MPC infusion) collects
+# training-style episodes (`training.collect`).
 LAYERS = [
     ["errors", "validate", "distributed"],
     ["envs.types", "envs.dynamics", "envs.physics", "pearl.types", "pearl.config", "mpc.config"],
@@ -20,8 +20,8 @@ LAYERS = [
     ["mpc"],
     ["config", "grbal.config", "grbal.model", "grbal.planner"],
     ["evaluation"],
-    ["training", "trainer", "grbal.trainer", "evaluation.runners"],
-    ["training.run", "grbal.run", "grbal"],
+    ["training", "trainer", "grbal.trainer"],
+    ["training.run", "grbal.run", "grbal", "evaluation.runners"],
     ["deploy"],
 ]
 RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}

@@ -9,6 +9,7 @@ import math
 import pytest
 
 from experiments import learning
+from mpcpearl_jax.training.run import Session
 
 
 def _point(minutes, it, test_sr, val_sr):
@@ -99,12 +100,10 @@ def test_train_for_schedule_with_a_fake_clock(tmp_path):
     trainer = _FakeTrainer(clock)
     log = tmp_path / "metrics.jsonl"
     state, points, info = learning.train_for(
-        trainer,
-        0,
+        Session(trainer.cfg, tmp_path, trainer, 0),
         budget_s=30.0,
         every_s=10.0,
         val_tasks="VAL",
-        log_path=log,
         clock=clock,
         on_point=None,
     )
@@ -127,13 +126,12 @@ def test_train_for_schedule_with_a_fake_clock(tmp_path):
 
 def test_train_for_stops_on_divergence(tmp_path):
     clock = _Clock()
+    trainer = _FakeTrainer(clock, diverge_at=3)
     _, points, info = learning.train_for(
-        _FakeTrainer(clock, diverge_at=3),
-        0,
+        Session(trainer.cfg, tmp_path, trainer, 0),
         budget_s=30.0,
         every_s=10.0,
         val_tasks=None,
-        log_path=tmp_path / "m.jsonl",
         clock=clock,
         on_point=None,
     )

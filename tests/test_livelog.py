@@ -62,6 +62,7 @@ class _Trainer:
 
 def test_learning_benchmark_mirrors_its_rows(tmp_path):
     from experiments import learning
+    from mpcpearl_jax.training.run import Session
 
     class Clock:
         t = 0.0
@@ -72,16 +73,14 @@ def test_learning_benchmark_mirrors_its_rows(tmp_path):
     clock = Clock()
     log = tmp_path / "metrics.jsonl"
     with livelog.TensorBoardLog(tmp_path / "tb") as tb:
+        trainer = _Trainer(clock)
         learning.train_for(
-            _Trainer(clock),
-            0,
+            Session(trainer.cfg, tmp_path, trainer, 0, tb=tb),
             budget_s=4.0,
             every_s=2.0,
             val_tasks=None,
-            log_path=log,
             clock=clock,
             on_point=None,
-            tensorboard=tb,
         )
     rows = [json.loads(x) for x in log.read_text().splitlines()]
     got = livelog.read_scalars(tmp_path / "tb")

@@ -25,7 +25,7 @@ from mpcpearl_jax.errors import ConfigError
 ROOT = Path(__file__).resolve().parents[1]
 WORKER = ROOT / "tests" / "sharding_worker.py"
 
-# the smoke preset shrunk (as tests/test_faults.py): 8 training tasks, tiny networks, one
+# the smoke preset shrunk (as tests/faults_helpers.py): 8 training tasks, tiny networks, one
 # collection program per iteration, a checkpoint every iteration
 SMALL = [
     "--preset",

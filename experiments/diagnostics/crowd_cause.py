@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from mpcpearl_jax.envs import make_env, tasks_for
     from mpcpearl_jax.envs.perturb import Perturbation, perturb_tasks
     from mpcpearl_jax.evaluation import evaluate as eval_lib
-    from mpcpearl_jax.evaluation.runners import EVAL_SEED
+    from mpcpearl_jax.evaluation.evaluate import EVAL_SEED
 
     policies = [load_policy(r) for r in args.runs]
     if {pol.config.env for pol in policies} != {"restaurant"}:

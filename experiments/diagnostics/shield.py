@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from mpcpearl_jax.config import ExperimentConfig
     from mpcpearl_jax.envs import make_env, tasks_for
     from mpcpearl_jax.evaluation import evaluate as eval_lib
-    from mpcpearl_jax.evaluation.runners import EVAL_SEED  # the unshielded rows reproduce it
+    from mpcpearl_jax.evaluation.evaluate import EVAL_SEED  # the unshielded rows reproduce it
     from mpcpearl_jax.mpc.shield import ShieldConfig
     from mpcpearl_jax.training.checkpoint import load_config
 

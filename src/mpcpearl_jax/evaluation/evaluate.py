@@ -19,6 +19,8 @@ from mpcpearl_jax.mpc.shield import ShieldConfig, shield_step
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import Transitions, context_from
 
+EVAL_SEED = 12345  # the trainer's evaluation key: same numbers as the run's results.json
+
 
 def _episode(
     env: NavEnv,

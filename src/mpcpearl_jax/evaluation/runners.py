@@ -19,8 +19,6 @@ import numpy as np
 from mpcpearl_jax.envs.types import NavConfig, TaskParams
 from mpcpearl_jax.mpc.shield import ShieldConfig
 
-EVAL_SEED = 12345  # the trainer's evaluation key: same numbers as the run's results.json
-
 
 @dataclass
 class Setup:

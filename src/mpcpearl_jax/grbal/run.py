@@ -20,23 +20,10 @@ from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
-from mpcpearl_jax.training.checkpoint import (
-    CONFIG_FILE,
-    Checkpointer,
-    atomic_write,
-    check_resumable,
-    save_config,
-    write_json,
-)
+from mpcpearl_jax.training.checkpoint import CONFIG_FILE, write_json
+from mpcpearl_jax.training.loop import Progress
 from mpcpearl_jax.training.resources import check_fits, tree_bytes
-from mpcpearl_jax.training.run import (
-    LOG_FILE,
-    append_log,
-    check_nothing_lost,
-    read_log,
-    write_error,
-)
-from mpcpearl_jax.training.runlock import RunLock
+from mpcpearl_jax.training.run import LOG_FILE, RunKind, Session, open_session, read_log
 
 LABEL = "GrBAL"
 # The paper prints no GrBAL numbers (its restaurant bar charts only); its text (Sec. IV-A):
@@ -129,6 +116,21 @@ def _progress_line(log: dict, total: int) -> str:
     return "  ".join(parts)
 
 
+def _load_for_session(run_dir: Path, resume: bool) -> GrbalExperimentConfig:
+    return load_config(run_dir)
+
+
+GRBAL = RunKind(
+    load_config=_load_for_session,
+    make_trainer=GrbalTrainer,
+    check_fits=lambda trainer: _check_memory(trainer),
+    keep_checkpoints=lambda cfg: cfg.grbal.keep_checkpoints,
+    iterations=lambda cfg: cfg.grbal.iterations,
+    iterations_field="grbal.iterations",
+    saved_params=lambda trainer, state: trainer.model_params(state),
+)
+
+
 def train(
     cfg: GrbalExperimentConfig,
     out: str | Path,
@@ -138,52 +140,12 @@ def train(
 ) -> tuple[GrbalTrainer, GrbalState]:
     """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl); -> (trainer, state).
 
-    budget_s: stop (evaluated and checkpointed, resumable) after the first iteration that ends
-    this many seconds after training started in this process, if the iterations last longer."""
-    run_dir = Path(out)
-    if resume:
-        load_config(run_dir)  # a GrBAL run folder at all, before the lock creates anything
-    with RunLock(run_dir):  # one writer per run folder
-        trainer, ckpt, state = _prepare(cfg, run_dir, resume)
-        try:
-            return trainer, _loop(trainer, ckpt, state, run_dir, progress, budget_s)
-        finally:
-            ckpt.close()
-
-
-def _prepare(
-    cfg: GrbalExperimentConfig, run_dir: Path, resume: bool
-) -> tuple[GrbalTrainer, Checkpointer, GrbalState]:
-    """Every check before anything is written (the config, the trainer's tasks and sizes, the
-    memory the state and the planner need, the checkpoint restore), then config.json and the
-    log cut back to the restored iteration."""
-    if resume:
-        check_resumable(load_config(run_dir), cfg, run_dir, iterations="grbal.iterations")
-        folder = run_dir / "checkpoints"
-        if not (folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())):
-            check_nothing_lost(run_dir)
-    elif (run_dir / "checkpoints").exists() and any((run_dir / "checkpoints").iterdir()):
-        raise CheckpointError(
-            f"{run_dir} already holds checkpoints: pass --resume to continue "
-            "or choose another --out"
-        )
-    trainer = GrbalTrainer(cfg)
-    _check_memory(trainer)
-    g = cfg.grbal
-    ckpt = Checkpointer(run_dir, keep=g.keep_checkpoints)
-    try:
-        state = trainer.init_state()
-        if resume and ckpt.latest() is not None:
-            state = ckpt.restore(state)
-        done = int(np.asarray(state.iteration)[0])
-        log_path = run_dir / LOG_FILE
-        rows = read_log(log_path, done)
-        save_config(run_dir, cfg)
-        atomic_write(log_path, "".join(json.dumps(r) + "\n" for r in rows))
-    except BaseException:
-        ckpt.close()
-        raise
-    return trainer, ckpt, state
+    The run session (`training.run.open_session`: checks, lock, restore, log) with GrBAL's rules:
+    `grbal.iterations` iterations (or until `budget_s` seconds of this process have passed, if
+    the iterations last longer: the run stops evaluated and checkpointed, resumable), evaluation
+    every `eval_interval` iterations and at the end, checkpoints every `checkpoint_interval`."""
+    with open_session(cfg, out, resume, kind=GRBAL) as sess:
+        return sess.trainer, train_iterations(sess, progress, budget_s)
 
 
 def _check_memory(trainer: GrbalTrainer) -> None:
@@ -200,30 +162,11 @@ def _check_memory(trainer: GrbalTrainer) -> None:
     check_fits(state + planner, "the state and the MPPI samples", fields)
 
 
-def _loop(
-    trainer: GrbalTrainer,
-    ckpt: Checkpointer,
-    state: GrbalState,
-    run_dir: Path,
-    progress: Callable[[str], None] | None,
-    budget_s: float | None,
+def train_iterations(
+    sess: Session, progress: Callable[[str], None] | None = print, budget_s: float | None = None
 ) -> GrbalState:
-    """`loop.train_loop` for `grbal.iterations` (or until `budget_s` wall seconds of this
-    process have passed): evaluation every `eval_interval` iterations and at the end,
-    checkpoints every `checkpoint_interval` and at the end."""
-    from mpcpearl_jax.training.loop import Progress, train_loop
-
-    g = trainer.cfg.grbal
-    done = int(np.asarray(state.iteration)[0])
-    log_path = run_dir / LOG_FILE
-    rows = read_log(log_path, done, report=lambda msg: None)
-    steps = ckpt.steps()
-    where = Progress(
-        iterations=done,
-        saved=steps[-1] if steps else -1,
-        train_s=rows[-1].get("train_s", 0.0) if rows else 0.0,
-        wall_s0=rows[-1].get("wall_s", 0.0) if rows else 0.0,
-    )
+    """GrBAL's rules on an open session (see `train`)."""
+    trainer, g, done = sess.trainer, sess.cfg.grbal, sess.done
     t_start = time.perf_counter()
 
     def out_of_time() -> bool:
@@ -241,50 +184,37 @@ def _loop(
         t0 = time.perf_counter()
         return {**_eval_row(trainer, state), "eval_s": time.perf_counter() - t0}
 
-    def on_row(row: dict[str, Any]) -> None:
-        append_log(log_path, row)
+    def show(row: dict[str, Any]) -> None:
         if progress is not None:
             progress(_progress_line(row, g.iterations))
 
-    try:
-        state = train_loop(
-            trainer,
-            state,
-            where,
-            until=until,
-            save=lambda it, s: ckpt.save(it, s, trainer.model_params(s)),
-            on_row=on_row,
-            evaluate_after=lambda p: g.eval_interval > 0 and p.iterations % g.eval_interval == 0,
-            evaluate=evaluate,
-            checkpoint_after=lambda p, _: p.iterations % g.checkpoint_interval == 0,
+    state = sess.train(
+        until=until,
+        evaluate=evaluate,
+        evaluate_after=lambda p: g.eval_interval > 0 and p.iterations % g.eval_interval == 0,
+        checkpoint_after=lambda p, _: p.iterations % g.checkpoint_interval == 0,
+        on_row=show,
+    )
+    if sess.progress.iterations < g.iterations and progress is not None:
+        progress(
+            f"time budget of {budget_s:.0f} s reached after iteration {sess.progress.iterations}"
         )
-    except OSError as e:  # a full disk or an I/O error
-        steps = ckpt.steps()
-        raise write_error(e, steps[-1] if steps else -1) from e
-    if where.iterations < g.iterations and progress is not None:
-        progress(f"time budget of {budget_s:.0f} s reached after iteration {where.iterations}")
     return state
 
 
 def final_evaluation(trainer: GrbalTrainer, state: GrbalState, out: str | Path) -> dict[str, Any]:
     """Test tasks (adaptation and online) and OOD tasks; results.json, curves and figures."""
-    from mpcpearl_jax.envs import make_tasks
+    from mpcpearl_jax.envs import tasks_for
 
     run_dir = Path(out)
     cfg = trainer.cfg
     results: dict[str, Any] = {"label": LABEL, "env": cfg.env, "config": cfg.to_dict()}
-    both = trainer.evaluate_both(state)
-    adapt, online = both["adapt"], both["online"]
-    raw = {"adapt": adapt.pop("_raw"), "online": online.pop("_raw")}
-    results["test_adapt"] = adapt
-    results["test_online"] = online
+    both, raw = trainer.evaluate_both_episodes(state)
+    results["test_adapt"] = both["adapt"]
+    results["test_online"] = both["online"]
     try:
-        kw: dict[str, Any] = {"data": cfg.data} if cfg.data else {}
-        kw.update(cfg.task_options)
-        ood = make_tasks(cfg.env, "ood", cfg.task_seed, config=trainer.env.config, **kw)
-        res = trainer.evaluate(state, tasks=ood)
-        res.pop("_raw")
-        results["ood_adapt"] = res
+        ood = tasks_for(cfg, "ood", config=trainer.env.config)
+        results["ood_adapt"] = trainer.evaluate(state, tasks=ood)
     except (ValueError, FileNotFoundError) as e:  # no OOD split (or no OOD scenario file)
         results["ood_adapt"] = {"skipped": str(e)}
     results["paper"] = PAPER.get(cfg.env, {})

@@ -33,7 +33,7 @@ from mpcpearl_jax.envs import make_env, tasks_for
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.errors import ConfigError, TrainingDiverged
 from mpcpearl_jax.evaluation import evaluate as eval_lib
-from mpcpearl_jax.evaluation.runners import EVAL_SEED
+from mpcpearl_jax.evaluation.evaluate import EVAL_SEED
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.model import (
     DynamicsModel,
@@ -373,12 +373,19 @@ class GrbalTrainer:
     ) -> dict:
         """{"adapt": summary, "online": summary} on `tasks` (default: the test tasks) from one
         run of the evaluation program; each summary holds the method §8 metrics (mean and per
-        seed) and the raw arrays [S, N, ...] under "_raw"."""
+        seed)."""
+        return self.evaluate_both_episodes(state, tasks, key)[0]
+
+    def evaluate_both_episodes(
+        self, state: GrbalState, tasks: TaskParams | None = None, key: Array | None = None
+    ) -> tuple[dict, dict]:
+        """(`evaluate_both`'s summaries, the evaluated episodes {"adapt": arrays [S, N, ...],
+        "online": ...}, for figures)."""
         tasks = self.test_tasks if tasks is None else tasks
         key = jax.random.PRNGKey(EVAL_SEED) if key is None else key
         res = jax.device_get(self._evaluate(key, state.params, state.norm, tasks))
         r = self.env.config.robot_radius
-        return {k: eval_lib.summarize(v, tasks, r) | {"_raw": v} for k, v in res.items()}
+        return {k: eval_lib.summarize(v, tasks, r) for k, v in res.items()}, res
 
     def rollouts(self, params, norm: Normalizer, tasks: TaskParams, key: Array) -> dict:
         """The evaluation program on saved model parameters and normalisation ([S]-stacked, as

@@ -160,17 +160,23 @@ def check_resumable(
     """Resuming needs the same config except for the number of iterations (the field
     `iterations`, e.g. 'grbal.iterations' for GrBAL) and the number of devices (per-seed results
     do not depend on it, orbax restores onto the new layout)."""
-    da, db = saved.to_dict(), cfg.to_dict()
-    section, field = iterations.split(".")
-    for d in (da, db):
-        d[section].pop(field)
-        d.pop("devices", None)
-    diff = _diff(json.loads(json.dumps(da)), json.loads(json.dumps(db)))
+    diff = config_differences(saved, cfg, ignore=(iterations, "devices"))
     if diff:
         raise CheckpointError(
             f"{run_dir}: the saved config differs from the requested one in {diff}; "
             "resume with the same settings (only --iterations may change) or use a new --out"
         )
+
+
+def config_differences(a: Any, b: Any, ignore: tuple[str, ...] = ()) -> list[str]:
+    """The dotted names of the fields in which two configs differ, the fields in `ignore`
+    ('section.field' or a top-level field) left out."""
+    da, db = (json.loads(json.dumps(c.to_dict())) for c in (a, b))
+    for name in ignore:
+        section, _, field = name.rpartition(".")
+        for d in (da, db):
+            (d.get(section, {}) if section else d).pop(field, None)
+    return _diff(da, db)
 
 
 def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
@@ -180,6 +186,25 @@ def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
             out += _diff(a.get(k), b.get(k), f"{prefix}{k}.")
         return out
     return [prefix.rstrip(".")] if a != b else []
+
+
+def committed_steps(run_dir: str | Path) -> list[int]:
+    """The iterations of the committed checkpoints in run_dir/checkpoints (orbax renames a
+    checkpoint to its step number only once it is complete), oldest first."""
+    folder = Path(run_dir) / "checkpoints"
+    if not folder.is_dir():
+        return []
+    return sorted(int(p.name) for p in folder.iterdir() if p.is_dir() and p.name.isdigit())
+
+
+def remove_partial(run_dir: str | Path) -> list[Path]:
+    """Remove the temporary folders a save killed midway left in run_dir/checkpoints (they
+    hold nothing a resume could use); returns them."""
+    folder = Path(run_dir) / "checkpoints"
+    gone = sorted(folder.glob(f"*{TMP_SUFFIX}*")) if folder.is_dir() else []
+    for p in gone:
+        shutil.rmtree(p, ignore_errors=True)
+    return gone
 
 
 class Checkpointer:

@@ -3,20 +3,22 @@
 `train_loop(trainer, state, progress, ...)` calls `trainer.iteration` until `until(progress)`
 holds, in the spirit of brax's `train(..., progress_fn)`: what differs between callers is passed
 in as rules and callbacks, so every caller gets the same Ctrl-C, checkpoint and log behaviour.
+Its one caller is the run session (`training.run.Session.train`), which adds the run folder's
+log, TensorBoard, Ctrl-C and write errors; the session's users keep only their rules:
 
-- `experiments.restaurant` / `experiments.sidewalk` (`run.train`): a number of iterations,
-  evaluation every `eval_interval` iterations, checkpoints every `checkpoint_interval`.
-- the learning-curve harness (`experiments.learning`): a budget of training seconds, evaluation
-  off the clock every so many training seconds, a checkpoint after every evaluation.
-- GrBAL (`grbal.run.train`): iterations and an optional wall-clock budget.
+- `experiments.restaurant` / `experiments.sidewalk` (`run.train_iterations`): a number of
+  iterations, evaluation every `eval_interval` iterations, checkpoints every
+  `checkpoint_interval`.
+- the learning-curve harness (`experiments.learning.train_for`): a budget of training seconds,
+  evaluation off the clock every so many training seconds, a checkpoint after every evaluation.
+- GrBAL (`grbal.run.train_iterations`): iterations and an optional wall-clock budget.
 
 After every iteration the loop builds the log row (the iteration's own log, `train_s`: seconds
 spent in `trainer.iteration` over the run's lifetime, `wall_s`: seconds since the run started,
 and the evaluation's fields when `evaluate_after(progress)` says so or training ends), hands it
-to `on_row`
-(which writes it), and saves a checkpoint through `save(iteration, state)` when the checkpoint
-rule says so. `stop()` (Ctrl-C) is polled before every iteration and inside it: between
-iterations the state is whole, so it is saved (if not yet) and the loop returns with
+to `on_row` (which writes it), and saves a checkpoint through `save(iteration, state)` when
+the checkpoint rule says so. `stop()` (Ctrl-C) is polled before every iteration and inside
+it: between iterations the state is whole, so it is saved (if not yet) and the loop returns with
 `progress.stopped == "interrupted"`; inside an iteration `trainer.iteration` raises
 `IterationAbandoned` (its state was consumed), which propagates with `progress` telling the last
 saved iteration. `TrainingDiverged` propagates the same way.

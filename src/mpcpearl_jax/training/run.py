@@ -1,5 +1,11 @@
-"""Run an experiment: train with checkpoints and a metrics log, evaluate, write figures and the
-results table. Used by `python -m experiments.restaurant` and `python -m experiments.sidewalk`.
+"""The run session, the one run driver: `open_session` opens a run folder (every check, the
+lock, the restored state, the log cut back to it, progress rebuilt from it, TensorBoard),
+`Session.train` trains under a caller's rules (the one training loop, `loop.train_loop`, with
+Ctrl-C and write errors handled), `Session.close` closes it (checkpointer, the MPC bridge's
+worker pool, TensorBoard, lock). Its users keep only their rules: the training command
+(`train_iterations`, then `final_evaluation`: results.json, figures and the results table),
+the learning-curve command (`experiments.learning`) and GrBAL (`grbal.run`, with its own
+`RunKind`).
 
 Resume is exact: everything that shapes the rest of a run is in the checkpointed TrainState or
 rebuilt deterministically from the config, so a run stopped at any moment (kill -9, Ctrl-C, power
@@ -33,7 +39,9 @@ from mpcpearl_jax.training.checkpoint import (
     Checkpointer,
     atomic_write,
     check_resumable,
+    committed_steps,
     load_config,
+    remove_partial,
     save_config,
     save_network,
     write_json,
@@ -128,102 +136,265 @@ def check_writable(run_dir: Path) -> None:
             ) from e
 
 
-def _eval_row(trainer: Trainer, state: TrainState) -> dict[str, Any]:
-    online = trainer.cfg.online_eval
-    ev = trainer.evaluate(state, online=online)
-    ev.pop("_raw")
-    return {f"test_{k}": v for k, v in ev.items() if not k.endswith("_per_seed")}
+@dataclasses.dataclass(frozen=True)
+class RunKind:
+    """What differs between the trainers a session runs (PEARL's `Trainer`, GrBAL's
+    `GrbalTrainer`): how a run folder's config is read, how the trainer is built and checked,
+    how many checkpoints are kept, the iteration count, and what policy.msgpack holds."""
+
+    load_config: Callable[[Path, bool], Any]  # (run_dir, resume) -> the folder's config
+    make_trainer: Callable[[Any], Any]
+    check_fits: Callable[[Any], None]  # trainer -> None; ConfigError when its state won't fit
+    keep_checkpoints: Callable[[Any], int]
+    iterations: Callable[[Any], int]  # cfg -> the iterations the run is asked for
+    iterations_field: str  # the field that may change on --resume ('train.iterations')
+    saved_params: Callable[[Any, Any], Any]  # (trainer, state) -> what policy.msgpack holds
+    validate: Callable[[Any], Any] = lambda cfg: cfg
+    network_file: bool = False  # write network.json (what `load_policy` needs)
+
+
+def _check_pearl_fits(trainer: Trainer) -> None:
+    check_state_fits(  # before anything is allocated
+        trainer.init_state,
+        "the training state (replay buffers, networks)",
+        "train.rl_capacity, train.mpc_buffer_capacity, the training tasks or the seeds",
+    )
+
+
+PEARL = RunKind(
+    load_config=lambda run_dir, resume: load_config(run_dir, resume=resume),
+    make_trainer=Trainer,
+    check_fits=_check_pearl_fits,
+    keep_checkpoints=lambda cfg: cfg.train.keep_checkpoints,
+    iterations=lambda cfg: cfg.train.iterations,
+    iterations_field="train.iterations",
+    saved_params=lambda trainer, state: policy_params(state),
+    validate=validate,
+    network_file=True,
+)
+
+
+def _never(*_: Any) -> bool:
+    return False
 
 
 @dataclasses.dataclass
 class Session:
-    """A run ready to train: every check passed, state restored, config.json and the log written."""
+    """One run folder, open for training: every check passed, the folder locked (one writer),
+    the state restored, config.json written, metrics.jsonl cut back to the restored iteration
+    and `progress` rebuilt from it. `train(...)` runs the one training loop under a caller's
+    rules; `close()` (or leaving a `with` block) closes the checkpointer, the trainer (the MPC
+    bridge's worker pool), TensorBoard and the lock.
 
-    cfg: ExperimentConfig
+    `open_session` builds one for a run folder. Built directly (no `ckpt`, no `lock`), a session
+    trains a trainer and state into `run_dir`'s metrics.jsonl without checkpoints."""
+
+    cfg: Any
     run_dir: Path
-    trainer: Trainer
-    ckpt: Checkpointer
-    state: TrainState
-    rows: list[dict]
-    done: int
-    saved: int  # the iteration of the newest checkpoint (-1: none)
-    lock: (
-        RunLock  # this process writes run_dir (mpcpearl_jax.training.runlock); release() when done
-    )
+    trainer: Any
+    state: Any
+    rows: list[dict] = dataclasses.field(default_factory=list)
+    ckpt: Checkpointer | None = None
+    lock: RunLock | None = None
+    kind: RunKind = PEARL
+    tb: Any = None  # a livelog.TensorBoardLog, every row mirrored into it
+    progress: Progress = dataclasses.field(init=False)
+
+    def __post_init__(self) -> None:
+        # finished iterations, and the newest checkpoint's iteration (-1: none restored)
+        self.done = (
+            int(first_local(self.state.iteration)) if hasattr(self.state, "iteration") else 0
+        )
+        self.saved = getattr(self.ckpt, "restored_step", -1)
+        # a resumed run's clocks go on from its last kept iteration row: train_s and wall_s are
+        # over the run's lifetime (metrics.jsonl), not over this process
+        kept = [r for r in self.rows if "train_s" in r]
+        self.progress = Progress(
+            iterations=self.done,
+            saved=self.saved,
+            train_s=float(kept[-1]["train_s"]) if kept else 0.0,
+            wall_s0=float(kept[-1].get("wall_s", 0.0)) if kept else 0.0,
+            first_iteration_s=float(kept[0]["train_s"]) if kept else None,
+        )
+
+    @property
+    def log_path(self) -> Path:
+        return self.run_dir / LOG_FILE
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close what the session holds; safe to call more than once."""
+        for part in ("ckpt", "trainer", "tb", "lock"):
+            obj = getattr(self, part)
+            closer = getattr(obj, "release" if part == "lock" else "close", None)
+            if closer is not None:
+                closer()
+            if part != "trainer":
+                setattr(self, part, None)
+
+    def save(self, iteration: int, state: Any) -> None:
+        """A checkpoint of `state` at `iteration` (orbax TrainState + policy.msgpack)."""
+        if self.ckpt is None:
+            raise CheckpointError(f"{self.run_dir}: this session keeps no checkpoints")
+        self.ckpt.save(iteration, state, self.kind.saved_params(self.trainer, state))
+
+    def train(
+        self,
+        *,
+        until: Callable[[Progress], bool],
+        evaluate: Callable[[Any, Progress], dict[str, Any]] | None = None,
+        evaluate_after: Callable[[Progress], bool] = _never,
+        checkpoint_after: Callable[[Progress, bool], bool] = _never,
+        save: Callable[[int, Any], None] | None | str = "checkpoint",
+        on_row: Callable[[dict[str, Any]], None] | None = None,
+        handle_sigint: bool = False,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> Any:
+        """Train under the caller's rules (`loop.train_loop`: until, evaluation and checkpoint
+        schedules) and return the state. Every row is appended to metrics.jsonl (process 0),
+        mirrored to TensorBoard and handed to `on_row`. save: "checkpoint" (the session's
+        checkpointer), a function (iteration, state), or None (no saves).
+
+        With handle_sigint, Ctrl-C stops at the next phase boundary, saves the last finished
+        iteration if it is still in memory, and raises RunInterrupted (a second Ctrl-C:
+        KeyboardInterrupt at once). A failed write (a full disk) raises RunDirError naming the
+        file and the iteration a resume starts from; TrainingDiverged propagates."""
+        saver = self.save if save == "checkpoint" else save
+        where = self.progress
+
+        def row_out(row: dict[str, Any]) -> None:
+            self.rows.append(row)
+            if is_primary():
+                append_log(self.log_path, row)
+            if self.tb is not None:
+                self.tb.write(row)
+            if on_row is not None:
+                on_row(row)
+
+        with _sigint_flag(handle_sigint) as stop:
+            try:
+                self.state = train_loop(
+                    self.trainer,
+                    self.state,
+                    where,
+                    until=until,
+                    save=saver,  # type: ignore[arg-type]
+                    on_row=row_out,
+                    evaluate_after=evaluate_after,
+                    evaluate=evaluate,
+                    checkpoint_after=checkpoint_after,
+                    stop=stop,
+                    clock=clock,
+                )
+            except IterationAbandoned:
+                self.state = None  # consumed by the abandoned iteration
+                saved = max(where.saved, 0)
+                raise RunInterrupted(saved, where.iterations - saved) from None
+            except OSError as e:  # a full disk or an I/O error while logging or saving
+                raise write_error(e, where.saved) from e
+        if where.stopped == "interrupted":
+            raise RunInterrupted(where.iterations)
+        return self.state
 
 
-def prepare(
-    cfg: ExperimentConfig, out: str | Path, resume: bool = False, until_budget: bool = False
+def open_session(
+    cfg: Any,
+    out: str | Path,
+    resume: bool = False,
+    until_budget: bool = False,
+    *,
+    kind: RunKind = PEARL,
+    tensorboard: bool = False,
 ) -> Session:
-    """Every check before training, in this order: config (MPC and env overrides), the run
-    directory's lock (one writer per folder), resume compatibility, writable folders, data and
-    tasks (building the Trainer), checkpoint restore (falling back past corrupt ones; nothing to
-    resume from is an error where iterations were logged), --iterations against the finished
-    count (not with until_budget: a run that stops on a time budget, `experiments.learning`).
-    Only then is config.json written and metrics.jsonl cut back to the restored iteration. The
-    session holds the lock: `sess.lock.release()` once the run's last file is written."""
+    """Open a run folder for training. Every check before training, in this order: the config
+    (`kind.validate`), the folder's lock (one writer per folder), resume compatibility, writable
+    folders, data and tasks (building the trainer) and the memory its state needs, checkpoint
+    restore (falling back past corrupt ones; nothing to resume from is an error where iterations
+    were logged), the asked iterations against the finished count (not with until_budget: a run
+    that stops on a time budget, `experiments.learning`). Only then is config.json written and
+    metrics.jsonl cut back to the restored iteration. Close the session (`with` or `close()`)
+    once the run's last file is written."""
     run_dir = Path(out)
-    validate(cfg)
+    kind.validate(cfg)
     if resume:
-        load_config(run_dir)  # a run folder at all, before the lock creates anything
+        kind.load_config(run_dir, False)  # a run folder at all, before the lock creates anything
     lock = RunLock(run_dir, enabled=is_primary())
     try:
-        return _prepare_locked(cfg, run_dir, resume, until_budget, lock)
+        return _open_locked(cfg, run_dir, resume, until_budget, lock, kind, tensorboard)
     except BaseException:
         lock.release()
         raise
 
 
-def _prepare_locked(
-    cfg: ExperimentConfig, run_dir: Path, resume: bool, until_budget: bool, lock: RunLock
+def _open_locked(
+    cfg: Any,
+    run_dir: Path,
+    resume: bool,
+    until_budget: bool,
+    lock: RunLock,
+    kind: RunKind,
+    tensorboard: bool,
 ) -> Session:
+    for partial in remove_partial(run_dir) if is_primary() else []:  # a save killed midway
+        _warn(f"{partial}: removed an unfinished checkpoint (its save was interrupted)")
     if resume:
-        check_resumable(load_config(run_dir, resume=True), cfg, run_dir)
-        folder = run_dir / "checkpoints"
-        if not (folder.is_dir() and any(p.name.isdigit() for p in folder.iterdir())):
+        check_resumable(kind.load_config(run_dir, True), cfg, run_dir, kind.iterations_field)
+        if not committed_steps(run_dir):
             check_nothing_lost(run_dir)
-    elif (run_dir / "checkpoints").is_dir() and any((run_dir / "checkpoints").iterdir()):
+    elif committed_steps(run_dir):
         raise CheckpointError(
             f"{run_dir} already holds checkpoints: pass --resume to continue "
             "or choose another --out"
         )
     new_folder = not (run_dir / "checkpoints").exists()
     check_writable(run_dir)
+    trainer = None
     try:
-        trainer = Trainer(cfg)
-        check_state_fits(  # before anything is allocated
-            trainer.init_state,
-            "the training state (replay buffers, networks)",
-            "train.rl_capacity, train.mpc_buffer_capacity, the training tasks or the seeds",
-        )
+        trainer = kind.make_trainer(cfg)
+        kind.check_fits(trainer)
     except BaseException:
+        if trainer is not None and hasattr(trainer, "close"):
+            trainer.close()
         if new_folder:  # a refused run leaves no empty checkpoints/ behind
             with contextlib.suppress(OSError):
                 (run_dir / "checkpoints").rmdir()
         raise
-    ckpt = Checkpointer(run_dir, keep=cfg.train.keep_checkpoints)
+    ckpt = Checkpointer(run_dir, keep=kind.keep_checkpoints(cfg))
     try:
         state = trainer.init_state()
-        saved = -1
         if resume and ckpt.steps():
             state = ckpt.restore(state)
-            saved = ckpt.restored_step
         done = int(first_local(state.iteration))
-        if not until_budget and cfg.train.iterations < done:
+        total = kind.iterations(cfg)
+        if not until_budget and total < done:
+            field = kind.iterations_field.split(".")[-1]
             raise CheckpointError(
-                f"{run_dir} has finished {done} iterations; --iterations {cfg.train.iterations} "
-                f"is below that (give --iterations {done} or more, or another --out)"
+                f"{run_dir} has finished {done} iterations; --{field} {total} is below that "
+                f"(give --{field} {done} or more, or another --out)"
             )
+        if kind.network_file:
+            save_network(run_dir, trainer.nets)  # what load_policy needs beside policy.msgpack
+        rows = read_log(run_dir / LOG_FILE, done)
+        if is_primary():  # with several processes, process 0 writes the run's files
+            save_config(run_dir, cfg)
+            _write_log(run_dir / LOG_FILE, rows)
+        tb = None
+        if tensorboard and is_primary():
+            from mpcpearl_jax.training.livelog import TB_DIR, TensorBoardLog
+
+            # a resumed run hides its earlier points from the first iteration redone
+            tb = TensorBoardLog(run_dir / TB_DIR, purge_step=done + 1 if done else None)
     except BaseException:
         ckpt.close()
+        if hasattr(trainer, "close"):
+            trainer.close()
         raise
-    save_network(run_dir, trainer.nets)  # what load_policy needs beside policy.msgpack
-    log_path = run_dir / LOG_FILE
-    rows = read_log(log_path, done)
-    if is_primary():  # with several processes, process 0 writes the run's files
-        save_config(run_dir, cfg)
-        _write_log(log_path, rows)
-    return Session(cfg, run_dir, trainer, ckpt, state, rows, done, saved, lock)
+    return Session(cfg, run_dir, trainer, state, rows, ckpt, lock, kind, tb)
 
 
 def check_nothing_lost(run_dir: Path) -> None:
@@ -275,69 +446,31 @@ def train(
     chunk, ~10 s), saves a checkpoint of the last finished iteration if it is still in memory,
     and raises RunInterrupted. With tensorboard, every metrics row also goes to out/tensorboard
     (`mpcpearl_jax.training.livelog`)."""
-    sess = prepare(cfg, out, resume)
-    try:
-        return train_session(sess, progress, handle_sigint, tensorboard)
-    finally:
-        sess.lock.release()
+    with open_session(cfg, out, resume, tensorboard=tensorboard) as sess:
+        return sess.trainer, train_iterations(sess, progress, handle_sigint)
 
 
-def train_session(
-    sess: Session, progress: bool = True, handle_sigint: bool = False, tensorboard: bool = False
-) -> tuple[Trainer, TrainState]:
-    """Train a prepared session (see `train`)."""
-    tb = None
-    progress = progress and is_primary()
-    # a resumed run hides its earlier points from the first iteration redone
-    if tensorboard and is_primary():
-        from mpcpearl_jax.training.livelog import TB_DIR, TensorBoardLog
-
-        tb = TensorBoardLog(sess.run_dir / TB_DIR, purge_step=sess.done + 1 if sess.done else None)
-    with _sigint_flag(handle_sigint) as stop:
-        try:
-            return sess.trainer, _loop(sess, progress, stop, tb)
-        finally:
-            sess.ckpt.close()
-            if tb is not None:
-                tb.close()
-
-
-def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=None) -> TrainState:
-    """`loop.train_loop` for a number of iterations: evaluation every `eval_interval` iterations
-    and at the end, checkpoints every `checkpoint_interval`; Ctrl-C -> RunInterrupted."""
-    cfg, trainer, ckpt = sess.cfg, sess.trainer, sess.ckpt
-    tc, log_path, total = cfg.train, sess.run_dir / LOG_FILE, cfg.train.iterations
-    # a resumed run's clocks go on from its last kept iteration row: train_s and wall_s are over
-    # the run's lifetime (metrics.jsonl), not over this process
-    last = next((r for r in reversed(sess.rows) if "train_s" in r), {})
-    where = Progress(
-        iterations=sess.done,
-        saved=sess.saved,
-        train_s=float(last.get("train_s", 0.0)),
-        wall_s0=float(last.get("wall_s", 0.0)),
-    )
+def train_iterations(sess: Session, progress: bool = True, handle_sigint: bool = False) -> Any:
+    """The training command's rules: `train.iterations` iterations, evaluation on the test tasks
+    every `eval_interval` iterations and at the end, checkpoints every `checkpoint_interval`;
+    a progress bar (tqdm) on process 0."""
+    cfg, trainer = sess.cfg, sess.trainer
+    tc, total = cfg.train, cfg.train.iterations
     bar = None
-    if progress:
+    if progress and is_primary():
         from tqdm import tqdm
 
         bar = tqdm(
-            total=total,
-            initial=sess.done,
-            desc=f"{cfg.env} eps={tc.eps}",
-            dynamic_ncols=True,
+            total=total, initial=sess.done, desc=f"{cfg.env} eps={tc.eps}", dynamic_ncols=True
         )
 
     def evaluate(state: TrainState, p: Progress) -> dict[str, Any]:
         t0 = time.perf_counter()
-        row = _eval_row(trainer, state)
+        ev = trainer.evaluate(state, online=cfg.online_eval)
+        row = {f"test_{k}": v for k, v in ev.items() if not k.endswith("_per_seed")}
         return {**row, "eval_s": time.perf_counter() - t0}
 
-    def on_row(row: dict[str, Any]) -> None:
-        sess.rows.append(row)
-        if is_primary():
-            append_log(log_path, row)
-        if tb is not None:
-            tb.write(row)
+    def show(row: dict[str, Any]) -> None:
         if bar is not None:
             post = {"ret": f"{row['train_return']:.0f}", "mpc": f"{row['train_mpc_share']:.2f}"}
             if "test_SR" in row:
@@ -346,29 +479,17 @@ def _loop(sess: Session, progress: bool, stop: Callable[[], bool] | None, tb=Non
             bar.update(1)
 
     try:
-        state = train_loop(
-            trainer,
-            sess.state,
-            where,
+        return sess.train(
             until=lambda p: p.iterations >= total,
-            save=lambda it, s: ckpt.save(it, s, policy_params(s)),
-            on_row=on_row,
-            evaluate_after=lambda p: tc.eval_interval > 0 and p.iterations % tc.eval_interval == 0,
             evaluate=evaluate,
+            evaluate_after=lambda p: tc.eval_interval > 0 and p.iterations % tc.eval_interval == 0,
             checkpoint_after=lambda p, _: p.iterations % tc.checkpoint_interval == 0,
-            stop=stop,
+            on_row=show,
+            handle_sigint=handle_sigint,
         )
-    except IterationAbandoned:
-        saved = max(where.saved, 0)
-        raise RunInterrupted(saved, where.iterations - saved) from None
-    except OSError as e:  # a full disk or an I/O error while logging
-        raise write_error(e, where.saved) from e
     finally:
         if bar is not None:
             bar.close()
-    if where.stopped == "interrupted":
-        raise RunInterrupted(where.iterations)
-    return state
 
 
 def policy_params(state: TrainState) -> dict:
@@ -388,17 +509,12 @@ def final_evaluation(
         "env": trainer.cfg.env,
         "config": trainer.cfg.to_dict(),
     }
-    adapt = trainer.evaluate(state)
-    online = trainer.evaluate(state, online=True)
-    raw = adapt.pop("_raw")
-    online.pop("_raw")
+    adapt, raw = trainer.evaluate_episodes(state)
     results["test_adapt"] = adapt
-    results["test_online"] = online
+    results["test_online"] = trainer.evaluate(state, online=True)
     try:  # the OOD split of the run's own task source (its task options: e.g. the scenarios)
         ood = tasks_for(trainer.cfg, "ood", config=trainer.env.config)
-        res = trainer.evaluate(state, tasks=ood)
-        res.pop("_raw")
-        results["ood_adapt"] = res
+        results["ood_adapt"] = trainer.evaluate(state, tasks=ood)
     except (ValueError, FileNotFoundError) as e:  # no OOD split (or no OOD scenario file)
         results["ood_adapt"] = {"skipped": str(e)}
     results["paper"] = PAPER.get(trainer.cfg.env, {})

@@ -1,0 +1,130 @@
+"""The shape of the code that the layer test does not see: one run driver, command lines that
+nothing imports, a run session that closes what it opened, a deploy package free of flax."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SRC = ROOT / "src" / "mpcpearl_jax"
+
+
+def _calls(path: Path, name: str) -> list[int]:
+    """Lines of `path` that call a function or method called `name`."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Call):
+            f = node.func
+            called = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", None)
+            if called == name:
+                lines.append(node.lineno)
+    return lines
+
+
+def test_one_run_driver():
+    """The training loop has one caller, the run session (`training.run.Session.train`); the
+    training command, the learning-curve command and GrBAL go through the session."""
+    callers = {
+        str(p.relative_to(ROOT)): _calls(p, "train_loop")
+        for tree in ("src", "experiments", "benchmarks")
+        for p in (ROOT / tree).rglob("*.py")
+    }
+    callers = {p: lines for p, lines in callers.items() if lines}
+    assert list(callers) == ["src/mpcpearl_jax/training/run.py"], callers
+    for user in ("experiments/learning.py", "src/mpcpearl_jax/grbal/run.py"):
+        text = (ROOT / user).read_text()
+        assert "open_session(" in text or ".train(" in text, user
+        assert "_sigint_flag" not in text and "Checkpointer(" not in text, user
+
+
+def test_nothing_imports_a_command_line_module():
+    """Library modules and benchmarks never import from experiments/ (command lines parse
+    arguments, call the library and print)."""
+    offenders = []
+    for tree in (SRC, ROOT / "benchmarks"):
+        for path in tree.rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                mods = []
+                if isinstance(node, ast.ImportFrom) and node.module:
+                    mods = [node.module]
+                elif isinstance(node, ast.Import):
+                    mods = [a.name for a in node.names]
+                offenders += [
+                    f"{path.relative_to(ROOT)}:{node.lineno} {m}"
+                    for m in mods
+                    if m == "experiments" or m.startswith("experiments.")
+                ]
+    assert not offenders, offenders
+
+
+class _Closable:
+    def __init__(self, log, name):
+        self.log, self.name = log, name
+
+    def close(self):
+        self.log.append(self.name)
+
+    release = close
+
+
+class _State:
+    iteration = [0]
+
+
+def test_session_close_closes_trainer_checkpointer_tensorboard_and_lock(tmp_path):
+    from mpcpearl_jax.config import preset
+    from mpcpearl_jax.training.run import Session
+
+    log: list[str] = []
+    sess = Session(
+        preset("smoke"),
+        tmp_path,
+        _Closable(log, "trainer"),
+        _State(),
+        ckpt=_Closable(log, "ckpt"),
+        lock=_Closable(log, "lock"),
+        tb=_Closable(log, "tb"),
+    )
+    with sess:
+        pass
+    assert sorted(log) == ["ckpt", "lock", "tb", "trainer"]
+    sess.close()  # a second close does not close the lock, checkpointer or TensorBoard again
+    assert sorted(log) == ["ckpt", "lock", "tb", "trainer", "trainer"]
+
+
+def test_trainer_close_shuts_the_bridge_worker_pool():
+    """The MPC bridge's worker processes end with the trainer (`Trainer.close`), and a later
+    solve would start them again."""
+    from mpcpearl_jax.config import preset
+    from mpcpearl_jax.training.trainer import Trainer
+
+    cfg = preset("smoke")
+    cfg = cfg.replace(train=dataclasses.replace(cfg.train, eps=0.2))
+    trainer = Trainer(cfg)
+    assert trainer.bridge is not None
+    shut = []
+
+    class Pool:
+        def shutdown(self):
+            shut.append(True)
+
+    trainer.bridge._pool = Pool()
+    trainer.close()
+    assert shut == [True] and trainer.bridge._pool is None
+
+
+def test_load_exported_imports_neither_flax_nor_orbax():
+    code = (
+        "import sys\n"
+        "from mpcpearl_jax.deploy import load_exported\n"
+        "bad = [m for m in ('flax', 'orbax', 'optax', 'distrax') if m in sys.modules]\n"
+        "assert not bad, bad\n"
+        "import mpcpearl_jax\n"
+        "assert callable(mpcpearl_jax.load_policy) and callable(mpcpearl_jax.make_env)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-2000:]
