@@ -38,7 +38,7 @@ def test_mpc_buffer_holds_exactly_the_mpc_transitions():
     tr = Trainer(_mpc_buffer_config())
     state = tr.init_state()
     ids = jnp.array([[0, 1]])
-    state, stats = tr.collect_phase(state, ids, 1, False, True, True)
+    state, stats = tr.prior_collection(state, ids)
     assert 0 < float(stats["mpc_share"][0]) <= float(stats["event_rate"][0]) + 1e-6
     n_mpc = int(round(float(stats["mpc_share"][0]) * 2 * tr.horizon))
     assert int(jnp.sum(state.mpc.size[0])) == n_mpc
@@ -183,8 +183,8 @@ def test_exploring_starts_change_only_the_marked_rows_and_never_the_encoder_cont
     np.testing.assert_allclose(obs0, np.asarray(want), atol=1e-5)
     # the trainer: the prior phase (encoder context) never explores, the posterior phase does
     two = ids[:, :2]
-    state, prior = tr.collect_phase(state, two, 1, False, True, True)
-    state, post = tr.collect_phase(state, two, 1, True, False, False)
+    state, prior = tr.prior_collection(state, two)
+    state, post = tr.posterior_collection(state, two)
     assert float(jnp.sum(prior["explore_rows"])) == 0.0
     assert float(jnp.sum(post["explore_rows"])) > 0.0
     for s_ in range(TINY.seeds):

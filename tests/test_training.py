@@ -56,9 +56,13 @@ def _leaves_equal(a, b):
 def test_collection_and_update_trace_once(trainer):
     state = trainer.init_state()
     state, _ = trainer.initial_collection(state)
-    upd = jax.jit(chex.assert_max_traces(trainer._update_phase, n=1))
-    for _ in range(2):
-        state, m = upd(state)
+    steps = jax.jit(chex.assert_max_traces(trainer._update_steps, n=1), donate_argnums=0)
+    chunks, trainer._update_steps_jit = trainer._update_steps_jit, steps
+    try:
+        for _ in range(2):
+            state, m = trainer.update_phase(state)
+    finally:
+        trainer._update_steps_jit = chunks
     assert np.all(np.isfinite(np.asarray(m["q_loss"])))
     coll = jax.jit(chex.assert_max_traces(trainer._collector, n=1))
     rows = jnp.array([[0, 1], [2, 3]])

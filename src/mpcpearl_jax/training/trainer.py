@@ -1,10 +1,13 @@
 """MPC-PEARL meta-training (Algorithm 1) for many seeds in one program.
 
 `Trainer(cfg)` builds the env, tasks, networks, MPC bridge and three jitted phases:
-  * collection (prior z and posterior z) over a flat batch of seeds x tasks x episodes, with
-    event-triggered MPC through one `pure_callback` per step (only when an event fires);
-  * the N_train gradient steps as one `lax.scan`, vmapped over seeds, buffers donated;
+  * collection (a `Phase`: the initial, prior-z and posterior-z collections of Algorithm 1)
+    over a flat batch of seeds x tasks x episodes, with event-triggered MPC through one
+    `pure_callback` per step (only when an event fires);
+  * the N_train gradient steps as one `lax.scan` (run in chunks), vmapped over seeds, buffers
+    donated;
   * meta-test evaluation (Algorithm 2), vmapped over seeds and tasks.
+`Trainer.iteration` reads as Algorithm 1, lines 3-23.
 With several devices (`cfg.devices`, `mpcpearl_jax.distributed`) the seed axis of every phase is
 split over a device mesh; each seed computes what it computes on one device.
 The whole `TrainState` (params, optimizer states, target nets, buffers, RNG keys, iteration) is a
@@ -13,6 +16,7 @@ pytree, checkpointed by `mpcpearl_jax.training.checkpoint`.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import Any
@@ -39,7 +43,7 @@ from mpcpearl_jax.pearl.learner import (
     make_update,
 )
 from mpcpearl_jax.pearl.networks import Networks
-from mpcpearl_jax.pearl.types import context_from
+from mpcpearl_jax.pearl.types import Transitions, context_from
 from mpcpearl_jax.training import collect as collect_lib
 
 
@@ -52,6 +56,31 @@ class IterationAbandoned(Exception):
 # same keys and results as one scan), so a stop request is answered between chunks (~7 s at the
 # paper's sizes on a 2-core CPU)
 UPDATE_CHUNK = 25
+
+
+@dataclasses.dataclass(frozen=True)
+class Phase:
+    """One collection phase of Algorithm 1 on each visited task: `episodes` episodes with z from
+    the prior N(0, I) or, `posterior`, from q_phi(z | c) with c sampled from the task's encoder
+    buffer; every transition goes to the task's replay buffer H^i (line 15) and, `to_encoder`,
+    to its encoder buffer too, which `clear_encoder` empties first (line 5: c^i = {})."""
+
+    episodes: int
+    posterior: bool
+    to_encoder: bool
+    clear_encoder: bool
+
+
+def prior_phase(episodes: int) -> Phase:
+    """Algorithm 1 line 5 then lines 6-15: c^i = {}, z^i ~ N(0, I); the episodes refill the
+    encoder buffer, the context of the posterior phase and of training."""
+    return Phase(episodes, posterior=False, to_encoder=True, clear_encoder=True)
+
+
+def posterior_phase(episodes: int) -> Phase:
+    """Algorithm 1 lines 16-17 then lines 6-15: c^i from the encoder buffer, z^i ~ q_phi(z |
+    c^i); the episodes go to H^i only (and may start elsewhere: `explore_start_share`)."""
+    return Phase(episodes, posterior=True, to_encoder=False, clear_encoder=False)
 
 
 class TrainState(struct.PyTreeNode):
@@ -71,6 +100,79 @@ def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
     """keys [S, 2] -> (new carry keys [S, 2], subkeys [S, n, 2])."""
     both = jax.vmap(lambda k: jax.random.split(k, n + 1))(keys)
     return both[:, 0], both[:, 1:]
+
+
+def _set_tasks(tasks: TaskParams, ids: Array, new: TaskParams) -> TaskParams:
+    """tasks [S, N, ...] with the rows ids [S, k] replaced by new [S, k, ...]."""
+    seed_ix = jnp.arange(ids.shape[0])[:, None]
+    return jax.tree_util.tree_map(
+        lambda x, y: x.at[seed_ix, ids].set(y.astype(x.dtype)), tasks, new
+    )
+
+
+def _episode_stats(ep: collect_lib.Episodes, explore: Array | None) -> dict:
+    """Per-seed statistics [S] of episodes [S, R, T]: return, success and collision-free rate
+    over the rows that start at the task's start (every row without exploring starts), event
+    and MPC shares over every step, the exploring rows' share and success apart."""
+    success = jnp.any(ep.in_goal, -1) & ~jnp.any(ep.collision, -1)  # [S, R]
+    x_rows = jnp.zeros(success.shape) if explore is None else explore.astype(jnp.float32)
+    mean_over = lambda w, x: jnp.sum(w * x, -1) / jnp.maximum(jnp.sum(w, -1), 1.0)  # noqa: E731
+    on_start = lambda x: mean_over(1.0 - x_rows, x)  # noqa: E731
+    return {
+        "return": on_start(jnp.sum(ep.transitions.reward, axis=-1)),
+        "success": on_start(success),
+        "collision_free": on_start(~jnp.any(ep.collision, -1)),
+        "event_rate": jnp.mean(ep.event, axis=(-1, -2)),
+        "mpc_share": jnp.mean(ep.used_mpc, axis=(-1, -2)),
+        "explore_rows": jnp.mean(x_rows, axis=-1),
+        "explore_success": mean_over(x_rows, success),
+        "steps": jnp.asarray(ep.transitions.reward[0].size),
+    }
+
+
+# the episode statistics the training log reports as train_<name>
+_TRAIN_STATS = (
+    "return",
+    "success",
+    "collision_free",
+    "event_rate",
+    "mpc_share",
+    "explore_rows",
+    "explore_success",
+)
+
+
+def _collection_log(prior: dict, post: dict | None) -> dict:
+    """The log's episode statistics, means over seeds: `train_<name>` of the posterior phase
+    (of the prior phase without one) and `train_prior_return`."""
+    src = post if post is not None else prior
+    src, prior_ret = to_host(({n: src[n] for n in _TRAIN_STATS}, prior["return"]))
+    log = {f"train_{n}": float(np.mean(src[n])) for n in _TRAIN_STATS}
+    log["train_prior_return"] = float(np.mean(prior_ret))
+    return log
+
+
+def _check_finite(losses: dict, iteration: int) -> None:
+    bad = [k for k, v in losses.items() if not np.all(np.isfinite(v))]
+    if bad:
+        raise TrainingDiverged(
+            f"non-finite losses {bad} at iteration {iteration}; "
+            "the last good checkpoint is kept (lower the learning rate or reward scale)"
+        )
+
+
+def _with_mpc_rows(batch: Transitions, mpc: buffers.TaskBuffer, tids, key, n_mpc: int):
+    """Extension `mpc_buffer_fraction`: the last n_mpc rows of each task's batch [MB, B] drawn
+    from the task's MPC buffer instead (a task whose MPC buffer is still empty keeps its RL
+    rows)."""
+    from_mpc = buffers.sample(mpc, key, tids, n_mpc)
+    has = (mpc.size[tids] > 0)[:, None]  # [MB, 1]
+
+    def mix(b, d):
+        keep = has.reshape(has.shape + (1,) * (d.ndim - 2))
+        return b.at[:, -n_mpc:].set(jnp.where(keep, d, b[:, -n_mpc:]))
+
+    return jax.tree_util.tree_map(mix, batch, from_mpc)
 
 
 class Trainer:
@@ -105,11 +207,8 @@ class Trainer:
             self.env, self.nets, self.bridge, tc.eps, mesh=self.mesh
         )
         self._update_body = make_update(self.nets, jit=False)
-        self.collect_phase = jax.jit(
-            self._collect_phase, static_argnums=(2, 3, 4, 5), donate_argnums=0
-        )
+        self.collect_phase = jax.jit(self._collect_phase, static_argnums=2, donate_argnums=0)
         self.use_mpc_buffer = tc.mpc_buffer_fraction > 0 and tc.uses_mpc
-        self.update_phase = jax.jit(self._update_phase, donate_argnums=0)
         self.update_chunk = UPDATE_CHUNK
         self._init_state_jit = jax.jit(self._init_state)
         self._update_steps_jit = jax.jit(self._update_steps, donate_argnums=0)
@@ -149,6 +248,23 @@ class Trainer:
         return constrain(state, self.mesh)
 
     # ------------------------------------------------------------- collection
+    def initial_collection(self, state: TrainState) -> tuple[TrainState, dict]:
+        """Before the first iteration, as in the authors' code: `initial_episodes` prior-phase
+        episodes on every training task, so each H^i holds data before training (Algorithm 1,
+        line 2 initialises the buffers)."""
+        ids = jnp.broadcast_to(jnp.arange(self.num_train), (self.cfg.seeds, self.num_train))
+        return self.collect_phase(state, ids, prior_phase(self.cfg.train.initial_episodes))
+
+    def prior_collection(self, state: TrainState, ids: Array) -> tuple[TrainState, dict]:
+        """Algorithm 1 lines 5-15 on the tasks ids [S, k]: c^i = {} and z^i ~ N(0, I), then
+        `prior_episodes` episodes into H^i and the encoder buffer (the context)."""
+        return self.collect_phase(state, ids, prior_phase(self.cfg.train.prior_episodes))
+
+    def posterior_collection(self, state: TrainState, ids: Array) -> tuple[TrainState, dict]:
+        """Algorithm 1 lines 16-17, then 6-15 again, on the tasks ids [S, k]: c^i sampled from
+        the encoder buffer, z^i ~ q_phi(z | c^i), `posterior_episodes` episodes into H^i only."""
+        return self.collect_phase(state, ids, posterior_phase(self.cfg.train.posterior_episodes))
+
     def _row_z(self, state: TrainState, keys: Array, rows: Array, posterior: bool) -> Array:
         """z [S, R, L] per collection row: prior samples, or posterior of sampled context."""
         cfg = self.cfg.pearl
@@ -164,62 +280,54 @@ class Trainer:
         return jax.vmap(per_seed)(state.learner, state.enc, keys, rows)
 
     def _collect_phase(
-        self,
-        state: TrainState,
-        task_ids: Array,
-        episodes: int,
-        posterior: bool,
-        to_encoder: bool,
-        clear_encoder: bool,
+        self, state: TrainState, task_ids: Array, phase: Phase
     ) -> tuple[TrainState, dict]:
-        """Collect `episodes` per task of task_ids [S, k] and store them. Returns (state, stats)."""
+        """Collect `phase.episodes` per task of task_ids [S, k] (`collect`, event-triggered MPC
+        included) and store them. Returns (state, stats [S])."""
         keys, sub = _split_keys(state.key, 2)
-        rows = jnp.repeat(task_ids, episodes, axis=1)  # [S, k * E]
+        rows = jnp.repeat(task_ids, phase.episodes, axis=1)  # [S, k * E]
         enc = state.enc
-        if clear_encoder:
+        if phase.clear_encoder:
             enc = jax.vmap(buffers.clear)(enc, task_ids)
         state = state.replace(enc=enc)
-        z = self._row_z(state, sub[:, 0], rows, posterior)
+        z = self._row_z(state, sub[:, 0], rows, phase.posterior)
         tasks = jax.vmap(collect_lib.rows_of)(state.tasks, rows)
         share = self.cfg.train.explore_start_share
         explore = None
-        if share > 0 and posterior and not to_encoder:  # extension: exploring starts
+        if share > 0 and phase.posterior and not phase.to_encoder:  # extension: exploring starts
             k_explore = jax.random.fold_in(sub[0, 1], 11)
             explore = jax.random.uniform(k_explore, rows.shape) < share
         ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, explore)
         s, k = task_ids.shape
-        to_task = lambda x: x.reshape((s, k, episodes * self.horizon, *x.shape[3:]))  # noqa: E731
+        to_task = lambda x: x.reshape((s, k, phase.episodes * self.horizon, *x.shape[3:]))  # noqa: E731
         per_task = jax.tree_util.tree_map(to_task, ep.transitions)
         rl = jax.vmap(buffers.insert)(state.rl, task_ids, per_task)
-        if to_encoder:
+        if phase.to_encoder:
             enc = jax.vmap(buffers.insert)(enc, task_ids, per_task)
         mpc = state.mpc
         if self.use_mpc_buffer:
             mpc = jax.vmap(buffers.insert_masked)(mpc, task_ids, per_task, to_task(ep.used_mpc))
-        success = jnp.any(ep.in_goal, -1) & ~jnp.any(ep.collision, -1)  # [S, R]
-        # episode statistics are over the rows that start at the task's start (all without
-        # exploring starts); the exploring ones are counted apart
-        x_rows = jnp.zeros(rows.shape) if explore is None else explore.astype(jnp.float32)
-        mean_over = lambda w, x: jnp.sum(w * x, -1) / jnp.maximum(jnp.sum(w, -1), 1.0)  # noqa: E731
-        on_start = lambda x: mean_over(1.0 - x_rows, x)  # noqa: E731
-        stats = {
-            "return": on_start(jnp.sum(ep.transitions.reward, axis=-1)),  # [S]
-            "success": on_start(success),
-            "collision_free": on_start(~jnp.any(ep.collision, -1)),
-            "event_rate": jnp.mean(ep.event, axis=(-1, -2)),
-            "mpc_share": jnp.mean(ep.used_mpc, axis=(-1, -2)),
-            "explore_rows": jnp.mean(x_rows, axis=-1),
-            "explore_success": mean_over(x_rows, success),
-            "steps": jnp.asarray(ep.transitions.reward[0].size),
-        }
         new = state.replace(rl=rl, enc=enc, mpc=mpc, key=keys)
-        return constrain(new, self.mesh), stats
+        return constrain(new, self.mesh), _episode_stats(ep, explore)
 
+    # ------------------------------------------------------ tasks of a visit
     def _choose_tasks(self, state: TrainState, k: int) -> tuple[TrainState, Array]:
+        """k training tasks per seed, drawn without replacement: ids [S, k]."""
         keys, sub = _split_keys(state.key, 1)
         n = self.num_train
         pick = lambda key: jax.random.choice(key, n, (min(k, n),), replace=False)
         return state.replace(key=keys), jax.vmap(pick)(sub[:, 0])
+
+    def _visit_tasks(self, state: TrainState, ids: Array, iteration: int) -> TrainState:
+        """The extensions that change a training task each time it is visited, before its
+        episodes (after the initial collection; docs/extensions.md): its people get a fresh
+        behaviour (`redraw_behaviours`), then a fresh delay per person (`crowd_delay_max`)."""
+        tc = self.cfg.train
+        if tc.redraw_behaviours:
+            state = self._redraw(state, ids, iteration)
+        if tc.crowd_delay_max > 0:
+            state = self._delay_crowds(state, ids)
+        return state
 
     def _redraw(self, state: TrainState, ids: Array, iteration: int) -> TrainState:
         """Extension `redraw_behaviours`: fresh behaviours for the tasks ids [S, k] about to be
@@ -238,11 +346,7 @@ class Trainer:
             for s in range(ids_np.shape[0])
         ]
         new = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *fresh)  # [S, k, ...]
-        seed_ix = jnp.arange(ids_np.shape[0])[:, None]
-        tasks = jax.tree_util.tree_map(
-            lambda x, y: x.at[seed_ix, ids].set(y.astype(x.dtype)), state.tasks, new
-        )
-        return state.replace(tasks=tasks)
+        return state.replace(tasks=_set_tasks(state.tasks, ids, new))
 
     def _delay_crowds(self, state: TrainState, ids: Array) -> TrainState:
         """Extension `crowd_delay_max`: the visited tasks ids [S, k] get their people's paths
@@ -263,31 +367,15 @@ class Trainer:
         draw = lambda key: jax.random.randint(key, (ids.shape[1], people), 0, top + 1)  # noqa: E731
         delays = jax.vmap(draw)(sub[:, 0])  # [S, k, H]
         new = jax.vmap(delay_people)(visited, delays)
-        seed_ix = jnp.arange(ids.shape[0])[:, None]
-        tasks = jax.tree_util.tree_map(
-            lambda x, y: x.at[seed_ix, ids].set(y.astype(x.dtype)), state.tasks, new
-        )
+        tasks = _set_tasks(state.tasks, ids, new)
         return constrain(state.replace(tasks=tasks, key=keys), self.mesh)
 
     # ---------------------------------------------------------------- updates
-    def _update_phase(self, state: TrainState) -> tuple[TrainState, dict]:
-        """All N_train gradient steps in one scan; -> (state, mean losses [S])."""
-        keys, step_keys = self._update_keys(state)
-        learner, ms = self._update_steps(state.learner, state.rl, state.enc, state.mpc, step_keys)
-        return state.replace(learner=learner, key=keys), jax.tree_util.tree_map(
-            lambda x: jnp.mean(x, axis=1), ms
-        )
-
-    def _update_keys(self, state: TrainState) -> tuple[Array, Array]:
-        """(new carry keys [S, 2], one key per gradient step [S, N_train, 2])."""
-        keys, sub = _split_keys(state.key, 1)
-        steps = self.cfg.train.updates_per_iteration
-        return keys, jax.vmap(lambda k: jax.random.split(k, steps))(sub[:, 0])
-
-    def _chunked_update_phase(
-        self, state: TrainState, stop: Callable[[], bool] | None
+    def update_phase(
+        self, state: TrainState, stop: Callable[[], bool] | None = None
     ) -> tuple[TrainState, dict]:
-        """As `update_phase`, in jitted chunks of `update_chunk` steps over the same keys;
+        """The N_train gradient steps (Algorithm 1 lines 18-23) -> (state, mean losses [S]), in
+        jitted chunks of `update_chunk` steps over the keys of one scan (the same results);
         raises IterationAbandoned between chunks once stop() is true."""
         keys, step_keys = self._update_keys(state)
         steps = int(step_keys.shape[1])
@@ -301,11 +389,20 @@ class Trainer:
         ms = jax.tree_util.tree_map(lambda *x: jnp.mean(jnp.concatenate(x, axis=1), axis=1), *parts)
         return state.replace(learner=learner, key=keys), ms
 
-    def _update_steps(self, learner, rl, enc, mpc, step_keys: Array) -> tuple[Any, dict]:
-        """Gradient steps with keys [S, n, 2] (one scan, vmapped over seeds); -> (learner,
-        per-step losses [S, n])."""
-        cfg, n = self.cfg.pearl, self.num_train
+    _chunked_update_phase = update_phase  # its former name (tests/test_faults_resume.py)
 
+    def _update_keys(self, state: TrainState) -> tuple[Array, Array]:
+        """(new carry keys [S, 2], one key per gradient step [S, N_train, 2])."""
+        keys, sub = _split_keys(state.key, 1)
+        steps = self.cfg.train.updates_per_iteration
+        return keys, jax.vmap(lambda k: jax.random.split(k, steps))(sub[:, 0])
+
+    def _update_steps(self, learner, rl, enc, mpc, step_keys: Array) -> tuple[Any, dict]:
+        """Gradient steps with keys [S, n, 2] (one scan, vmapped over seeds), each over a
+        meta-batch of tasks with a context c^i and a batch B^i (Algorithm 1 line 20; the MPC
+        buffer's rows mixed in, extension `mpc_buffer_fraction`) and the update of
+        `pearl.learner` (lines 21-23); -> (learner, per-step losses [S, n])."""
+        cfg, n = self.cfg.pearl, self.num_train
         frac = self.cfg.train.mpc_buffer_fraction
         n_mpc = int(round(cfg.batch_size * frac)) if self.use_mpc_buffer else 0
 
@@ -315,18 +412,8 @@ class Trainer:
                 tids = jax.random.choice(k_t, n, (cfg.meta_batch,), replace=cfg.meta_batch > n)
                 batch = buffers.sample(rl, k_b, tids, cfg.batch_size)
                 ctx = context_from(buffers.sample(enc, k_c, tids, cfg.context_size))
-                if n_mpc == 0:
-                    return self._update_body(learner, batch, ctx, k_u)
-                # extension: the last n_mpc rows of each task's batch come from its MPC buffer
-                # (tasks whose MPC buffer is still empty keep their RL rows)
-                from_mpc = buffers.sample(mpc, jax.random.fold_in(k_b, 1), tids, n_mpc)
-                has = (mpc.size[tids] > 0)[:, None]  # [MB, 1]
-                mix = (
-                    lambda b, d: b.at[:, -n_mpc:].set(  # noqa: E731
-                        jnp.where(has.reshape(has.shape + (1,) * (d.ndim - 2)), d, b[:, -n_mpc:])
-                    )
-                )
-                batch = jax.tree_util.tree_map(mix, batch, from_mpc)
+                if n_mpc:
+                    batch = _with_mpc_rows(batch, mpc, tids, jax.random.fold_in(k_b, 1), n_mpc)
                 return self._update_body(learner, batch, ctx, k_u)
 
             return jax.lax.scan(body, learner, keys)
@@ -335,98 +422,69 @@ class Trainer:
         return constrain(out, self.mesh)
 
     # -------------------------------------------------------------- iteration
-    def initial_collection(self, state: TrainState) -> tuple[TrainState, dict]:
-        """Iteration 0: every training task, prior z, RL + encoder buffers."""
-        ids = jnp.broadcast_to(jnp.arange(self.num_train), (self.cfg.seeds, self.num_train))
-        return self.collect_phase(state, ids, self.cfg.train.initial_episodes, False, True, True)
-
     def iteration(
         self, state: TrainState, stop: Callable[[], bool] | None = None
     ) -> tuple[TrainState, dict]:
-        """One meta-training iteration, Algorithm 1 lines 3-23 (as in the authors' PEARL code):
-
-        - data collection (lines 4-17), for `tasks_per_iteration` training tasks drawn at random:
-          `prior_episodes` episodes with z ~ N(0, I) (line 5) that also fill the task's encoder
-          buffer, then `posterior_episodes` with z ~ q_phi(z | c) (lines 16-17), every step
-          acted by the MPC when an event fires and rand <= eps (lines 8-11; `collect`), else by
-          pi_theta (line 13), and stored in the task's replay buffer H^i (line 15);
-        - training (lines 18-23): N_train = `updates_per_iteration` gradient steps, each over a
-          meta-batch of tasks with a context c^i and a batch B^i (line 20), z^i ~ q_phi (line 21)
-          and the losses L_phi, L_theta, L_psi (lines 22-23; `pearl.learner`).
-
-        The extensions (docs/extensions.md) hook in where named: re-drawn or delayed crowds
-        before collection, exploring-start rows in it, the MPC buffer in the batches. stop (e.g.
-        set by Ctrl-C) is polled before the updates and between update chunks; once true the
-        iteration is abandoned with IterationAbandoned (the state passed in is consumed).
-        """
-        tc = self.cfg.train
-        log: dict[str, Any] = {}
+        """One meta-training iteration, Algorithm 1 lines 3-23 (as in the authors' PEARL code),
+        for every seed: the data collection (lines 4-17) on `tasks_per_iteration` training tasks
+        drawn at random, then the training (lines 18-23). Every step of an episode is acted by
+        the MPC when an event fires and rand <= eps (lines 8-11; `collect`), else by pi_theta
+        (line 13). The extensions (docs/extensions.md) hook in where named: re-drawn or delayed
+        crowds per visit, exploring-start rows in the posterior phase, the MPC buffer in the
+        batches. stop (e.g. set by Ctrl-C) is polled before the updates and between update
+        chunks; once true the iteration is abandoned with IterationAbandoned (the state passed
+        in is consumed)."""
         t0 = time.perf_counter()
         if self.bridge is not None:
             self.bridge.reset_stats()
         it = int(first_local(state.iteration))
         if it == 0:
             state, _ = self.initial_collection(state)
-        state, ids = self._choose_tasks(state, tc.tasks_per_iteration)
-        if tc.redraw_behaviours:
-            state = self._redraw(state, ids, it + 1)
-        if tc.crowd_delay_max > 0:
-            state = self._delay_crowds(state, ids)
-        state, prior = self.collect_phase(state, ids, tc.prior_episodes, False, True, True)
+        # data collection (lines 4-17)
+        state, ids = self._choose_tasks(state, self.cfg.train.tasks_per_iteration)
+        state = self._visit_tasks(state, ids, it + 1)
+        state, prior = self.prior_collection(state, ids)  # lines 5-15: z ~ N(0, I)
         post = None
-        if tc.posterior_episodes > 0:
-            state, post = self.collect_phase(state, ids, tc.posterior_episodes, True, False, False)
+        if self.cfg.train.posterior_episodes > 0:
+            state, post = self.posterior_collection(state, ids)  # lines 16-17: z ~ q_phi(z | c)
         jax.block_until_ready(state.rl.size)
         t1 = time.perf_counter()
-        state, losses = self._chunked_update_phase(state, stop)
+        # training (lines 18-23): N_train gradient steps
+        state, losses = self.update_phase(state, stop)
         losses = to_host(losses)
         t2 = time.perf_counter()
-        bad = [k for k, v in losses.items() if not np.all(np.isfinite(v))]
-        if bad:
-            raise TrainingDiverged(
-                f"non-finite losses {bad} at iteration {it + 1}; "
-                "the last good checkpoint is kept (lower the learning rate or reward scale)"
-            )
+        _check_finite(losses, it + 1)
         state = state.replace(iteration=state.iteration + 1)
-        log["iteration"] = it + 1
-        log["collect_s"] = t1 - t0
-        log["update_s"] = t2 - t1
-        src = post if post is not None else prior
-        names = (
-            "return",
-            "success",
-            "collision_free",
-            "event_rate",
-            "mpc_share",
-            "explore_rows",
-            "explore_success",
-        )
-        src, prior_ret = to_host(({n: src[n] for n in names}, prior["return"]))
-        for name in names:
-            log[f"train_{name}"] = float(np.mean(src[name]))
-        log["train_prior_return"] = float(np.mean(prior_ret))
-        if self.bridge is not None:
-            st = self.bridge.stats()
-            # counters and times summed over processes (each solves its own shards' rows);
-            # the reasons are this process's
-            calls, rows, fallbacks, solve_s, host_s = sum_over_processes(
-                [
-                    st["calls"],
-                    st["rows_solved"],
-                    st["fallbacks"],
-                    float(sum(st["solve_s"])),
-                    float(sum(st["host_call_s"])),
-                ]
-            )
-            log["mpc_calls"] = int(calls)
-            log["mpc_rows"] = int(rows)
-            log["mpc_fallbacks"] = int(fallbacks)
-            log["mpc_fallback_rate"] = float(fallbacks) / max(int(rows), 1)
-            log["mpc_reasons"] = st["reasons"]
-            log["mpc_solve_s"] = float(solve_s)
-            log["mpc_host_s"] = float(host_s)
+        log: dict[str, Any] = {"iteration": it + 1, "collect_s": t1 - t0, "update_s": t2 - t1}
+        log.update(_collection_log(prior, post))
+        log.update(self._mpc_log())
         log.update({k: float(np.mean(v)) for k, v in losses.items()})
         return state, log
+
+    def _mpc_log(self) -> dict:
+        """The MPC bridge's counters and times of this iteration, summed over processes (each
+        solves its own shards' rows); the fallback reasons are this process's. {} without MPC."""
+        if self.bridge is None:
+            return {}
+        st = self.bridge.stats()
+        calls, rows, fallbacks, solve_s, host_s = sum_over_processes(
+            [
+                st["calls"],
+                st["rows_solved"],
+                st["fallbacks"],
+                float(sum(st["solve_s"])),
+                float(sum(st["host_call_s"])),
+            ]
+        )
+        return {
+            "mpc_calls": int(calls),
+            "mpc_rows": int(rows),
+            "mpc_fallbacks": int(fallbacks),
+            "mpc_fallback_rate": float(fallbacks) / max(int(rows), 1),
+            "mpc_reasons": st["reasons"],
+            "mpc_solve_s": float(solve_s),
+            "mpc_host_s": float(host_s),
+        }
 
     # ------------------------------------------------------------- evaluation
     def evaluate(
