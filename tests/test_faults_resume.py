@@ -127,9 +127,9 @@ def test_update_chunks_give_one_scan_and_answer_stop():
     tr = Trainer(small_cfg(0.0))  # 3 gradient steps per iteration
     state, _ = tr.initial_collection(tr.init_state())
     copy = jax.tree_util.tree_map(jnp.copy, state)
-    one = tr._chunked_update_phase(state, None)  # chunk 25: one scan
+    one = tr.update_phase(state, None)  # chunk 25: one scan
     tr.update_chunk = 2
-    chunked = tr._chunked_update_phase(copy, None)
+    chunked = tr.update_phase(copy, None)
     leaves = jax.tree_util.tree_leaves
     for x, y in zip(leaves(one), leaves(chunked), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
@@ -140,7 +140,7 @@ def test_update_chunks_give_one_scan_and_answer_stop():
         return len(calls) > 1
 
     with pytest.raises(IterationAbandoned):
-        tr._chunked_update_phase(chunked[0], stop)
+        tr.update_phase(chunked[0], stop)
     assert len(calls) == 2  # one chunk ran, the second was not started
 
 

@@ -34,7 +34,7 @@ from mpcpearl_jax.envs.perturb import delay_people
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.errors import ConfigError, TrainingDiverged
 from mpcpearl_jax.evaluation import evaluate as eval_lib
-from mpcpearl_jax.evaluation.runners import EVAL_SEED
+from mpcpearl_jax.evaluation.evaluate import EVAL_SEED
 from mpcpearl_jax.pearl import buffers
 from mpcpearl_jax.pearl.learner import (
     LearnerState,
@@ -389,7 +389,6 @@ class Trainer:
         ms = jax.tree_util.tree_map(lambda *x: jnp.mean(jnp.concatenate(x, axis=1), axis=1), *parts)
         return state.replace(learner=learner, key=keys), ms
 
-    _chunked_update_phase = update_phase  # its former name (tests/test_faults_resume.py)
 
     def _update_keys(self, state: TrainState) -> tuple[Array, Array]:
         """(new carry keys [S, 2], one key per gradient step [S, N_train, 2])."""
@@ -496,15 +495,32 @@ class Trainer:
     ) -> dict:
         """method §8 metrics on `tasks` (default: test tasks), mean and per seed, of the deployed
         policy and encoder parameters (`acting_params`)."""
+        return self.evaluate_episodes(state, tasks, online, key)[0]
+
+    def evaluate_episodes(
+        self,
+        state: TrainState,
+        tasks: TaskParams | None = None,
+        online: bool = False,
+        key: Array | None = None,
+    ) -> tuple[dict, dict]:
+        """(`evaluate`'s metrics, the evaluated episodes: arrays [S, N, ...] such as `position`
+        and `collision`, for figures)."""
         tasks = self.test_tasks if tasks is None else tasks
         key = jax.random.PRNGKey(EVAL_SEED) if key is None else key
         fn = self.evaluate_online if online else self.evaluate_adapt
         learner = state.learner
         params = acting_params(learner.params)
         result = to_host(fn(key, params, tasks))
-        return eval_lib.summarize(result, tasks, self.env.config.robot_radius) | {"_raw": result}
+        return eval_lib.summarize(result, tasks, self.env.config.robot_radius), result
 
     def steps_per_iteration(self) -> int:
         tc = self.cfg.train
         per = tc.tasks_per_iteration * (tc.prior_episodes + tc.posterior_episodes)
         return per * self.horizon
+
+    def close(self) -> None:
+        """Shut the MPC bridge's worker processes down (if any); the trainer's jitted phases
+        stay usable, and a later MPC call starts the pool again."""
+        if self.bridge is not None:
+            self.bridge.close()
