@@ -389,7 +389,6 @@ class Trainer:
         ms = jax.tree_util.tree_map(lambda *x: jnp.mean(jnp.concatenate(x, axis=1), axis=1), *parts)
         return state.replace(learner=learner, key=keys), ms
 
-
     def _update_keys(self, state: TrainState) -> tuple[Array, Array]:
         """(new carry keys [S, 2], one key per gradient step [S, N_train, 2])."""
         keys, sub = _split_keys(state.key, 1)
