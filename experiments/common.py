@@ -119,7 +119,13 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
     add_config_options(p, env, default_preset)
     p.add_argument("--iterations", type=int, help="meta-training iterations")
     p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-eps<eps>)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--resume", action="store_true", help="continue the run in --out")
+    mode.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run in --out (its records, checkpoints and figures are removed)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "--tensorboard",
@@ -217,7 +223,9 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
             f"iterations={cfg.train.iterations} out={out}",
             flush=True,
         )
-        sess = open_session(cfg, out, resume=args.resume, tensorboard=args.tensorboard)
+        sess = open_session(
+            cfg, out, resume=args.resume, tensorboard=args.tensorboard, overwrite=args.overwrite
+        )
     except CoordinatorTimeout as e:  # the runtime's start-up thread would abort the process
         print(f"error: {e}", file=sys.stderr, flush=True)
         sys.stdout.flush()

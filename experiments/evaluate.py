@@ -61,9 +61,10 @@ from mpcpearl_jax.evaluation.runners import (
 )
 from mpcpearl_jax.evaluation.scoring import failure_line, failures, per_task_metrics, pooled
 from mpcpearl_jax.mpc.shield import ShieldConfig
-from mpcpearl_jax.training.checkpoint import write_json
+from mpcpearl_jax.training.checkpoint import RUN_RECORDS, write_json
 
 CONTROLLERS = ("policy", "gp-mpc", "policy+mpc")
+MAX_TASK_SEEDS = 100  # task-set seeds in one command (each one is a full evaluation)
 FIGURES = 4  # default number of tasks with a figure (and a GIF with --animate)
 
 
@@ -148,6 +149,12 @@ def make_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--eval-seed", type=int, default=EVAL_SEED, help="PRNG seed of the evaluation")
     p.add_argument("--out", type=Path, help="output folder")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an earlier evaluation's results.json in --out (a run's own folder is "
+        "never an output folder)",
+    )
     return p
 
 
@@ -169,9 +176,22 @@ def _parse_ranges(text: str, what: str) -> set[int]:
     return out
 
 
-def probe_out(out: Path) -> None:
+def probe_out(out: Path, overwrite: bool = False) -> None:
     """Create the output folder and prove it writable before any work (a probe file written and
-    removed); UsageError naming it otherwise."""
+    removed); UsageError naming it otherwise. A run's folder (it holds a run's records) is never
+    an output folder, and an earlier evaluation's results.json is replaced only with
+    `overwrite`."""
+    records = [name for name in RUN_RECORDS[:4] if (out / name).exists()]
+    if records:
+        raise UsageError(
+            f"--out {out}: a run's folder (it holds {', '.join(records)}); an evaluation never "
+            f"writes over a run's records: choose another --out, e.g. {out / 'eval' / 'NAME'}"
+        )
+    if (out / "results.json").exists() and not overwrite:
+        raise UsageError(
+            f"--out {out}: holds an earlier evaluation's results.json; pass --overwrite to "
+            "replace it, or choose another --out"
+        )
     try:
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=out, prefix=".write-probe-"):
@@ -191,7 +211,8 @@ def parse_indices(text: str, n: int, what: str) -> list[int]:
     out = _parse_ranges(text, what)
     bad = sorted(i for i in out if not 0 <= i < n)
     if bad:
-        raise UsageError(f"{what}: task(s) {bad} out of range; the split has {n} tasks (0-{n - 1})")
+        shown = bad if len(bad) <= 5 else f"{bad[:3]} and {len(bad) - 3} more"
+        raise UsageError(f"{what}: task(s) {shown} out of range; the split has {n} tasks (0-{n - 1})")
     return sorted(out)
 
 
@@ -581,6 +602,11 @@ def main_task_seeds(args: argparse.Namespace) -> int:
     records, s, out = [], None, args.out
     try:
         seeds = sorted(_parse_ranges(args.task_seeds.strip(), "--task-seeds"))
+        if len(seeds) > MAX_TASK_SEEDS:
+            raise UsageError(
+                f"--task-seeds {args.task_seeds}: {len(seeds)} task sets; at most "
+                f"{MAX_TASK_SEEDS} in one command (the project's protocol uses 8: 1-8)"
+            )
         span = (
             f"{seeds[0]}-{seeds[-1]}"
             if seeds == list(range(seeds[0], seeds[-1] + 1))
@@ -592,7 +618,7 @@ def main_task_seeds(args: argparse.Namespace) -> int:
             s = setup(a)
             if ts == seeds[0]:  # the output folder, checked before the first evaluation
                 out = out or s.out.parent / f"{s.out.name}-seeds{span.replace(',', '_')}"
-                probe_out(out)
+                probe_out(out, args.overwrite)
             record, _ = evaluate(a, s)
             records.append(record)
             print(
@@ -639,7 +665,7 @@ def main(argv: list[str] | None = None) -> int:
         return main_task_seeds(args)
     try:
         s = setup(args)
-        probe_out(s.out)  # before the evaluation, not after it
+        probe_out(s.out, args.overwrite)  # before the evaluation, not after it
     except (UsageError, CheckpointError, ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

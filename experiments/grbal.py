@@ -51,7 +51,13 @@ def parser() -> argparse.ArgumentParser:
         help="override a field: grbal.FIELD, env.FIELD or a top-level field (JSON values)",
     )
     p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-grbal)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--resume", action="store_true", help="continue the run in --out")
+    mode.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run in --out (its records, checkpoints and figures are removed)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no line per iteration")
     return p
 
@@ -88,8 +94,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from experiments.common import error_line, out_of_memory
     from mpcpearl_jax.errors import CheckpointError, RunDirError
-    from mpcpearl_jax.grbal.run import final_evaluation, load_config, train
-    from mpcpearl_jax.training.runlock import RunLock
+    from mpcpearl_jax.grbal.run import GRBAL, final_evaluation, train_iterations
+    from mpcpearl_jax.training.run import open_session
 
     out = args.out or Path("runs") / f"{args.env}-{args.preset}-grbal"
     g = cfg.grbal
@@ -101,14 +107,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     t0 = time.perf_counter()
     progress = None if args.no_progress else (lambda line: print(line, flush=True))
-    try:
-        if args.resume:
-            load_config(out)  # a GrBAL run folder, before the lock creates anything
-        with RunLock(out):  # held through the final evaluation (train takes it again)
+    try:  # the run folder stays locked through the final evaluation
+        with open_session(cfg, out, args.resume, kind=GRBAL, overwrite=args.overwrite) as sess:
             budget = None if args.minutes is None else 60.0 * args.minutes
-            trainer, state = train(cfg, out, resume=args.resume, progress=progress, budget_s=budget)
+            state = train_iterations(sess, progress, budget)
             print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
-            final_evaluation(trainer, state, out)
+            final_evaluation(sess.trainer, state, out)
     except (ConfigError, CheckpointError, RunDirError, OSError) as e:
         print(f"error: {error_line(e)}", file=sys.stderr)
         return 2

@@ -39,7 +39,6 @@ import argparse
 import json
 import math
 import os
-import shutil
 import statistics
 import sys
 import tempfile
@@ -62,20 +61,7 @@ TARGETS = (
     ("SR_0.5", "SR", 0.5, False),
     ("SR_0.75", "SR", 0.75, False),
 )
-# files this script writes; --overwrite removes them (and only them) first
 POINTS_FILE = "curve-points.jsonl"  # one line per eval point, as metrics.jsonl (for --resume)
-OUTPUTS = (
-    "curve.json",
-    "curve.png",
-    "metrics.jsonl",
-    "config.json",
-    "policy.msgpack",
-    "network.json",
-    "curve-points.jsonl",
-    "results.json",
-    "learning_curves.png",
-    "episode_test0.gif",
-)
 
 
 # ------------------------------------------------------------------------------ CLI
@@ -235,13 +221,10 @@ def check_out(out: Path, overwrite: bool) -> str | None:
 
 
 def clear_outputs(out: Path) -> None:
-    """--overwrite: remove this script's earlier outputs from `out` (and only them)."""
-    for name in OUTPUTS:
-        (out / name).unlink(missing_ok=True)
-    for fig in out.glob("trajectory_test*.png"):
-        fig.unlink()
-    for folder in ("checkpoints", "corrupt_checkpoints", "tensorboard"):
-        shutil.rmtree(out / folder, ignore_errors=True)
+    """--overwrite: remove a run's earlier outputs from `out` (and only them)."""
+    from mpcpearl_jax.training.run import clear_run_outputs
+
+    clear_run_outputs(out)
 
 
 def _loadavg() -> list[float] | None:

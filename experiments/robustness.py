@@ -110,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             argv_e = ["--split", "val", "--task-seeds", TASK_SEEDS, "--figures", "none"]
             argv_e += ["--perturb", text, "--out", str(out.parent)]
+            argv_e += ["--overwrite"] if args.overwrite else []
             if run is None:
                 argv_e = ["--controller", "gp-mpc", "--env", "restaurant", *argv_e]
             else:

@@ -85,7 +85,10 @@ def generate(
     for rel, name, render in BLOCKS if blocks is None else blocks:
         path = root / rel
         old = out[path][1] if path in out else path.read_text()
-        new = replace_block(old, name, render(rec))
+        try:
+            new = replace_block(old, name, render(rec))
+        except ValueError as e:  # a marker deleted or doubled by hand
+            raise ValueError(f"{rel}: {e}") from None
         out[path] = (out[path][0] if path in out else old, new)
     return out, rec.missing
 
@@ -151,7 +154,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {e}", file=sys.stderr)
             return 2
         return 0
-    files, missing = generate(args.results)
+    try:
+        files, missing = generate(args.results)
+    except (OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     changed = [(p, old, new) for p, (old, new) in files.items() if old != new]
     for p, old, new in changed:
         if args.check:

@@ -196,3 +196,17 @@ def test_parse_indices():
     assert parse_indices("4,0-2,2", 5, "--tasks") == [0, 1, 2, 4]
     with pytest.raises(UsageError, match="expected numbers"):
         parse_indices("a-b", 5, "--tasks")
+
+
+def test_long_index_lists_and_huge_seed_ranges_are_short_errors(tmp_path, capsys):
+    """`--tasks 0-1000` used to list 977 indices in its error; `--task-seeds 0-100000` had no
+    cap (each seed is a whole evaluation)."""
+    from experiments.evaluate import MAX_TASK_SEEDS, UsageError, main, parse_indices
+
+    with pytest.raises(UsageError, match=r"task\(s\) \[24, 25, 26\] and 974 more out of range"):
+        parse_indices("0-1000", 24, "--tasks")
+    run = str(Path(__file__).resolve().parents[1] / "results/restaurant/main-default")
+    argv = [run, "--split", "val", "--task-seeds", "0-100000", "--out", str(tmp_path / "e")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"100001 task sets; at most {MAX_TASK_SEEDS}" in err and len(err.splitlines()) == 1

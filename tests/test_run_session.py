@@ -17,12 +17,14 @@ def _cfg():
     return cfg.replace(train=dataclasses.replace(cfg.train, eps=0.0, iterations=2))
 
 
-def _killed_during_first_save(run):
-    """What SIGKILL during the first checkpoint's save leaves: orbax's temporary folder only."""
+def _killed_during_first_save(run, config=True):
+    """What SIGKILL during the first checkpoint's save leaves: orbax's temporary folder (and
+    the run's config.json)."""
     tmp = run / "checkpoints" / "2.orbax-checkpoint-tmp-1764201234567"
     (tmp / "state").mkdir(parents=True)
     (tmp / "state" / "partial").write_bytes(b"\0" * 64)
-    (run / "config.json").write_text(_cfg().to_json())
+    if config:
+        (run / "config.json").write_text(_cfg().to_json())
     return tmp
 
 
@@ -31,7 +33,7 @@ def test_an_unfinished_checkpoint_is_no_checkpoint(tmp_path, capsys):
     checkpoints' and --resume say 'nothing to resume': stuck until deleted by hand. It counts as
     no checkpoint and is removed when the run is opened, with one line saying so."""
     run = tmp_path / "run"
-    tmp = _killed_during_first_save(run)
+    tmp = _killed_during_first_save(run, config=False)
     with open_session(_cfg(), run) as sess:
         assert sess.done == 0 and sess.saved == -1
     assert not tmp.exists()
@@ -54,3 +56,29 @@ def test_resume_without_a_checkpoint_keeps_the_logged_iterations(tmp_path):
     with pytest.raises(CheckpointError, match="logs 2 iteration"):
         open_session(_cfg(), run, resume=True)
     assert len((run / LOG_FILE).read_text().splitlines()) == 2  # nothing erased
+
+
+def test_a_failed_write_before_any_checkpoint_says_what_to_do():
+    """A full disk before the first checkpoint used to end with 'no checkpoint is saved yet once
+    the cause is fixed'."""
+    import errno
+
+    from mpcpearl_jax.training.run import write_error
+
+    e = OSError(errno.ENOSPC, "No space left on device", "run/metrics.jsonl")
+    assert str(write_error(e, -1)) == (
+        "run/metrics.jsonl: cannot write (No space left on device); no checkpoint was saved yet:"
+        " once the cause is fixed, start again with --overwrite"
+    )
+    assert str(write_error(e, 4)).endswith(
+        "--resume continues from iteration 4 once the cause is fixed"
+    )
+
+
+def test_a_bad_line_inside_the_log_says_how_to_go_on(tmp_path):
+    from mpcpearl_jax.training.run import read_log
+
+    path = tmp_path / LOG_FILE
+    path.write_text('{"iteration": 1}\n{"iteration": 2, "x\n{"iteration": 3}\n')
+    with pytest.raises(CheckpointError, match=r"line 2 is not JSON .*repair or delete that line"):
+        read_log(path)

@@ -351,3 +351,15 @@ def test_lifetime_wall_time_adds_the_segments_of_a_resumed_run():
     rows = [{"wall_s": 10.0}, {"wall_s": 20.0}, {"eval_SR": 0.5}, {"wall_s": 5.0}, {"wall_s": 8.0}]
     assert stats.lifetime_wall_s(rows) == 28.0
     assert stats.lifetime_wall_s([{"wall_s": 3.0}, {"wall_s": 7.5}]) == 7.5
+
+
+def test_a_deleted_end_marker_is_one_line_naming_the_file(tmp_path, monkeypatch, capsys):
+    """A README whose block lost its end marker used to end in a ValueError traceback."""
+    results = tmp_path / "results"
+    results.mkdir()
+    (tmp_path / "README.md").write_text("<!-- table:t -->\nold rows\n")  # no end marker
+    monkeypatch.setattr(table, "BLOCKS", (("README.md", "t", lambda r: "new"),))
+    monkeypatch.setattr(table, "missing_references", lambda root: [])
+    assert table.main([str(results), "--check"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: README.md: expected one <!-- table:t --> ... <!-- /table:t --> block"]

@@ -35,23 +35,11 @@ from mpcpearl_jax.deploy.exported import (
 from mpcpearl_jax.deploy.policy import load_policy
 from mpcpearl_jax.envs.dynamics import DELTA_MAX
 from mpcpearl_jax.evaluation.report import run_label
-from mpcpearl_jax.training.checkpoint import CONFIG_FILE, POLICY_FILE, atomic_write
+from mpcpearl_jax.training.checkpoint import CONFIG_FILE, POLICY_FILE, RUN_RECORDS, atomic_write
 
 EXPORT_FILE = "policy.export"
 DEFAULT_PLATFORMS = ("cpu", "cuda")
 PLATFORMS = ("cpu", "cuda", "rocm", "tpu")  # what jax.export lowers for
-# a run folder's own records: an export or its sidecar never takes one of these names
-RUN_RECORDS = frozenset(
-    {
-        "policy.msgpack",
-        "results.json",
-        "config.json",
-        "metrics.jsonl",
-        "network.json",
-        "curve.json",
-        "curve-points.jsonl",
-    }
-)
 RESULT_KEYS = ("test_adapt", "test_online", "ood_adapt")
 METRICS = ("SR", "TT", "CFR", "SPL", "MGD")
 
@@ -243,7 +231,7 @@ def check_target(out: Path) -> None:
     would replace a run's own record (policy.msgpack, results.json, ...) or any existing file
     that is not an earlier export."""
     for path in (out, sidecar_path(out)):
-        if path.name in RUN_RECORDS:
+        if path.name in RUN_RECORDS:  # a run's own record (training.checkpoint)
             raise ExportError(
                 f"{path}: an export may not take the name of a run's own record; choose "
                 "another --out (default RUN/policy.export)"

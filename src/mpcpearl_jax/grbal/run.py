@@ -137,14 +137,16 @@ def train(
     resume: bool = False,
     progress: Callable[[str], None] | None = print,
     budget_s: float | None = None,
+    overwrite: bool = False,
 ) -> tuple[GrbalTrainer, GrbalState]:
     """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl); -> (trainer, state).
 
     The run session (`training.run.open_session`: checks, lock, restore, log) with GrBAL's rules:
     `grbal.iterations` iterations (or until `budget_s` seconds of this process have passed, if
     the iterations last longer: the run stops evaluated and checkpointed, resumable), evaluation
-    every `eval_interval` iterations and at the end, checkpoints every `checkpoint_interval`."""
-    with open_session(cfg, out, resume, kind=GRBAL) as sess:
+    every `eval_interval` iterations and at the end, checkpoints every `checkpoint_interval`;
+    `overwrite` replaces a run already in `out`."""
+    with open_session(cfg, out, resume, kind=GRBAL, overwrite=overwrite) as sess:
         return sess.trainer, train_iterations(sess, progress, budget_s)
 
 

@@ -41,6 +41,17 @@ from mpcpearl_jax.pearl.networks import Networks
 CONFIG_FILE = "config.json"
 POLICY_FILE = "policy.msgpack"
 NETWORK_FILE = "network.json"
+# a run folder's own records: no command writes over them but the run itself (an evaluation, an
+# export, another run refuse a folder that holds them, unless told to replace the run)
+RUN_RECORDS = (
+    CONFIG_FILE,
+    POLICY_FILE,
+    NETWORK_FILE,
+    "metrics.jsonl",
+    "results.json",
+    "curve.json",
+    "curve-points.jsonl",
+)
 
 
 def atomic_write(path: Path, data: bytes | str) -> None:
@@ -301,9 +312,11 @@ class Checkpointer:
         try:
             state = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
         except Exception as e:  # orbax raises many types for corrupt or mismatched trees
+            first = (str(e).strip().splitlines() or [""])[0].split(" See full TensorStore")[0]
             raise CheckpointError(
                 f"{where}: cannot restore the training state "
-                f"(corrupt, or saved with a different configuration): {type(e).__name__}: {e}"
+                f"(corrupt, or saved with a different configuration): {type(e).__name__}: "
+                f"{first[:200]}"
             ) from e
         it = getattr(state, "iteration", None)
         if it is not None and not bool(jnp.all(jnp.asarray(it) == step)):
@@ -392,8 +405,14 @@ def _cause(e: BaseException) -> str:
     return (str(e).strip().splitlines() or [type(e).__name__])[0]
 
 
+def resume_hint(saved: int) -> str:
+    """What to do once the cause of a failed write is fixed (saved: the newest checkpoint's
+    iteration, -1: none)."""
+    if saved >= 0:
+        return f"--resume continues from iteration {saved} once the cause is fixed"
+    return "no checkpoint was saved yet: once the cause is fixed, start again with --overwrite"
+
+
 def _save_error(where: Path, e: BaseException, steps: list[int]) -> RunDirError:
-    then = (
-        f"--resume continues from iteration {steps[-1]}" if steps else "no checkpoint is saved yet"
-    )
-    return RunDirError(f"{where}: cannot save ({_cause(e)}); {then} once the cause is fixed")
+    hint = resume_hint(steps[-1] if steps else -1)
+    return RunDirError(f"{where}: cannot save ({_cause(e)}); {hint}")

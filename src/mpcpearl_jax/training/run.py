@@ -19,6 +19,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -36,12 +37,14 @@ from mpcpearl_jax.errors import CheckpointError, RunDirError
 from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.pearl.learner import acting_params
 from mpcpearl_jax.training.checkpoint import (
+    RUN_RECORDS,
     Checkpointer,
     atomic_write,
     check_resumable,
     committed_steps,
     load_config,
     remove_partial,
+    resume_hint,
     save_config,
     save_network,
     write_json,
@@ -84,7 +87,11 @@ def read_log(path: Path, upto: int = 10**9, report: Callable[[str], None] = _war
             rows.append(json.loads(raw))
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             if any(x.strip() for x in lines[i + 1 :]):
-                raise CheckpointError(f"{path}: line {i + 1} is not JSON ({e})") from e
+                raise CheckpointError(
+                    f"{path}: line {i + 1} is not JSON ({e}); repair or delete that line to "
+                    "resume (that iteration's logged numbers are lost), or start again with "
+                    "--overwrite"
+                ) from e
             report(f"warning: {path}: dropped a torn last line (line {i + 1}, {len(raw)} bytes)")
     return [r for r in rows if r.get("iteration", 0) <= upto]
 
@@ -112,11 +119,8 @@ def append_log(path: Path, row: dict) -> None:
 def write_error(e: OSError, saved: int) -> RunDirError:
     """A failed write during training (a full disk, an I/O error) as one line: the file, the
     cause, and the iteration a resume starts from (saved: the newest checkpoint, -1: none)."""
-    then = (
-        f"--resume continues from iteration {saved}" if saved >= 0 else "no checkpoint is saved yet"
-    )
     where = e.filename or "the run folder"
-    return RunDirError(f"{where}: cannot write ({e.strerror or e}); {then} once the cause is fixed")
+    return RunDirError(f"{where}: cannot write ({e.strerror or e}); {resume_hint(saved)}")
 
 
 def check_writable(run_dir: Path) -> None:
@@ -302,6 +306,50 @@ class Session:
         return self.state
 
 
+# what a run writes into its folder (`overwrite` removes them, and only them, before a new run)
+RUN_OUTPUTS = (
+    *RUN_RECORDS,
+    "learning_curves.png",
+    "episode_test0.gif",
+    "curve.png",
+    "trajectory_test*.png",
+    "checkpoints",
+    "corrupt_checkpoints",
+    "tensorboard",
+)
+
+
+def run_records(run_dir: Path) -> list[str]:
+    """The run records (`RUN_RECORDS`, and committed checkpoints) a folder holds."""
+    found = [name for name in RUN_RECORDS if (run_dir / name).exists()]
+    return found + (["checkpoints/"] if committed_steps(run_dir) else [])
+
+
+def clear_run_outputs(run_dir: Path) -> None:
+    """Remove what a run writes (`RUN_OUTPUTS`) from `run_dir`; other files stay."""
+    for pattern in RUN_OUTPUTS:
+        for path in run_dir.glob(pattern):
+            if path.is_dir():
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+
+
+def _check_fresh(run_dir: Path) -> None:
+    """A new run's folder holds no other run: CheckpointError (checkpoints) or RunDirError
+    (records) naming the folder and the options otherwise."""
+    if committed_steps(run_dir):
+        raise CheckpointError(
+            f"{run_dir} already holds checkpoints: pass --resume to continue, --overwrite to "
+            "replace the run, or choose another --out"
+        )
+    if run_records(run_dir):
+        raise RunDirError(
+            f"{run_dir} holds a run's records ({', '.join(run_records(run_dir))}): pass "
+            "--overwrite to replace them, or choose another --out"
+        )
+
+
 def open_session(
     cfg: Any,
     out: str | Path,
@@ -310,21 +358,28 @@ def open_session(
     *,
     kind: RunKind = PEARL,
     tensorboard: bool = False,
+    overwrite: bool = False,
 ) -> Session:
     """Open a run folder for training. Every check before training, in this order: the config
     (`kind.validate`), the folder's lock (one writer per folder), resume compatibility, writable
     folders, data and tasks (building the trainer) and the memory its state needs, checkpoint
     restore (falling back past corrupt ones; nothing to resume from is an error where iterations
     were logged), the asked iterations against the finished count (not with until_budget: a run
-    that stops on a time budget, `experiments.learning`). Only then is config.json written and
-    metrics.jsonl cut back to the restored iteration. Close the session (`with` or `close()`)
-    once the run's last file is written."""
+    that stops on a time budget, `experiments.learning`). A new run (not `resume`) refuses a
+    folder that holds a run's records, unless `overwrite` says to replace that run (its outputs
+    are removed once the folder is locked). Only then is config.json written and metrics.jsonl
+    cut back to the restored iteration. Close the session (`with` or `close()`) once the run's
+    last file is written."""
     run_dir = Path(out)
     kind.validate(cfg)
     if resume:
         kind.load_config(run_dir, False)  # a run folder at all, before the lock creates anything
+    elif not overwrite:
+        _check_fresh(run_dir)  # before the lock file is written into another run's folder
     lock = RunLock(run_dir, enabled=is_primary())
     try:
+        if overwrite and not resume:
+            clear_run_outputs(run_dir)
         return _open_locked(cfg, run_dir, resume, until_budget, lock, kind, tensorboard)
     except BaseException:
         lock.release()
@@ -346,11 +401,8 @@ def _open_locked(
         check_resumable(kind.load_config(run_dir, True), cfg, run_dir, kind.iterations_field)
         if not committed_steps(run_dir):
             check_nothing_lost(run_dir)
-    elif committed_steps(run_dir):
-        raise CheckpointError(
-            f"{run_dir} already holds checkpoints: pass --resume to continue "
-            "or choose another --out"
-        )
+    else:
+        _check_fresh(run_dir)
     new_folder = not (run_dir / "checkpoints").exists()
     check_writable(run_dir)
     trainer = None
@@ -439,6 +491,7 @@ def train(
     progress: bool = True,
     handle_sigint: bool = False,
     tensorboard: bool = False,
+    overwrite: bool = False,
 ) -> tuple[Trainer, TrainState]:
     """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl); -> (trainer, state).
 
@@ -446,7 +499,7 @@ def train(
     chunk, ~10 s), saves a checkpoint of the last finished iteration if it is still in memory,
     and raises RunInterrupted. With tensorboard, every metrics row also goes to out/tensorboard
     (`mpcpearl_jax.training.livelog`)."""
-    with open_session(cfg, out, resume, tensorboard=tensorboard) as sess:
+    with open_session(cfg, out, resume, tensorboard=tensorboard, overwrite=overwrite) as sess:
         return sess.trainer, train_iterations(sess, progress, handle_sigint)
 
 
