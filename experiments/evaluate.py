@@ -212,7 +212,9 @@ def parse_indices(text: str, n: int, what: str) -> list[int]:
     bad = sorted(i for i in out if not 0 <= i < n)
     if bad:
         shown = bad if len(bad) <= 5 else f"{bad[:3]} and {len(bad) - 3} more"
-        raise UsageError(f"{what}: task(s) {shown} out of range; the split has {n} tasks (0-{n - 1})")
+        raise UsageError(
+            f"{what}: task(s) {shown} out of range; the split has {n} tasks (0-{n - 1})"
+        )
     return sorted(out)
 
 
