@@ -21,7 +21,7 @@ points so far), config.json, the policy and training state as `run.train` saves 
 continues the run), and what `run.final_evaluation` writes (results.json, learning_curves.png,
 trajectory figures).
 
-A learning run is a run (`mpcpearl_jax.training.run.prepare`: one writer per folder, the same
+A learning run is a run (`mpcpearl_jax.training.run.open_session`: one writer per folder, the same
 checks,
 checkpoints and log): the training state is checkpointed every `train.checkpoint_interval`
 iterations and after every evaluation, so a crash (kill -9) loses at most the work since then.
@@ -346,7 +346,7 @@ def _locked_run(args: argparse.Namespace, cfg, label: str, out: Path, clock) -> 
 
     lock = None
     try:
-        if not args.resume:  # --resume: run.prepare checks the folder first, then locks it
+        if not args.resume:  # --resume: run.open_session checks the folder first, then locks it
             lock = RunLock(out)
             if args.overwrite:
                 clear_outputs(out)

@@ -127,6 +127,46 @@ def missing_references(root: Path) -> list[str]:
     return out
 
 
+_BLOCK = re.compile(r"<!-- table:([\w-]+) -->\n(.*?)<!-- /table:\1 -->", re.S)
+# a figure as the tables print one: two decimals (SR, CFR, SPL, TT, MGD, seed statistics)
+_FIGURE = re.compile(r"(?<![\w.])(\d+\.\d\d)(?![\d])")
+
+
+def unsourced_figures(root: Path) -> list[str]:
+    """'README.md:LINE: X' for every figure (a number with two decimals, as the tables print them)
+    that README.md's prose quotes (outside its generated blocks and code) and that neither a generated block of
+    README.md or results/README.md nor the paper's table holds: a figure typed by hand that no
+    record backs (e.g. an SR edited from 0.83 to 0.93). Python versions are not figures."""
+    from mpcpearl_jax.evaluation.report import PAPER
+
+    readme = (root / "README.md").read_text()
+    generated = " ".join(
+        body
+        for rel in ("README.md", "results/README.md")
+        for _, body in _BLOCK.findall((root / rel).read_text())
+    )
+    paper = {
+        f"{v:.2f}"
+        for rows in PAPER.values()
+        for row in rows.values()
+        if isinstance(row, dict)
+        for v in row.values()
+        if isinstance(v, float)
+    }
+    blank = lambda m: "\n" * m.group(0).count("\n")  # noqa: E731 (keep the line numbers)
+    prose = _BLOCK.sub(blank, readme)
+    prose = re.sub(r"^```.*?^```", blank, prose, flags=re.S | re.M)
+    prose = re.sub(r"`[^`\n]*`", "", prose)
+    out = []
+    for n, line in enumerate(prose.splitlines(), 1):
+        for m in _FIGURE.finditer(line):
+            if line[: m.start()].endswith("Python "):
+                continue
+            if m.group(1) not in generated and m.group(1) not in paper:
+                out.append(f"README.md:{n}: {m.group(1)}")
+    return out
+
+
 def _paired_record(arg: str) -> dict:
     p = Path(arg)
     if p.is_dir():
@@ -175,13 +215,16 @@ def main(argv: list[str] | None = None) -> int:
     bad_refs = missing_references(args.results.parent) if args.check else []
     for ref in bad_refs:
         print(f"no such path: {ref}", file=sys.stderr)
+    unsourced = unsourced_figures(args.results.parent) if args.check else []
+    for fig in unsourced:
+        print(f"a figure no record backs (not in a generated table): {fig}", file=sys.stderr)
     if missing:
         print(f"{len(missing)} record(s) missing: their cells read {MISSING}", file=sys.stderr)
     if args.check and changed:
         print(
             "the tables differ from the records: run python -m experiments.table", file=sys.stderr
         )
-    return 1 if missing or bad_refs or (args.check and changed) else 0
+    return 1 if missing or bad_refs or unsourced or (args.check and changed) else 0
 
 
 if __name__ == "__main__":

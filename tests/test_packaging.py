@@ -31,3 +31,9 @@ def test_requires_python_ruff_and_mypy_name_the_same_minimum():
 
 def test_the_running_interpreter_meets_requires_python():
     assert sys.version_info[:2] >= _minimum_python(), sys.version
+
+
+def test_the_license_file_is_the_one_pyproject_declares():
+    license_ = _pyproject()["project"]["license"]
+    assert license_ == {"text": "MIT"}
+    assert (ROOT / "LICENSE").read_text().startswith("MIT License\n")

@@ -363,3 +363,26 @@ def test_a_deleted_end_marker_is_one_line_naming_the_file(tmp_path, monkeypatch,
     assert table.main([str(results), "--check"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["error: README.md: expected one <!-- table:t --> ... <!-- /table:t --> block"]
+
+
+def test_check_finds_a_figure_typed_into_readme_prose(tmp_path, monkeypatch, capsys):
+    """A README sentence quoting 0.83 from a generated table used to pass `--check` after being
+    edited to 0.93; a two-decimal figure in README.md's prose must be one a generated table (or
+    the paper's table) holds. Code, Python versions and the blocks themselves are not prose."""
+    results = tmp_path / "results"
+    results.mkdir()
+    block = "<!-- table:t -->\n| SR | 0.83 |\n<!-- /table:t -->\n"
+    (results / "README.md").write_text("")
+    monkeypatch.setattr(table, "BLOCKS", (("README.md", "t", lambda r: "| SR | 0.83 |"),))
+    monkeypatch.setattr(table, "missing_references", lambda root: [])
+    prose = "With Python 3.11 the method reaches SR 0.83 (`0.55` in code).\n"
+    (tmp_path / "README.md").write_text(prose + block)
+    assert table.main([str(results), "--check"]) == 0
+    (tmp_path / "README.md").write_text(prose.replace("0.83", "0.93") + block)
+    assert table.main([str(results), "--check"]) == 1
+    assert "README.md:1: 0.93" in capsys.readouterr().err
+    from mpcpearl_jax.evaluation.report import PAPER
+
+    paper = f"The paper reports SR {PAPER['restaurant']['MPC-PEARL 0.2']['SR']:.2f}.\n"
+    (tmp_path / "README.md").write_text(paper + block)
+    assert table.main([str(results), "--check"]) == 0

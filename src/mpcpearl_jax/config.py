@@ -264,7 +264,7 @@ def _without_removed(d: dict) -> dict:
 
 def validate(cfg: ExperimentConfig) -> ExperimentConfig:
     """Every check of a config that involves more than one field, run once before a command
-    touches anything (`experiments.common.main`, `run.prepare`, the learning harness; `Trainer`
+    touches anything (`experiments.common.main`, `run.open_session`, the learning harness; `Trainer`
     runs it too, for callers that build one directly). The type and range of each single field
     are the dataclasses' own invariants, checked when a section is built (`__post_init__`,
     through `mpcpearl_jax.validate`); here: the seeds split evenly over the devices, the env

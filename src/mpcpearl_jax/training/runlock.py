@@ -4,7 +4,7 @@ Every command that writes a run folder (training, `--resume`, `experiments.learn
 the lock before it writes anything there and holds it until it ends. A second writer gets a
 one-line `RunDirError` naming the holder's PID. The operating system drops the lock when its
 process dies (SIGKILL, power loss), so a lock file left by a killed run never blocks a resume.
-The lock is re-entrant within one process (the learning harness takes it before `run.prepare`
+The lock is re-entrant within one process (the learning harness takes it before `run.open_session`
 takes it again); with several processes of one distributed run, process 0 takes it.
 """
 
