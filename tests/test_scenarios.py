@@ -288,3 +288,21 @@ def test_a_run_trained_on_scenarios_records_its_source_and_evaluates(tmp_path, c
     assert main("restaurant", [*argv, "--iterations", "2", "--resume"]) == 2
     err = capsys.readouterr().err.strip()
     assert "sha256" in err and "\n" not in err
+
+
+def test_a_bad_ood_file_is_found_before_training(tmp_path, synthetic, capsys):
+    """A bad out-of-distribution scenario file used to be found only at the final evaluation,
+    after training, and its column silently left out; it is refused before anything is
+    written."""
+    import shutil
+
+    from experiments.common import main
+
+    folder = tmp_path / "scen"
+    shutil.copytree(synthetic, folder)
+    (folder / sc.OOD_FILE).write_bytes(b"not a numpy file")
+    out = tmp_path / "run"
+    rc = main("restaurant", ["--preset", "smoke", "--scenarios", str(folder), "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.count("\n") == 0 and "scenarios_out_of_distribution/X.npy" in err
+    assert not out.exists()

@@ -197,8 +197,16 @@ def make_scenario_tasks(
 
 def scenario_options(directory: str | Path, hold_out_val: bool = False) -> dict[str, Any]:
     """The `task_options` that make a run's tasks the scenarios in `directory`: the folder, the
-    hold-out choice and the sha256 of each file (recorded in the run's config.json)."""
+    hold-out choice and the sha256 of each file (recorded in the run's config.json). Every file
+    present is read and checked here (FileNotFoundError / DataFormatError naming it)."""
     digests = scenario_digests(directory)
+    # every file now, the OOD one included: a bad one is found before training, not at the
+    # final evaluation (where a missing OOD split is skipped)
+    from mpcpearl_jax.envs.restaurant import RESTAURANT_CONFIG
+
+    for name, n in ((MAIN_FILE, NUM_SCENARIO_TASKS), (OOD_FILE, NUM_SCENARIO_OOD)):
+        if name in digests:
+            load_scenario_file(Path(directory) / name, n, RESTAURANT_CONFIG, digests[name])
     out: dict[str, Any] = {"scenarios": str(directory), "scenario_sha256": digests}
     if hold_out_val:
         out["hold_out_val"] = True
