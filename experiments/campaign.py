@@ -205,6 +205,19 @@ def state_of(run: CampaignRun) -> str:
     return "new"
 
 
+def _holds_another_run(run: CampaignRun) -> bool:
+    """Whether the results folder holds a run's records that this entry did not copy there (a
+    copy of this entry's run carries its campaign.json)."""
+    from mpcpearl_jax.training.run import run_records
+
+    if not run.results.is_dir() or not run_records(run.results):
+        return False
+    try:
+        return json.loads((run.results / TRAINED).read_text()).get("name") != run.name
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return True
+
+
 def built_config(run: CampaignRun):
     """The config the entry's argv builds now (as its trainer's command line would)."""
     argv = list(run.argv)
@@ -399,6 +412,13 @@ def _process(runs: list[CampaignRun], dry_run: bool) -> int:
             except ValueError as e:
                 print(f"error: {e}", file=sys.stderr)
                 return 2
+        if state != "done" and _holds_another_run(run):
+            print(
+                f"error: {run.name}: its results folder {run.results} holds another run's "
+                "records; give the entry another 'results' folder",
+                file=sys.stderr,
+            )
+            return 2
         if state == "finished" and not dry_run:
             copy_results(run)  # trained earlier: the evaluations read the results folder
         if state == "new" and run.work.exists() and not dry_run:

@@ -360,3 +360,20 @@ def test_a_stopped_campaign_lets_its_run_save_and_leaves_no_orphan(tmp_path, sig
     while not saved.exists() and time.monotonic() < deadline:
         time.sleep(0.05)
     assert saved.read_text() == "state"
+
+
+def test_a_results_folder_holding_another_run_is_refused(tmp_path, monkeypatch, capsys):
+    """An entry whose results folder already holds another run's records (and not its finished
+    record) would have had them overwritten by its copy; it is refused before training."""
+    monkeypatch.chdir(tmp_path)
+    path = _write(tmp_path, [_run()])
+    (run,) = campaign.load_campaign(path)
+    run.results.mkdir(parents=True)
+    (run.results / "config.json").write_text("{}")
+    (run.results / "policy.msgpack").write_bytes(b"other")
+    calls = []
+    monkeypatch.setattr(campaign, "run_child", lambda cmd: calls.append(cmd) or 0)
+    assert campaign.main([str(path)]) == 2
+    assert "holds another run's records" in capsys.readouterr().err and not calls
+    (run.results / campaign.TRAINED).write_text(json.dumps({"name": "a"}))  # a copy of its own
+    assert campaign.main([str(path)]) == 0 and calls
