@@ -136,7 +136,8 @@ def unsourced_figures(root: Path) -> list[str]:
     """'README.md:LINE: X' for every figure (a number with two decimals, as the tables print them)
     that README.md's prose quotes (outside its generated blocks and code) and that neither a
     generated block of README.md or results/README.md nor the paper's table holds: a figure
-    typed by hand that no record backs (e.g. an SR edited from 0.83 to 0.93). Python versions are not figures."""
+    typed by hand that no record backs (e.g. an SR edited from 0.83 to 0.93). Python versions
+    are not figures."""
     from mpcpearl_jax.evaluation.report import PAPER
 
     readme = (root / "README.md").read_text()
