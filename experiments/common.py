@@ -13,6 +13,17 @@ from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.evaluation.report import run_label
 
 
+def add_run_mode_options(p: argparse.ArgumentParser) -> None:
+    """--resume or --overwrite (not both): continue the run in --out, or replace it."""
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--resume", action="store_true", help="continue the run in --out")
+    mode.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run in --out (its records, checkpoints and figures are removed)",
+    )
+
+
 def add_task_source_options(
     p: argparse.ArgumentParser,
     env: str | None = None,
@@ -119,13 +130,7 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
     add_config_options(p, env, default_preset)
     p.add_argument("--iterations", type=int, help="meta-training iterations")
     p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-eps<eps>)")
-    mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--resume", action="store_true", help="continue the run in --out")
-    mode.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace the run in --out (its records, checkpoints and figures are removed)",
-    )
+    add_run_mode_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "--tensorboard",

@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from experiments.common import add_task_source_options
+from experiments.common import add_run_mode_options, add_task_source_options
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.grbal.config import PRESETS, GrbalExperimentConfig, resolve
 
@@ -51,13 +51,7 @@ def parser() -> argparse.ArgumentParser:
         help="override a field: grbal.FIELD, env.FIELD or a top-level field (JSON values)",
     )
     p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-grbal)")
-    mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--resume", action="store_true", help="continue the run in --out")
-    mode.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace the run in --out (its records, checkpoints and figures are removed)",
-    )
+    add_run_mode_options(p)
     p.add_argument("--no-progress", action="store_true", help="no line per iteration")
     return p
 

@@ -145,6 +145,22 @@ def test_grbal_runs_train_with_their_own_command_and_finish_with_their_results(
     assert [c[2] for c in campaign.commands(run, "done")] == ["experiments.evaluate"]
 
 
+def _guarded_child(tmp_path):
+    """A child that takes a second to save on SIGINT, then exits 130: (saved, ready, code)."""
+    saved, ready = tmp_path / "saved", tmp_path / "ready"
+    child = (
+        "import signal, sys, time, pathlib\n"
+        "def stop(*_):\n"
+        "    time.sleep(1.0)\n"
+        f"    pathlib.Path({str(saved)!r}).write_text('state')\n"
+        "    sys.exit(130)\n"
+        "signal.signal(signal.SIGINT, stop)\n"
+        f"pathlib.Path({str(ready)!r}).write_text('')\n"
+        "time.sleep(60)\n"
+    )
+    return saved, ready, child
+
+
 @pytest.mark.parametrize(
     "whole_group, started_ignoring", [(True, False), (False, False), (False, True)]
 )
@@ -161,17 +177,7 @@ def test_ctrl_c_lets_the_run_under_way_save_before_the_campaign_stops(
     import subprocess
     import time
 
-    saved, ready = tmp_path / "saved", tmp_path / "ready"
-    child = (
-        "import signal, sys, time, pathlib\n"
-        "def stop(*_):\n"
-        "    time.sleep(1.0)\n"
-        f"    pathlib.Path({str(saved)!r}).write_text('state')\n"
-        "    sys.exit(130)\n"
-        "signal.signal(signal.SIGINT, stop)\n"
-        f"pathlib.Path({str(ready)!r}).write_text('')\n"
-        "time.sleep(60)\n"
-    )
+    saved, ready, child = _guarded_child(tmp_path)
     # started ignoring: the state a process inherits from a shell's background job (the
     # disposition set before run_child, without a preexec_fn fork beside JAX's threads)
     ignoring = "signal.signal(signal.SIGINT, signal.SIG_IGN); " if started_ignoring else ""
@@ -310,21 +316,6 @@ def test_one_campaign_per_campaign_file(tmp_path, monkeypatch, capsys):
     finally:
         holder.kill()
         holder.wait()
-
-
-def _guarded_child(tmp_path):
-    saved, ready = tmp_path / "saved", tmp_path / "ready"
-    child = (
-        "import signal, sys, time, pathlib\n"
-        "def stop(*_):\n"
-        "    time.sleep(1.0)\n"
-        f"    pathlib.Path({str(saved)!r}).write_text('state')\n"
-        "    sys.exit(130)\n"
-        "signal.signal(signal.SIGINT, stop)\n"
-        f"pathlib.Path({str(ready)!r}).write_text('')\n"
-        "time.sleep(60)\n"
-    )
-    return saved, ready, child
 
 
 @pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP", "SIGKILL"])

@@ -232,14 +232,19 @@ class Session:
         self.close()
 
     def close(self) -> None:
-        """Close what the session holds; safe to call more than once."""
-        for part in ("ckpt", "trainer", "tb", "lock"):
-            obj = getattr(self, part)
-            closer = getattr(obj, "release" if part == "lock" else "close", None)
-            if closer is not None:
-                closer()
-            if part != "trainer":
-                setattr(self, part, None)
+        """Close what the session holds; safe to call more than once (the trainer stays usable:
+        a later MPC call starts its worker pool again)."""
+        if self.ckpt is not None:
+            self.ckpt.close()
+            self.ckpt = None
+        if hasattr(self.trainer, "close"):
+            self.trainer.close()
+        if self.tb is not None:
+            self.tb.close()
+            self.tb = None
+        if self.lock is not None:
+            self.lock.release()
+            self.lock = None
 
     def save(self, iteration: int, state: Any) -> None:
         """A checkpoint of `state` at `iteration` (orbax TrainState + policy.msgpack)."""
