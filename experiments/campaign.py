@@ -55,6 +55,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -113,50 +114,56 @@ def load_campaign(path: Path) -> list[CampaignRun]:
         raise ValueError(f"{path}: unknown key(s) {extra}; a campaign file holds 'runs' only")
     out, names = [], set()
     for i, r in enumerate(runs):
-        where = f"{path}: runs[{i}]"
-        if not isinstance(r, dict) or not {"name", "argv", "results"} <= set(r):
-            raise ValueError(f"{where}: needs 'name', 'argv' and 'results'")
-        unknown = sorted(set(r) - set(KEYS))
-        if unknown:
-            raise ValueError(f"{where}: unknown key(s) {unknown}; an entry holds {list(KEYS)}")
-        name = r["name"]
-        if (
-            not isinstance(name, str)
-            or not name
-            or name.startswith(".")
-            or any(c in name for c in "/\\")
-            or name in names
-        ):
-            raise ValueError(
-                f"{where}: 'name' must be a unique folder name (no '/', not starting with "
-                f"'.'), got {name!r}"
-            )
-        names.add(name)
-        if not isinstance(r["results"], str) or not r["results"].strip():
-            raise ValueError(f"{where}: 'results' must be a folder path (a string)")
-        _check_results_path(Path(r["results"]), where)
-        argv = r["argv"]
-        if not isinstance(argv, list) or not all(isinstance(a, str) for a in argv):
-            raise ValueError(f"{where}: 'argv' must be a list of strings")
-        for flag in ("--out", "--resume", "--overwrite"):
-            if flag in argv:
-                raise ValueError(f"{where}: 'argv' must not hold {flag} (the campaign sets it)")
-        evals = r.get("evaluate", [])
-        if not isinstance(evals, list) or not all(
-            isinstance(e, list) and all(isinstance(a, str) for a in e) for e in evals
-        ):
-            raise ValueError(f"{where}: 'evaluate' must be a list of argument lists")
-        trainer = r.get("trainer", "learning")
-        if trainer not in TRAINERS:
-            raise ValueError(f"{where}: 'trainer' must be one of {sorted(TRAINERS)}")
-        results = Path(r["results"])
-        evals = [tuple(a.replace("{results}", str(results)) for a in e) for e in evals]
-        for e in evals:
-            if "--out" not in e[:-1]:
-                raise ValueError(f"{where}: every 'evaluate' entry must give --out")
-            _check_results_path(eval_out(e).parent, where, "'evaluate' --out")
-        out.append(CampaignRun(name, tuple(argv), results, tuple(evals), trainer))
+        run = parse_entry(r, f"{path}: runs[{i}]", names)
+        names.add(run.name)
+        out.append(run)
     return out
+
+
+def parse_entry(r: object, where: str, names: Collection[str] = ()) -> CampaignRun:
+    """One campaign entry (a dict as a campaign file holds it) checked and built; ValueError
+    starting with `where` (the file and the entry) on a bad one. `names`: the names taken."""
+    if not isinstance(r, dict) or not {"name", "argv", "results"} <= set(r):
+        raise ValueError(f"{where}: needs 'name', 'argv' and 'results'")
+    unknown = sorted(set(r) - set(KEYS))
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {unknown}; an entry holds {list(KEYS)}")
+    name = r["name"]
+    if (
+        not isinstance(name, str)
+        or not name
+        or name.startswith(".")
+        or any(c in name for c in "/\\")
+        or name in names
+    ):
+        raise ValueError(
+            f"{where}: 'name' must be a unique folder name (no '/', not starting with "
+            f"'.'), got {name!r}"
+        )
+    if not isinstance(r["results"], str) or not r["results"].strip():
+        raise ValueError(f"{where}: 'results' must be a folder path (a string)")
+    _check_results_path(Path(r["results"]), where)
+    argv = r["argv"]
+    if not isinstance(argv, list) or not all(isinstance(a, str) for a in argv):
+        raise ValueError(f"{where}: 'argv' must be a list of strings")
+    for flag in ("--out", "--resume", "--overwrite"):
+        if flag in argv:
+            raise ValueError(f"{where}: 'argv' must not hold {flag} (the campaign sets it)")
+    evals = r.get("evaluate", [])
+    if not isinstance(evals, list) or not all(
+        isinstance(e, list) and all(isinstance(a, str) for a in e) for e in evals
+    ):
+        raise ValueError(f"{where}: 'evaluate' must be a list of argument lists")
+    trainer = r.get("trainer", "learning")
+    if trainer not in TRAINERS:
+        raise ValueError(f"{where}: 'trainer' must be one of {sorted(TRAINERS)}")
+    results = Path(r["results"])
+    evals = [tuple(a.replace("{results}", str(results)) for a in e) for e in evals]
+    for e in evals:
+        if "--out" not in e[:-1]:
+            raise ValueError(f"{where}: every 'evaluate' entry must give --out")
+        _check_results_path(eval_out(e).parent, where, "'evaluate' --out")
+    return CampaignRun(name, tuple(argv), results, tuple(evals), trainer)
 
 
 def _check_results_path(results: Path, where: str, field: str = "'results'") -> None:
@@ -383,20 +390,30 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: --only: no run named {unknown} in {args.campaign}", file=sys.stderr)
             return 2
         runs = [r for r in runs if r.name in args.only]
-    if args.dry_run:
+    # one campaign per campaign file at a time
+    lock = WORK / f".{args.campaign.resolve().name}.campaign"
+    return run_all(runs, lock, args.dry_run, source=str(args.campaign))
+
+
+def run_all(runs: list[CampaignRun], lock: Path, dry_run: bool = False, source: str = "") -> int:
+    """Train, copy and evaluate `runs` in order, one process at a time, as the campaign does
+    (module doc), holding the lock folder `lock` throughout: a second caller with the same lock
+    gets exit 2 and an error naming `source` (the file the runs came from). `dry_run` prints the
+    processes and runs nothing (and takes no lock). The first failing process's exit code, or 0."""
+    if dry_run:
         return _process(runs, dry_run=True)
     from mpcpearl_jax.errors import RunDirError
     from mpcpearl_jax.training.runlock import RunLock
 
-    try:  # one campaign per campaign file at a time
-        lock = RunLock(WORK / f".{args.campaign.resolve().name}.campaign")
+    try:
+        held = RunLock(lock)
     except RunDirError as e:
-        print(f"error: {args.campaign}: another campaign is running it ({e})", file=sys.stderr)
+        print(f"error: {source or lock}: another campaign is running it ({e})", file=sys.stderr)
         return 2
     try:
         return _process(runs, dry_run=False)
     finally:
-        lock.release()
+        held.release()
 
 
 def _process(runs: list[CampaignRun], dry_run: bool) -> int:
