@@ -64,6 +64,26 @@ class TrainConfig:
     # delay_people), drawn afresh per visit, so no timetable of the crowd can be learned by
     # heart; the task's own paths are kept (0 = off, the paper)
     crowd_delay_max: int = 0
+    # the MPC as a guide policy (Jump-Start RL, Uchendu et al. 2023): this share of the
+    # posterior-phase rows that start at the task's start is rolled in by the MPC, which acts
+    # on every step before a hand-over step drawn uniformly from {0, ..., h}, the policy after
+    # it; h starts at guide_steps (clipped to the horizon) and shrinks by guide_decrement (to
+    # 0, where guiding ends) after each iteration whose guided rows reach the goal at a rate
+    # >= guide_success, so the policy learns to finish from ever earlier hand-over states.
+    # Needs eps > 0 (the MPC)
+    guide_share: float = 0.0
+    guide_steps: int = 80
+    guide_decrement: int = 8
+    guide_success: float = 0.5
+    # TD7-style kept policy (Fujimoto et al. 2023): every keep_interval iterations the acting
+    # policy is scored on the first keep_tasks training tasks (the evaluation protocol: two
+    # adaptation episodes, then one scored; deterministic, a fixed key) by its success rate,
+    # ties broken by its worst episode's return; only a better score replaces the kept policy
+    # and encoder, which are what the run reports, saves and exports (training goes on with
+    # the current ones). Validation and test tasks are never used for the choice
+    keep_best: bool = False
+    keep_interval: int = 5
+    keep_tasks: int = 16
 
     def __post_init__(self) -> None:
         v.ints(
@@ -79,9 +99,24 @@ class TrainConfig:
             "keep_checkpoints",
             "eval_adapt_episodes",
             "mpc_buffer_capacity",
+            "guide_steps",
+            "keep_interval",
+            "keep_tasks",
         )
-        v.ints(self, "posterior_episodes", "eval_interval", "crowd_delay_max", lo=0)
-        v.interval(self, "eps", "mpc_buffer_fraction", "explore_start_share", lo=0.0, hi=1.0)
+        v.ints(
+            self, "posterior_episodes", "eval_interval", "crowd_delay_max", "guide_decrement", lo=0
+        )
+        v.interval(
+            self,
+            "eps",
+            "mpc_buffer_fraction",
+            "explore_start_share",
+            "guide_share",
+            "guide_success",
+            lo=0.0,
+            hi=1.0,
+        )
+        v.flags(self, "keep_best")
         v.check(self.mpc_buffer_fraction < 1.0, self, "mpc_buffer_fraction", "must be below 1")
         v.flags(self, "redraw_behaviours")
         v.check(
@@ -98,6 +133,20 @@ class TrainConfig:
                 "explore_start_share",
                 "exploring starts apply to the posterior-phase episodes: set "
                 "posterior_episodes > 0",
+            )
+        if self.guide_share > 0:
+            v.check(self.guide_share < 1.0, self, "guide_share", "must be below 1")
+            v.check(
+                self.eps > 0,
+                self,
+                "guide_share",
+                "the guide is the MPC: set eps > 0 (eps = 0 runs no MPC)",
+            )
+            v.check(
+                self.posterior_episodes > 0,
+                self,
+                "guide_share",
+                "guided roll-ins are posterior-phase episodes: set posterior_episodes > 0",
             )
 
     @property

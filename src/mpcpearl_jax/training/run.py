@@ -35,7 +35,6 @@ from mpcpearl_jax.config import ExperimentConfig, validate
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, RunDirError
 from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
-from mpcpearl_jax.pearl.learner import acting_params
 from mpcpearl_jax.training.checkpoint import (
     RUN_RECORDS,
     Checkpointer,
@@ -53,7 +52,12 @@ from mpcpearl_jax.training.loop import Progress, train_loop
 from mpcpearl_jax.training.machine import machine_info
 from mpcpearl_jax.training.resources import check_state_fits
 from mpcpearl_jax.training.runlock import RunLock
-from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer, TrainState
+from mpcpearl_jax.training.trainer import (
+    IterationAbandoned,
+    Trainer,
+    TrainState,
+    reported_params,
+)
 
 LOG_FILE = "metrics.jsonl"
 
@@ -552,7 +556,7 @@ def train_iterations(sess: Session, progress: bool = True, handle_sigint: bool =
 
 def policy_params(state: TrainState) -> dict:
     """The {policy, encoder} parameters of every seed, on the host (what policy.msgpack holds)."""
-    return to_host(acting_params(state.learner.params))
+    return to_host(reported_params(state))
 
 
 def final_evaluation(

@@ -94,6 +94,12 @@ class TrainState(struct.PyTreeNode):
     tasks: TaskParams  # [S, N, ...] training tasks as collected (redraw_behaviours changes them)
     key: Array  # [S, 2] PRNG keys
     iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
+    # the guide's roll-in bound h [S] int32 (extension `guide_share`; None when it is off)
+    guide_h: Array | None = None
+    # the kept acting params {policy, encoder} [S] and their score [S, 2] (success rate, worst
+    # return) (extension `keep_best`; None when it is off)
+    kept: dict | None = None
+    kept_score: Array | None = None
 
 
 def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
@@ -110,15 +116,19 @@ def _set_tasks(tasks: TaskParams, ids: Array, new: TaskParams) -> TaskParams:
     )
 
 
-def _episode_stats(ep: collect_lib.Episodes, explore: Array | None) -> dict:
+def _episode_stats(
+    ep: collect_lib.Episodes, explore: Array | None, guided: Array | None = None
+) -> dict:
     """Per-seed statistics [S] of episodes [S, R, T]: return, success and collision-free rate
-    over the rows that start at the task's start (every row without exploring starts), event
-    and MPC shares over every step, the exploring rows' share and success apart."""
+    over the rows the policy drives from the task's start (every row without exploring starts
+    or guided roll-ins), event and MPC shares over every step, the exploring and the guided
+    rows' shares and success apart."""
     success = jnp.any(ep.in_goal, -1) & ~jnp.any(ep.collision, -1)  # [S, R]
     x_rows = jnp.zeros(success.shape) if explore is None else explore.astype(jnp.float32)
+    g_rows = jnp.zeros(success.shape) if guided is None else guided.astype(jnp.float32)
     mean_over = lambda w, x: jnp.sum(w * x, -1) / jnp.maximum(jnp.sum(w, -1), 1.0)  # noqa: E731
-    on_start = lambda x: mean_over(1.0 - x_rows, x)  # noqa: E731
-    return {
+    on_start = lambda x: mean_over(1.0 - x_rows - g_rows, x)  # noqa: E731
+    stats = {
         "return": on_start(jnp.sum(ep.transitions.reward, axis=-1)),
         "success": on_start(success),
         "collision_free": on_start(~jnp.any(ep.collision, -1)),
@@ -128,6 +138,10 @@ def _episode_stats(ep: collect_lib.Episodes, explore: Array | None) -> dict:
         "explore_success": mean_over(x_rows, success),
         "steps": jnp.asarray(ep.transitions.reward[0].size),
     }
+    if guided is not None:
+        stats["guide_rows"] = jnp.mean(g_rows, axis=-1)
+        stats["guide_success"] = mean_over(g_rows, success)
+    return stats
 
 
 # the episode statistics the training log reports as train_<name>
@@ -146,8 +160,9 @@ def _collection_log(prior: dict, post: dict | None) -> dict:
     """The log's episode statistics, means over seeds: `train_<name>` of the posterior phase
     (of the prior phase without one) and `train_prior_return`."""
     src = post if post is not None else prior
-    src, prior_ret = to_host(({n: src[n] for n in _TRAIN_STATS}, prior["return"]))
-    log = {f"train_{n}": float(np.mean(src[n])) for n in _TRAIN_STATS}
+    names = [n for n in (*_TRAIN_STATS, "guide_rows", "guide_success") if n in src]
+    src, prior_ret = to_host(({n: src[n] for n in names}, prior["return"]))
+    log = {f"train_{n}": float(np.mean(src[n])) for n in names}
     log["train_prior_return"] = float(np.mean(prior_ret))
     return log
 
@@ -173,6 +188,14 @@ def _with_mpc_rows(batch: Transitions, mpc: buffers.TaskBuffer, tids, key, n_mpc
         return b.at[:, -n_mpc:].set(jnp.where(keep, d, b[:, -n_mpc:]))
 
     return jax.tree_util.tree_map(mix, batch, from_mpc)
+
+
+def reported_params(state: TrainState) -> dict:
+    """The {policy, encoder} params [S] a run reports, saves and exports: the kept ones
+    (extension `keep_best`) or the learner's current ones."""
+    if state.kept is not None:
+        return state.kept
+    return acting_params(state.learner.params)
 
 
 class Trainer:
@@ -244,7 +267,16 @@ class Trainer:
             lambda x: jnp.array(jnp.broadcast_to(x, (cfg.seeds, *x.shape))), self.train_tasks
         )
         iteration = jnp.zeros((cfg.seeds,), jnp.int32)
-        state = TrainState(learner, rl, enc, mpc, tasks, keys, iteration)
+        guide_h = kept = kept_score = None
+        if cfg.train.guide_share > 0:
+            h0 = min(cfg.train.guide_steps, self.horizon)
+            guide_h = jnp.full((cfg.seeds,), h0, jnp.int32)
+        if cfg.train.keep_best:
+            kept = jax.tree_util.tree_map(
+                lambda x: jnp.array(x, copy=True), acting_params(learner.params)
+            )
+            kept_score = jnp.full((cfg.seeds, 2), -jnp.inf, jnp.float32)
+        state = TrainState(learner, rl, enc, mpc, tasks, keys, iteration, guide_h, kept, kept_score)
         return constrain(state, self.mesh)
 
     # ------------------------------------------------------------- collection
@@ -292,12 +324,22 @@ class Trainer:
         state = state.replace(enc=enc)
         z = self._row_z(state, sub[:, 0], rows, phase.posterior)
         tasks = jax.vmap(collect_lib.rows_of)(state.tasks, rows)
-        share = self.cfg.train.explore_start_share
-        explore = None
+        tc = self.cfg.train
+        share = tc.explore_start_share
+        explore = guided = handover = None
         if share > 0 and phase.posterior and not phase.to_encoder:  # extension: exploring starts
             k_explore = jax.random.fold_in(sub[0, 1], 11)
             explore = jax.random.uniform(k_explore, rows.shape) < share
-        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, explore)
+        if tc.guide_share > 0 and phase.posterior and not phase.to_encoder:  # extension: guide
+            k_guide, k_hand = jax.random.split(jax.random.fold_in(sub[0, 1], 0x601DE))
+            guided = jax.random.uniform(k_guide, rows.shape) < tc.guide_share
+            if explore is not None:
+                guided = guided & ~explore
+            # hand-over steps uniform in {0, ..., h} of each seed
+            u = jax.random.uniform(k_hand, rows.shape)
+            hand = jnp.floor(u * (state.guide_h[:, None] + 1)).astype(jnp.int32)
+            handover = jnp.where(guided, hand, 0)
+        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, explore, handover)
         s, k = task_ids.shape
         to_task = lambda x: x.reshape((s, k, phase.episodes * self.horizon, *x.shape[3:]))  # noqa: E731
         per_task = jax.tree_util.tree_map(to_task, ep.transitions)
@@ -308,7 +350,7 @@ class Trainer:
         if self.use_mpc_buffer:
             mpc = jax.vmap(buffers.insert_masked)(mpc, task_ids, per_task, to_task(ep.used_mpc))
         new = state.replace(rl=rl, enc=enc, mpc=mpc, key=keys)
-        return constrain(new, self.mesh), _episode_stats(ep, explore)
+        return constrain(new, self.mesh), _episode_stats(ep, explore, guided)
 
     # ------------------------------------------------------ tasks of a visit
     def _choose_tasks(self, state: TrainState, k: int) -> tuple[TrainState, Array]:
@@ -445,6 +487,8 @@ class Trainer:
         post = None
         if self.cfg.train.posterior_episodes > 0:
             state, post = self.posterior_collection(state, ids)  # lines 16-17: z ~ q_phi(z | c)
+        if state.guide_h is not None and post is not None:  # extension: the guide's curriculum
+            state = self._shrink_roll_in(state, post)
         jax.block_until_ready(state.rl.size)
         t1 = time.perf_counter()
         # training (lines 18-23): N_train gradient steps
@@ -454,10 +498,61 @@ class Trainer:
         _check_finite(losses, it + 1)
         state = state.replace(iteration=state.iteration + 1)
         log: dict[str, Any] = {"iteration": it + 1, "collect_s": t1 - t0, "update_s": t2 - t1}
+        if state.kept is not None and self._keep_due(it + 1):  # extension: the kept policy
+            state, kept_log = self.keep_best(state)
+            log.update(kept_log)
+        if state.guide_h is not None:
+            log["guide_h"] = float(np.mean(to_host(state.guide_h)))
         log.update(_collection_log(prior, post))
         log.update(self._mpc_log())
         log.update({k: float(np.mean(v)) for k, v in losses.items()})
         return state, log
+
+    # ------------------------------------------------------------ extensions
+    def _shrink_roll_in(self, state: TrainState, post: dict) -> TrainState:
+        """Extension `guide_share`: each seed's roll-in bound h shrinks by guide_decrement (not
+        below 0) when this iteration's guided rows reached the goal at a rate >= guide_success
+        (seeds without a guided row keep theirs)."""
+        tc = self.cfg.train
+        passed = (post["guide_rows"] > 0) & (post["guide_success"] >= tc.guide_success)
+        h = jnp.where(passed, jnp.maximum(state.guide_h - tc.guide_decrement, 0), state.guide_h)
+        return state.replace(guide_h=h.astype(jnp.int32))
+
+    def _keep_due(self, iteration: int) -> bool:
+        tc = self.cfg.train
+        return iteration % tc.keep_interval == 0 or iteration == tc.iterations
+
+    def keep_best(self, state: TrainState) -> tuple[TrainState, dict]:
+        """Extension `keep_best` (TD7's checkpoints, Fujimoto et al. 2023): score the acting
+        policy of every seed on the first keep_tasks training tasks (the evaluation protocol,
+        a fixed key) by (success rate, worst episode's return), and keep it where it beats the
+        kept one's score. -> (state, log of the scores)."""
+        n = min(self.cfg.train.keep_tasks, self.num_train)
+        tasks = jax.tree_util.tree_map(lambda x: x[:n], self.train_tasks)
+        params = acting_params(state.learner.params)
+        result = self.evaluate_adapt(jax.random.PRNGKey(EVAL_SEED + 1), params, tasks)
+        m = eval_lib.episode_metrics(result, tasks, self.env.config.robot_radius)
+        score = jnp.stack([jnp.mean(m.success, -1), jnp.min(result["return"], -1)], -1)
+        old = state.kept_score
+        tie = score[:, 0] == old[:, 0]
+        better = (score[:, 0] > old[:, 0]) | (tie & (score[:, 1] > old[:, 1]))
+        pick = lambda new, cur: jnp.where(  # noqa: E731
+            better.reshape(better.shape + (1,) * (new.ndim - 1)), new, cur
+        )
+        kept = jax.tree_util.tree_map(pick, params, state.kept)
+        kept_score = jnp.where(better[:, None], score, old)
+        state = constrain(state.replace(kept=kept, kept_score=kept_score), self.mesh)
+        score_h, kept_h, better_h = to_host((score, kept_score, better))
+        return state, {
+            "keep_score_sr": float(np.mean(score_h[:, 0])),
+            "keep_score_worst": float(np.mean(score_h[:, 1])),
+            "kept_sr": float(np.mean(kept_h[:, 0])),
+            "kept_replaced": float(np.mean(better_h)),
+        }
+
+    def acting(self, state: TrainState) -> dict:
+        """`reported_params(state)`."""
+        return reported_params(state)
 
     def _mpc_log(self) -> dict:
         """The MPC bridge's counters and times of this iteration, summed over processes (each
@@ -508,9 +603,7 @@ class Trainer:
         tasks = self.test_tasks if tasks is None else tasks
         key = jax.random.PRNGKey(EVAL_SEED) if key is None else key
         fn = self.evaluate_online if online else self.evaluate_adapt
-        learner = state.learner
-        params = acting_params(learner.params)
-        result = to_host(fn(key, params, tasks))
+        result = to_host(fn(key, self.acting(state), tasks))
         return eval_lib.summarize(result, tasks, self.env.config.robot_radius), result
 
     def steps_per_iteration(self) -> int:
