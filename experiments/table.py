@@ -41,6 +41,7 @@ from experiments.tables.render import (
     render_seeds,
     render_sidewalk_seeds,
 )
+from experiments.tables.screen import render_screen_learner
 from experiments.tables.statistics import MISSING, VAL8, Records, paired_difference
 
 BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block name, renderer
@@ -53,6 +54,7 @@ BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block
     ("results/README.md", "main-seeds", render_main_seeds),
     ("results/README.md", "main-seed-summary", render_main_seed_summary),
     ("results/README.md", "sidewalk-seeds", render_sidewalk_seeds),
+    ("results/restaurant/screen/README.md", "screen-learner", render_screen_learner),
 )
 
 
