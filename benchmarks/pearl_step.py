@@ -75,7 +75,9 @@ class JaxSide:
         init = lambda k: init_learner(k, nets)
         lead = () if seeds is None else (seeds,)
         nb = random_numpy_batch(cfg, seed=0, lead=lead)
-        self.batch = Transitions(*(jnp.asarray(nb[k]) for k in Transitions._fields))
+        self.batch = Transitions(
+            **{k: jnp.asarray(v) for k, v in nb.items() if k in Transitions._fields}
+        )
         self.context = jnp.asarray(nb["context"])
         key = jax.random.key(0)
         if seeds is None:

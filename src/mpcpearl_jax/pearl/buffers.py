@@ -93,3 +93,38 @@ def sample(buf: TaskBuffer, key: Array, task_ids: Array, n: int) -> Transitions:
     idx = jax.random.randint(key, (task_ids.shape[0], n), 0, hi)
     rows = task_ids[:, None]
     return jax.tree_util.tree_map(lambda b: b[rows, idx], buf.data)
+
+
+def sample_n_step(
+    buf: TaskBuffer,
+    key: Array,
+    task_ids: Array,
+    n: int,
+    steps: int,
+    gamma: float,
+    horizon: int,
+) -> Transitions:
+    """Uniform sample of `n` n-step transitions per task of `task_ids` [k] -> [k, n]: from a
+    row t, m = min(steps, horizon - t mod horizon) steps of its episode: reward
+    sum_{j<m} gamma^j r_{t+j}, next_obs the observation after them, discount gamma^m
+    (extension `PearlConfig.n_step`; no off-policy correction, as in Rainbow and RLPD's n-step).
+
+    Needs every episode stored whole, in order, at an index that is a multiple of `horizon`:
+    true of the replay buffer when its capacity is a multiple of the horizon (every insert is
+    whole episodes). The start rows are drawn exactly as `sample` draws them (same key)."""
+    cap = buf.capacity
+    hi = jnp.maximum(buf.size[task_ids], 1)[:, None]
+    idx = jax.random.randint(key, (task_ids.shape[0], n), 0, hi)  # as `sample`
+    rows = task_ids[:, None]
+    m = jnp.minimum(steps, horizon - idx % horizon)  # [k, n] steps left in the episode
+    j = jnp.arange(steps)
+    later = (idx[..., None] + j) % cap  # [k, n, steps]
+    rewards = buf.data.reward[rows[..., None], later]
+    weight = jnp.where(j < m[..., None], gamma ** j.astype(jnp.float32), 0.0)
+    last = (idx + m - 1) % cap
+    first = jax.tree_util.tree_map(lambda b: b[rows, idx], buf.data)
+    return first._replace(
+        reward=jnp.sum(weight * rewards, axis=-1),
+        next_obs=buf.data.next_obs[rows, last],
+        discount=gamma ** m.astype(jnp.float32),
+    )

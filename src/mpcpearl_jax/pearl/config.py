@@ -42,9 +42,13 @@ class PearlConfig:
     # policy's entropy is pulled to the target; target_entropy None = -(action dimension)
     auto_entropy: bool = False
     target_entropy: float | None = None
+    # n-step returns: the critic's target is the discounted sum of the next n rewards of the
+    # stored episode (fewer at its end) plus gamma^m V_bar of the state after them, without
+    # off-policy correction (Rainbow; RLPD); 1 = the paper's one-step target
+    n_step: int = 1
 
     def __post_init__(self) -> None:
-        v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size")
+        v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size", "n_step")
         v.int_tuples(self, "hidden", "encoder_hidden")
         v.positive(self, "lr", "reward_scale", "min_posterior_var")
         v.interval(self, "gamma", "tau", lo=0.0, hi=1.0)

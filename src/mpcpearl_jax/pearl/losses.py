@@ -46,13 +46,18 @@ def make_losses(nets: Networks) -> Losses:
 
     def critic_encoder(q_enc_params, target_v_params, batch, context, key):
         """L_phi = L_psi + beta KL(q(z|c) || N(0, I)) (paper Sec. III-A), L_psi the Q TD error
-        against reward_scale * c + gamma V_bar(s', z). The encoder gets gradients from the Q
+        against reward_scale * c + gamma V_bar(s', z) (n-step batches: their discounted reward
+        sum and gamma^m). The encoder gets gradients from the Q
         loss and the KL only."""
         z, mean, var = nets.posterior_sample(q_enc_params["encoder"], context, key)  # [MB, L]
         zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])  # [MB, B, L]
         q1, q2 = nets.q_values(q_enc_params["q"], batch.obs, batch.action, zb)
         target_v = nets.value(target_v_params, batch.next_obs, jax.lax.stop_gradient(zb))
-        q_target = cfg.reward_scale * batch.reward + (1.0 - batch.done) * cfg.gamma * target_v
+        if batch.discount is None:  # one step (the paper)
+            q_target = cfg.reward_scale * batch.reward + (1.0 - batch.done) * cfg.gamma * target_v
+        else:  # extension `n_step`: m discounted rewards, then gamma^m V_bar
+            bootstrap = (1.0 - batch.done) * batch.discount * target_v
+            q_target = cfg.reward_scale * batch.reward + bootstrap
         q_target = jax.lax.stop_gradient(q_target)
         q_loss = jnp.mean((q1 - q_target) ** 2) + jnp.mean((q2 - q_target) ** 2)
         kl = jnp.sum(kl_to_standard_normal(mean, var))  # summed over tasks (method §7)

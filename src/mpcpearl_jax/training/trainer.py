@@ -214,6 +214,7 @@ class Trainer:
         self.num_train = int(self.train_tasks.start.shape[0])
         self._task_kw = dict(cfg.task_options)
         validate(cfg)
+        self._check_n_step(cfg)
         self.mesh = make_mesh(cfg.seeds, cfg.devices)  # None: one device, no sharding
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         self.action_dim = self.env.action_dim
@@ -242,6 +243,23 @@ class Trainer:
         self.evaluate_online = eval_lib.make_evaluator(
             self.env, self.nets, online=True, t_update=tc.t_update
         )
+
+    def _check_n_step(self, cfg: ExperimentConfig) -> None:
+        """n-step returns read whole episodes in order from the replay buffer: its capacity must
+        be a multiple of the horizon, and MPC-buffer rows (not stored in order) cannot mix."""
+        if cfg.pearl.n_step <= 1:
+            return
+        horizon = self.env.config.horizon
+        if cfg.train.rl_capacity % horizon:
+            raise ConfigError(
+                f"PearlConfig.n_step: needs train.rl_capacity a multiple of the horizon "
+                f"({horizon}), got {cfg.train.rl_capacity}"
+            )
+        if cfg.train.mpc_buffer_fraction > 0 and cfg.train.uses_mpc:
+            raise ConfigError(
+                "PearlConfig.n_step: cannot be combined with train.mpc_buffer_fraction (the MPC "
+                "buffer keeps single transitions)"
+            )
 
     # ------------------------------------------------------------------ state
     def init_state(self) -> TrainState:
@@ -450,7 +468,12 @@ class Trainer:
             def body(learner, k):
                 k_t, k_b, k_c, k_u = jax.random.split(k, 4)
                 tids = jax.random.choice(k_t, n, (cfg.meta_batch,), replace=cfg.meta_batch > n)
-                batch = buffers.sample(rl, k_b, tids, cfg.batch_size)
+                if cfg.n_step > 1:  # extension: n-step returns
+                    batch = buffers.sample_n_step(
+                        rl, k_b, tids, cfg.batch_size, cfg.n_step, cfg.gamma, self.horizon
+                    )
+                else:
+                    batch = buffers.sample(rl, k_b, tids, cfg.batch_size)
                 ctx = context_from(buffers.sample(enc, k_c, tids, cfg.context_size))
                 if n_mpc:
                     batch = _with_mpc_rows(batch, mpc, tids, jax.random.fold_in(k_b, 1), n_mpc)

@@ -1,0 +1,227 @@
+"""The learner extensions of docs/extensions.md: the MPC as a guide policy (`train.guide_share`),
+the kept policy (`train.keep_best`) and n-step returns (`pearl.n_step`); each off in every
+preset, each checked against a NumPy reference or by the property it promises."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mpcpearl_jax.config import PRESETS, TrainConfig
+from mpcpearl_jax.errors import ConfigError
+from mpcpearl_jax.pearl import buffers
+from mpcpearl_jax.pearl.config import PearlConfig
+from mpcpearl_jax.pearl.types import Transitions
+
+
+def test_every_preset_leaves_the_learner_extensions_off():
+    for name, cfg in PRESETS.items():
+        assert cfg.train.guide_share == 0 and not cfg.train.keep_best, name
+        assert cfg.pearl.n_step == 1, name
+
+
+@pytest.mark.parametrize(
+    "make, field",
+    [
+        (lambda: TrainConfig(guide_share=0.5, eps=0.0), "guide_share"),
+        (lambda: TrainConfig(guide_share=1.0), "guide_share"),
+        (lambda: TrainConfig(guide_share=-0.1), "guide_share"),
+        (lambda: TrainConfig(guide_share=0.5, posterior_episodes=0), "guide_share"),
+        (lambda: TrainConfig(guide_steps=0), "guide_steps"),
+        (lambda: TrainConfig(guide_decrement=-1), "guide_decrement"),
+        (lambda: TrainConfig(guide_success=1.5), "guide_success"),
+        (lambda: TrainConfig(keep_best=1), "keep_best"),
+        (lambda: TrainConfig(keep_interval=0), "keep_interval"),
+        (lambda: TrainConfig(keep_tasks=0), "keep_tasks"),
+        (lambda: PearlConfig(n_step=0), "n_step"),
+        (lambda: PearlConfig(n_step=2.5), "n_step"),
+    ],
+)
+def test_bad_extension_settings_name_their_field(make, field):
+    with pytest.raises(ConfigError, match=field):
+        make()
+
+
+# ------------------------------------------------------------------------------ n-step returns
+def _episode_buffer(num_tasks=2, capacity=12, horizon=4, filled=12, obs_dim=3):
+    """A replay buffer of whole episodes with distinct rewards and observations per row."""
+    buf = buffers.init_buffer(num_tasks, capacity, obs_dim, 2)
+    rng = np.random.default_rng(0)
+    n = filled
+    data = Transitions(
+        jnp.asarray(rng.normal(size=(num_tasks, n, obs_dim)), jnp.float32),
+        jnp.asarray(rng.normal(size=(num_tasks, n, 2)), jnp.float32),
+        jnp.asarray(rng.normal(size=(num_tasks, n)), jnp.float32),
+        jnp.asarray(rng.normal(size=(num_tasks, n, obs_dim)), jnp.float32),
+        jnp.zeros((num_tasks, n)),
+    )
+    return buffers.insert(buf, jnp.arange(num_tasks), data), data
+
+
+@pytest.mark.parametrize("steps, filled", [(3, 12), (3, 8), (1, 12), (5, 12)])
+def test_n_step_sample_matches_a_numpy_reference(steps, filled):
+    horizon, gamma, n = 4, 0.9, 64
+    buf, data = _episode_buffer(filled=filled, horizon=horizon)
+    key, tids = jax.random.PRNGKey(3), jnp.array([1, 0])
+    got = buffers.sample_n_step(buf, key, tids, n, steps, gamma, horizon)
+    one = buffers.sample(buf, key, tids, n)  # the same start rows
+    idx = np.asarray(jax.random.randint(key, (2, n), 0, np.asarray(buf.size)[tids][:, None]))
+    rew, nobs = np.asarray(data.reward), np.asarray(data.next_obs)
+    for i, task in enumerate(np.asarray(tids)):
+        for b in range(n):
+            t = idx[i, b]
+            m = min(steps, horizon - t % horizon)
+            ref = sum(gamma**j * rew[task, t + j] for j in range(m))
+            np.testing.assert_allclose(got.reward[i, b], ref, rtol=1e-5, atol=1e-6)
+            np.testing.assert_allclose(got.next_obs[i, b], nobs[task, t + m - 1], rtol=1e-6)
+            np.testing.assert_allclose(got.discount[i, b], gamma**m, rtol=1e-6)
+    np.testing.assert_array_equal(got.obs, one.obs)
+    np.testing.assert_array_equal(got.action, one.action)
+
+
+def test_one_step_batches_give_the_papers_critic_loss():
+    """n_step = 1 through the n-step path (discount gamma) equals the paper's target exactly,
+    and a longer n changes it."""
+    from mpcpearl_jax.pearl.losses import make_losses
+    from mpcpearl_jax.pearl.networks import Networks
+
+    cfg = PearlConfig(hidden=(8,), encoder_hidden=(8,), latent_dim=2, gamma=0.9)
+    nets = Networks(cfg, 3, 2)
+    params = nets.init(jax.random.PRNGKey(0))
+    buf, _ = _episode_buffer()
+    tids = jnp.array([0, 1])
+    plain = buffers.sample(buf, jax.random.PRNGKey(1), tids, 16)
+    n1 = buffers.sample_n_step(buf, jax.random.PRNGKey(1), tids, 16, 1, 0.9, 4)
+    n3 = buffers.sample_n_step(buf, jax.random.PRNGKey(1), tids, 16, 3, 0.9, 4)
+    ctx = jnp.concatenate([plain.obs, plain.action, plain.reward[..., None], plain.next_obs], -1)
+    loss = make_losses(nets).critic_encoder
+    q_enc = {"q": params["q"], "encoder": params["encoder"]}
+    k = jax.random.PRNGKey(2)
+    ref = loss(q_enc, params["v"], plain, ctx, k)[0]
+    np.testing.assert_allclose(loss(q_enc, params["v"], n1, ctx, k)[0], ref, rtol=1e-6)
+    assert abs(float(loss(q_enc, params["v"], n3, ctx, k)[0]) - float(ref)) > 1e-6
+
+
+def test_n_step_needs_whole_episodes_in_the_replay_buffer():
+    from mpcpearl_jax.training.trainer import Trainer
+    from tests.test_training import TINY
+
+    bad = TINY.replace(pearl=TINY.pearl.replace(n_step=3))
+    bad = bad.replace(train=dataclasses.replace(bad.train, rl_capacity=401))
+    with pytest.raises(ConfigError, match="n_step.*rl_capacity"):
+        Trainer(bad)
+
+
+# ---------------------------------------------------------------------------- the MPC as guide
+def test_the_guide_acts_on_every_step_before_the_hand_over_and_never_after():
+    """A stand-in MPC marks its steps: with events switched off (eps so small no draw fires),
+    exactly the steps t < handover of each row are the MPC's."""
+    from mpcpearl_jax.envs import make_env, tasks_for
+    from mpcpearl_jax.pearl.networks import Networks
+    from mpcpearl_jax.training.collect import make_collector, rows_of
+    from tests.test_training import TINY
+
+    env = make_env("restaurant")
+    tasks = tasks_for(TINY, "train", config=env.config)
+    nets = Networks(TINY.pearl, env.obs_dim(tasks), env.action_dim)
+
+    def bridge(key, fire, state, flat, a_pi, stamp):
+        return jnp.full_like(a_pi, 0.25), fire, None
+
+    collect = make_collector(env, nets, bridge, eps=1e-12)
+    params = jax.vmap(nets.init)(jax.random.split(jax.random.PRNGKey(0), 1))["policy"]
+    rows = rows_of(tasks, jnp.array([[0, 1, 2, 3]]))
+    z = jnp.zeros((1, 4, TINY.pearl.latent_dim))
+    handover = jnp.array([[0, 5, 17, env.config.horizon]], jnp.int32)
+    ep = collect(jax.random.PRNGKey(1), params, z, rows, None, handover)
+    t = np.arange(env.config.horizon)
+    for r, h in enumerate(np.asarray(handover[0])):
+        np.testing.assert_array_equal(np.asarray(ep.used_mpc[0, r]), t < h)
+        acted = np.all(np.asarray(ep.transitions.action[0, r]) == 0.25, -1)
+        np.testing.assert_array_equal(acted[:h], True)
+
+
+def _guided_trainer(**changes):
+    from mpcpearl_jax.training.trainer import Trainer
+    from tests.test_training import TINY
+
+    tc = dataclasses.replace(
+        TINY.train, eps=0.2, guide_share=0.5, guide_steps=30, guide_decrement=8, **changes
+    )
+    return Trainer(TINY.replace(train=tc, mpc={"unsafe_recovery": True, "n_workers": 1}))
+
+
+def test_the_roll_in_bound_shrinks_only_after_guided_success():
+    tr = _guided_trainer(guide_success=0.5)
+    state = tr.init_state()
+    assert np.asarray(state.guide_h).tolist() == [30, 30]
+    post = {"guide_rows": jnp.array([0.5, 0.0]), "guide_success": jnp.array([0.5, 1.0])}
+    state = tr._shrink_roll_in(state, post)  # seed 1 had no guided row: keeps its bound
+    assert np.asarray(state.guide_h).tolist() == [22, 30]
+    post = {"guide_rows": jnp.array([0.5, 0.5]), "guide_success": jnp.array([0.25, 0.5])}
+    for _ in range(5):
+        state = tr._shrink_roll_in(state, post)
+    assert np.asarray(state.guide_h).tolist() == [22, 0]  # never below 0
+    tr.close()
+
+
+def test_guided_rows_are_drawn_from_the_policy_rows_and_kept_out_of_its_success_rate():
+    tr = _guided_trainer(explore_start_share=0.5)
+    state = tr.init_state()
+    state, _ = tr.initial_collection(state)
+    state, stats = tr.posterior_collection(state, jnp.array([[0, 1], [2, 3]]))
+    assert set(stats) >= {"guide_rows", "guide_success", "explore_rows", "success"}
+    assert np.all(np.asarray(stats["guide_rows"]) + np.asarray(stats["explore_rows"]) <= 1.0)
+    tr.close()
+
+
+# --------------------------------------------------------------------------- the kept policy
+def test_the_kept_policy_changes_only_for_a_better_score_and_is_what_the_run_reports():
+    from mpcpearl_jax.training.run import policy_params
+    from mpcpearl_jax.training.trainer import Trainer, reported_params
+    from tests.test_training import TINY
+
+    tr = Trainer(TINY.replace(train=dataclasses.replace(TINY.train, keep_best=True, keep_tasks=3)))
+    state = tr.init_state()
+    state, _ = tr.initial_collection(state)
+    state, log = tr.keep_best(state)  # anything beats the initial -inf score
+    assert log["kept_replaced"] == 1.0
+    current = lambda s: s.learner.params["policy"]  # noqa: E731
+    same = lambda a, b: all(  # noqa: E731
+        bool(jnp.all(x == y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+    )
+    assert same(state.kept["policy"], current(state))
+    state, _ = tr.update_phase(state)  # the learner moves on
+    assert not same(state.kept["policy"], current(state))
+    kept_before = state.kept
+    state = state.replace(kept_score=jnp.full_like(state.kept_score, jnp.inf))
+    state, log = tr.keep_best(state)  # nothing beats +inf: the kept policy stays
+    assert log["kept_replaced"] == 0.0 and same(state.kept, kept_before)
+    assert same(reported_params(state), kept_before)
+    assert same(policy_params(state), jax.device_get(kept_before))
+    # the evaluation scores the kept policy, not the current one
+    ev = tr.evaluate(state, tasks=jax.tree.map(lambda x: x[:2], tr.test_tasks))
+    ref = tr.evaluate_adapt(jax.random.PRNGKey(12345), kept_before, tr.test_tasks)
+    assert ev["return"] == pytest.approx(float(np.mean(np.asarray(ref["return"])[:, :2])), rel=1e-5)
+    tr.close()
+
+
+def test_a_checkpoint_holds_the_extension_state_and_restores_it_exactly(tmp_path):
+    from mpcpearl_jax.training.checkpoint import Checkpointer
+    from mpcpearl_jax.training.run import policy_params
+
+    tr = _guided_trainer(keep_best=True, keep_tasks=2)
+    state = tr.init_state()
+    state, _ = tr.iteration(state)
+    state, _ = tr.keep_best(state)
+    state = state.replace(guide_h=jnp.array([22, 14], jnp.int32))
+    ck = Checkpointer(tmp_path, keep=2)
+    ck.save(1, state, policy_params(state))
+    back = ck.restore(template=tr.init_state())
+    for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(back), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert np.asarray(back.guide_h).tolist() == [22, 14]
+    ck.close()
+    tr.close()
