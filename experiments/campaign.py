@@ -112,7 +112,8 @@ def load_campaign(path: Path) -> list[CampaignRun]:
     extra = sorted(set(raw) - {"runs"})
     if extra:
         raise ValueError(f"{path}: unknown key(s) {extra}; a campaign file holds 'runs' only")
-    out, names = [], set()
+    out: list[CampaignRun] = []
+    names: set[str] = set()
     for i, r in enumerate(runs):
         run = parse_entry(r, f"{path}: runs[{i}]", names)
         names.add(run.name)

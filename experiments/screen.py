@@ -125,12 +125,12 @@ def _strings(x: object) -> bool:
 
 
 def _check_argv(argv: object, where: str) -> tuple[str, ...]:
-    if not _strings(argv):
+    if not isinstance(argv, list) or not _strings(argv):
         raise ValueError(f"{where} must be a list of strings")
-    held = [a for a in argv if a.split("=")[0] in SET_BY_SCREEN]  # type: ignore[union-attr]
+    held = [a for a in argv if a.split("=")[0] in SET_BY_SCREEN]
     if held:
         raise ValueError(f"{where} must not hold {held[0]} (the screen sets it)")
-    return tuple(argv)  # type: ignore[arg-type]
+    return tuple(argv)
 
 
 def load_screen(path: Path) -> Screen:
@@ -169,8 +169,8 @@ def load_screen(path: Path) -> Screen:
     evals = raw["evaluate"]
     if not isinstance(evals, list) or not evals or not all(_strings(e) for e in evals):
         raise ValueError(f"{path}: 'evaluate' must be a non-empty list of argument lists")
-    for i, e in enumerate(evals):
-        out = e[e.index("--out") + 1] if "--out" in e[:-1] else ""
+    for i, args in enumerate(evals):
+        out = args[args.index("--out") + 1] if "--out" in args[:-1] else ""
         if not out.startswith("{results}/") or out.rstrip("/") == "{results}":
             raise ValueError(
                 f"{path}: 'evaluate'[{i}] must give --out {{results}}/FOLDER (inside each run)"
@@ -308,16 +308,23 @@ def liftoff(rows: list[dict], updates_per_iteration: int) -> tuple[dict | None, 
 
 
 def seed_report(folder: Path, validation: str) -> dict:
-    """One finished run folder's lift-off, budget, validation metrics and test SR."""
-    cfg = _read(folder / "config.json")
-    lifted, budget = liftoff(_read(folder / "metrics.jsonl"), cfg["train"]["updates_per_iteration"])
-    pooled = _read(folder / validation)["pooled"]
-    return {
-        "liftoff": lifted,
-        "budget": budget,
-        "val": {m: pooled[m]["mean"] for m in METRICS},
-        "test_SR": _read(folder / "results.json")["test_adapt"]["SR"],
-    }
+    """One finished run folder's lift-off, budget, validation metrics and test SR; ValueError
+    naming the folder when a record does not hold what a finished run's does."""
+    try:
+        cfg = _read(folder / "config.json")
+        rows = _read(folder / "metrics.jsonl")
+        if not any("iteration" in r for r in rows):
+            raise ValueError("metrics.jsonl logs no iteration")
+        lifted, budget = liftoff(rows, cfg["train"]["updates_per_iteration"])
+        pooled = _read(folder / validation)["pooled"]
+        return {
+            "liftoff": lifted,
+            "budget": budget,
+            "val": {m: pooled[m]["mean"] for m in METRICS},
+            "test_SR": _read(folder / "results.json")["test_adapt"]["SR"],
+        }
+    except (OSError, ValueError, KeyError, TypeError) as e:  # JSONDecodeError is a ValueError
+        raise ValueError(f"{folder}: not a finished run's records ({type(e).__name__}: {e})") from e
 
 
 def seed_stats(values: list[float], metric: str) -> dict:
@@ -348,13 +355,18 @@ def curve_median(curve: list[list[float]]) -> float | None:
     return next((t for t, frac in curve if frac >= 0.5), None)
 
 
-def _bootstrap(scores: dict[str, Any], fn, reps: int, seed: int) -> tuple[float, list[float]]:
+def _bootstrap(
+    scores: dict[str, Any], fn, reps: int | None, seed: int | None
+) -> tuple[float, list[float]]:
     """rliable's stratified-bootstrap point estimate and 95 % percentile interval of `fn` for
-    one entry of `scores` (arrays shaped [runs, 1], or a tuple of them), drawn from `seed`.
-    rliable resamples with NumPy's global generator: it is seeded here and restored after."""
+    one entry of `scores` (arrays shaped [runs, 1], or a tuple of them), `reps` samples drawn
+    from `seed` (REPS, BOOTSTRAP_SEED where None). rliable resamples with NumPy's global
+    generator: it is seeded here and its state restored after."""
     import numpy as np
     from rliable import library as rly
 
+    reps = REPS if reps is None else reps
+    seed = BOOTSTRAP_SEED if seed is None else seed
     state = np.random.get_state()  # noqa: NPY002 (rliable draws from the global generator)
     try:
         np.random.seed(seed)  # noqa: NPY002
@@ -366,8 +378,9 @@ def _bootstrap(scores: dict[str, Any], fn, reps: int, seed: int) -> tuple[float,
     return float(point[key][0]), [float(lo), float(hi)]
 
 
-def iqm(scores: list[float], reps: int = REPS, seed: int = BOOTSTRAP_SEED) -> dict:
-    """The interquartile mean of one arm's per-seed scores and its bootstrap interval."""
+def iqm(scores: list[float], reps: int | None = None, seed: int | None = None) -> dict:
+    """The interquartile mean of one arm's per-seed scores and its bootstrap interval (REPS
+    samples from BOOTSTRAP_SEED unless given)."""
     import numpy as np
     from rliable import metrics
 
@@ -377,7 +390,7 @@ def iqm(scores: list[float], reps: int = REPS, seed: int = BOOTSTRAP_SEED) -> di
 
 
 def improvement(
-    scores: list[float], baseline: list[float], reps: int = REPS, seed: int = BOOTSTRAP_SEED
+    scores: list[float], baseline: list[float], reps: int | None = None, seed: int | None = None
 ) -> dict:
     """P(a seed of the arm scores higher than a seed of the baseline; ties count half) and its
     bootstrap interval (the two arms resampled independently)."""
@@ -547,7 +560,9 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__.splitlines()[0],
     )
     p.add_argument("screen", type=Path)
-    p.add_argument("--arms", nargs="+", default=None, help="train these arms only")
+    p.add_argument(
+        "--arms", nargs="+", default=None, help="train these arms only (the report has them all)"
+    )
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     mode.add_argument("--report-only", action="store_true", help="train nothing; write the report")
@@ -583,7 +598,11 @@ def main(argv: list[str] | None = None) -> int:
         rc = campaign.run_all(todo, lock, args.dry_run, source=str(args.screen))
         if rc or args.dry_run:
             return rc
-    report = screen_report(screen, Path("."), read_report(screen.report_path))
+    try:
+        report = screen_report(screen, Path("."), read_report(screen.report_path))
+    except ValueError as e:
+        print(f"error: {args.screen}: {e}", file=sys.stderr)
+        return 2
     write_report(report, screen.report_path)
     write_figure(report, screen.figure_path)
     for line in _summary_lines(report):
