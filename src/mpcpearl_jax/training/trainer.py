@@ -354,6 +354,7 @@ class Trainer:
             if explore is not None:
                 guided = guided & ~explore
             # hand-over steps uniform in {0, ..., h} of each seed
+            assert state.guide_h is not None
             u = jax.random.uniform(k_hand, rows.shape)
             hand = jnp.floor(u * (state.guide_h[:, None] + 1)).astype(jnp.int32)
             handover = jnp.where(guided, hand, 0)
@@ -537,6 +538,7 @@ class Trainer:
         below 0) when this iteration's guided rows reached the goal at a rate >= guide_success
         (seeds without a guided row keep theirs)."""
         tc = self.cfg.train
+        assert state.guide_h is not None
         passed = (post["guide_rows"] > 0) & (post["guide_success"] >= tc.guide_success)
         h = jnp.where(passed, jnp.maximum(state.guide_h - tc.guide_decrement, 0), state.guide_h)
         return state.replace(guide_h=h.astype(jnp.int32))
@@ -557,6 +559,7 @@ class Trainer:
         m = eval_lib.episode_metrics(result, tasks, self.env.config.robot_radius)
         score = jnp.stack([jnp.mean(m.success, -1), jnp.min(result["return"], -1)], -1)
         old = state.kept_score
+        assert old is not None and state.kept is not None
         tie = score[:, 0] == old[:, 0]
         better = (score[:, 0] > old[:, 0]) | (tie & (score[:, 1] > old[:, 1]))
         pick = lambda new, cur: jnp.where(  # noqa: E731
