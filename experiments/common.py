@@ -82,8 +82,9 @@ def add_config_options(
         "--preset",
         default=default_preset,
         choices=sorted(PRESETS),
-        help="smoke: ~2 min pipeline check; default: a few minutes on a laptop CPU; "
-        "cpu: an hours-long CPU schedule; paper: method §7 exactly",
+        help="smoke: ~2 min pipeline check; default: about 5 minutes on a 2-core CPU; "
+        "cpu-explore: the recommended CPU recipe; cpu-paper: the paper's algorithm on the CPU "
+        "schedule; paper: method §7 exactly (docs/usage.md)",
     )
     base.add_argument(
         "--config",
@@ -128,6 +129,14 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
         description=f"Train and evaluate MPC-PEARL (and its baselines) on the {env} tasks.",
     )
     add_config_options(p, env, default_preset)
+    p.add_argument(
+        "--env",
+        default=env,
+        metavar="FAMILY",
+        help=f"the task family: a registered one (restaurant, sidewalk; default {env}) or "
+        "MODULE:NAME, a module that registers NAME when imported, e.g. examples.corridor:corridor "
+        "(docs/custom_tasks.md)",
+    )
     p.add_argument("--iterations", type=int, help="meta-training iterations")
     p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-eps<eps>)")
     add_run_mode_options(p)
@@ -221,13 +230,16 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
     try:  # everything up to training: each check names the field, file or folder
         # before any JAX work
         initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
-        cfg = validate(build_config(args, env, **extra))
-        out = args.out or Path("runs") / f"{env}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"
+        family = _family(args.env)
+        cfg = validate(build_config(args, family, **extra))
+        out = args.out or Path("runs") / f"{family}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"
         print(
-            f"[{env}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "
+            f"[{family}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "
             f"iterations={cfg.train.iterations} out={out}",
             flush=True,
         )
+        if args.preset == "default" and args.config is None:
+            print(DEFAULT_NOTE, flush=True)
         sess = open_session(
             cfg, out, resume=args.resume, tensorboard=args.tensorboard, overwrite=args.overwrite
         )
@@ -248,6 +260,22 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         return _train_and_evaluate(args, sess, fail)
 
 
+DEFAULT_NOTE = (
+    "the default preset: a first look of about 5 minutes on a 2-core CPU, far shorter than the "
+    "paper's training (how long that was is printed under the results table)"
+)
+
+
+def _family(spec: str) -> str:
+    """--env's family (`envs.load_family`), its error naming the flag."""
+    from mpcpearl_jax.envs import load_family
+
+    try:
+        return load_family(spec)
+    except ValueError as e:
+        raise ValueError(f"--env {e}") from None
+
+
 def out_of_memory(e: BaseException) -> str:
     """The one line of XLA's out-of-memory error ('' for any other error)."""
     text = str(e)
@@ -262,7 +290,7 @@ def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
     from mpcpearl_jax.training.run import RunInterrupted, final_evaluation, train_iterations
 
     cfg, out, trainer = sess.cfg, sess.run_dir, sess.trainer
-    t0 = time.perf_counter()
+    start, t0 = sess.done, time.perf_counter()
     try:
         state = train_iterations(sess, progress=not args.no_progress, handle_sigint=True)
     except RunInterrupted as e:
@@ -279,7 +307,8 @@ def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
         if not out_of_memory(e):
             raise
         return fail(MemoryError(out_of_memory(e)))
-    print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
+    train_s = time.perf_counter() - t0
+    print(f"trained in {train_s:.1f} s; evaluating", flush=True)
     try:
         final_evaluation(trainer, state, out, run_label(cfg))
     except OSError as e:
@@ -292,5 +321,35 @@ def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
             flush=True,
         )
         return 130
+    print(trained_line(cfg, train_s, start), flush=True)
+    print(LONGER if cfg.env == "restaurant" else LONGER_ANY, flush=True)
     print(f"results, curves and figures in {out}", flush=True)
     return 0
+
+
+# the recipe of the five-seed comparison (docs/usage.md, "Training longer")
+LONGER = (
+    "to train longer (docs/usage.md, 'Training longer'): python -m experiments.learning "
+    "--preset cpu-explore --set pearl.auto_entropy=true --eps 0.2 --minutes 24"
+)
+LONGER_ANY = "to train longer: --iterations N, or another preset (docs/usage.md, 'Training longer')"
+
+
+def trained_line(cfg: ExperimentConfig, seconds: float, start: int = 0) -> str:
+    """What this process trained, for how long and on what (printed under the results table,
+    whose paper columns say how long the paper trained)."""
+    import jax
+
+    iters = cfg.train.iterations - start
+    steps = iters * cfg.train.updates_per_iteration
+    dev = jax.devices()[0]
+    where = (
+        f"a {os.cpu_count()}-core CPU"
+        if dev.platform == "cpu"
+        else f"{jax.device_count()} x {dev.device_kind}"
+    )
+    return (
+        f"this run: {run_label(cfg)}, {iters} iteration(s) x {cfg.train.updates_per_iteration} "
+        f"gradient steps ({steps:,}), {cfg.seeds} seed(s), trained in {seconds / 60:.1f} min on "
+        f"{where}"
+    )

@@ -28,6 +28,11 @@ def test_tables_put_the_paper_beside_the_run():
     one = results_table(res)
     assert "| PEARL | PEARL (online) | paper PEARL |" in one.splitlines()[0]
     assert "| SR | 0.50 | 0.50 | 0.36 |" in one
+    assert one.splitlines()[-1] == "paper columns: the paper's published table"
+    # the restaurant's: how long the paper's agents trained (method §9), under the table
+    note = results_table({**res, "env": "restaurant"}).splitlines()[-1]
+    assert note.startswith("paper columns: the paper's published table (3000 iterations x 750")
+    assert "about 27 h on the authors' GPU machine, mean over 7 seeds" in note
     many = comparison_table([("PEARL", res)], PAPER["sidewalk"])
     assert "PEARL (2 adapt. eps.)" in many and "| CFR | 0.90 | 0.90 | - |" in many
 

@@ -94,6 +94,34 @@ def env_names() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def load_family(spec: str) -> str:
+    """The name of the task family `spec` names: NAME, a registered family (`restaurant`,
+    `sidewalk`), or MODULE:NAME, whose MODULE is imported first (importing it registers NAME;
+    e.g. `examples.corridor:corridor`, docs/custom_tasks.md). ValueError, starting with `spec`,
+    when the module or the family is missing."""
+    import importlib
+
+    module, sep, name = spec.partition(":")
+    if not sep:
+        if spec not in _REGISTRY:
+            raise ValueError(f"{spec}: no such task family; known: {env_names()} or MODULE:NAME")
+        return spec
+    if not module or not name:
+        raise ValueError(f"{spec}: expected MODULE:NAME, e.g. examples.corridor:corridor")
+    try:
+        importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        raise ValueError(
+            f"{spec}: no module named {e.name!r} (run from the folder that holds {module!r}, or "
+            f"install its package)"
+        ) from None
+    if name not in _REGISTRY:
+        raise ValueError(
+            f"{spec}: importing {module} registered no family {name!r}; known: {env_names()}"
+        )
+    return name
+
+
 def make_env(name: str, **overrides: Any) -> NavEnv:
     """The environment of a task family; keyword overrides replace `NavConfig` fields."""
     config, _ = _lookup(name)
@@ -214,6 +242,7 @@ __all__ = [
     "TaskParams",
     "can_redraw",
     "env_names",
+    "load_family",
     "make_env",
     "make_tasks",
     "mpc_defaults",

@@ -28,6 +28,24 @@ PAPER = {
         "PEARL (online)": {"SR": 0.03, "TT": 249.61, "CFR": 0.84, "SPL": 0.03},
     },
 }
+# method §9 (the authors' logs): how the paper's restaurant agents were trained, said beside its
+# numbers wherever they are printed (the paper gives no training time for the sidewalk)
+PAPER_TRAINING = {
+    "restaurant": {"iterations": 3000, "updates_per_iteration": 750, "hours": 27, "seeds": 7},
+}
+
+
+def paper_training(env: str) -> str:
+    """How the paper's agents of family `env` were trained, in words ('' where unknown)."""
+    t = PAPER_TRAINING.get(env)
+    if t is None:
+        return ""
+    steps = t["iterations"] * t["updates_per_iteration"]
+    return (
+        f"{t['iterations']} iterations x {t['updates_per_iteration']} gradient steps "
+        f"({steps / 1e6:.2f}M), about {t['hours']} h on the authors' GPU machine, mean over "
+        f"{t['seeds']} seeds"
+    )
 
 
 def run_label(cfg: Any) -> str:
@@ -60,12 +78,19 @@ def paper_columns(paper: dict) -> list[tuple[str, dict]]:
 
 
 def results_table(results: dict[str, Any]) -> str:
-    """One run's results.json: adaptation / online / OOD next to the paper's columns."""
+    """One run's results.json: adaptation / online / OOD next to the paper's columns, and a line
+    saying where the paper's columns come from and how long its agents trained."""
     label = results["label"]
     cols = [(f"{label}", results["test_adapt"]), (f"{label} (online)", results["test_online"])]
     if "SR" in results.get("ood_adapt", {}):
         cols.append((f"{label} (OOD)", results["ood_adapt"]))
-    return metrics_table(cols + paper_columns(results.get("paper", {})))
+    paper = results.get("paper", {})
+    table = metrics_table(cols + paper_columns(paper))
+    if not paper:
+        return table
+    trained = paper_training(results.get("env", ""))
+    note = "paper columns: the paper's published table" + (f" ({trained})" if trained else "")
+    return f"{table}\n{note}"
 
 
 def comparison_table(results: Sequence[tuple[str, dict]], paper: dict) -> str:
