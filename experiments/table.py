@@ -1,4 +1,5 @@
-"""The results tables of README.md and results/README.md, generated from the committed records.
+"""The results tables of README.md, results/README.md and docs/research-log.md, generated from
+the committed records.
 
     python -m experiments.table              # rewrite the tables between their marker comments
     python -m experiments.table --check      # exit 1 with a diff if the committed text differs
@@ -9,10 +10,10 @@ two adaptation episodes, online, OOD), `curve.json` (budget, gradient steps, the
 point; `metrics.jsonl` and `config.json` where a run has no curve), its
 `eval/policy-val-seeds1-8/results.json` (192 validation tasks, pooled) and
 `eval/policy-scenarios-{test,ood}/results.json` (the paper's 25 test and 25 OOD scenarios); the
-GP-MPC's from `results/gp_mpc/`; the paper's from `mpcpearl_jax.evaluation.report.PAPER`. A table
-lists its rows (or columns) in `README_QUALITY` and `RESTAURANT`
-(`experiments/tables/catalogue.py`): a label and one run folder, or several folders of one
-configuration (one per seed), shown as mean +- standard error over the seeds and the worst seed.
+GP-MPC's from `results/gp_mpc/`; the speed figures from `benchmarks/results/`; the paper's from
+`mpcpearl_jax.evaluation.report.PAPER`. A table lists its rows in `experiments/tables/catalogue.py`
+(or `summary.py`): a label and one run folder, or several folders of one configuration (one per
+seed), shown as mean +- standard error over the seeds and the worst seed.
 A missing record is reported by name (exit 1), never filled in.
 
 `--paired A B` prints the paired difference A - B of the success rate over the 192 validation
@@ -33,7 +34,6 @@ from pathlib import Path
 from experiments.tables.render import (
     render_main_seed_summary,
     render_main_seeds,
-    render_quality,
     render_restaurant,
     render_robustness,
     render_robustness_choice,
@@ -43,19 +43,32 @@ from experiments.tables.render import (
 )
 from experiments.tables.screen import render_screen_learner
 from experiments.tables.statistics import MISSING, VAL8, Records, paired_difference
+from experiments.tables.summary import (
+    render_paper,
+    render_robustness_summary,
+    render_speed,
+    render_summary,
+)
 
+LOG = "docs/research-log.md"
 BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block name, renderer
-    ("README.md", "quality", render_quality),
-    ("results/README.md", "restaurant", render_restaurant),
-    ("results/README.md", "robustness", render_robustness),
-    ("results/README.md", "robustness-choice", render_robustness_choice),
+    ("README.md", "summary", render_summary),
+    ("README.md", "speed", render_speed),
+    ("results/README.md", "paper", render_paper),
     ("results/README.md", "seeds", render_seeds),
-    ("results/README.md", "seed-curves", render_seed_curves),
-    ("results/README.md", "main-seeds", render_main_seeds),
-    ("results/README.md", "main-seed-summary", render_main_seed_summary),
+    ("results/README.md", "robustness-summary", render_robustness_summary),
     ("results/README.md", "sidewalk-seeds", render_sidewalk_seeds),
+    ("results/README.md", "speed", render_speed),
+    (LOG, "seed-curves", render_seed_curves),
+    (LOG, "restaurant", render_restaurant),
+    (LOG, "main-seeds", render_main_seeds),
+    (LOG, "main-seed-summary", render_main_seed_summary),
+    (LOG, "robustness", render_robustness),
+    (LOG, "robustness-choice", render_robustness_choice),
     ("results/restaurant/screen/README.md", "screen-learner", render_screen_learner),
 )
+# the pages whose results/ paths must exist and whose generated blocks back README's figures
+PAGES = ("README.md", "results/README.md", LOG)
 
 
 def markers(name: str) -> tuple[str, str]:
@@ -79,8 +92,8 @@ Block = tuple[str, str, Callable[[Records], str]]  # (file under the root, block
 def generate(
     results: Path, blocks: Sequence[Block] | None = None
 ) -> tuple[dict[Path, tuple[str, str]], list[str]]:
-    """{README path: (committed text, generated text)} and the missing records; the READMEs
-    are found beside `results` (README.md) and in it (results/README.md)."""
+    """{page path: (committed text, generated text)} and the missing records; the pages are
+    found under `results`' parent (README.md, results/README.md, docs/research-log.md)."""
     rec = Records(results)
     root = results.parent
     out: dict[Path, tuple[str, str]] = {}
@@ -119,10 +132,10 @@ def referenced_paths(text: str) -> list[str]:
 
 
 def missing_references(root: Path) -> list[str]:
-    """'README: path' for every results/ path the two READMEs name that does not exist."""
+    """'PAGE: path' for every results/ path the pages (`PAGES`) name that does not exist."""
     bases = (root, root / "results", root / "results" / "restaurant")
     out = []
-    for rel in ("README.md", "results/README.md"):
+    for rel in (page for page in PAGES if (root / page).is_file()):
         for ref in referenced_paths((root / rel).read_text()):
             if not any((b / ref).exists() for b in bases):
                 out.append(f"{rel}: {ref}")
@@ -137,7 +150,7 @@ _FIGURE = re.compile(r"(?<![\w.])(\d+\.\d\d)(?![\d])")
 def unsourced_figures(root: Path) -> list[str]:
     """'README.md:LINE: X' for every figure (a number with two decimals, as the tables print them)
     that README.md's prose quotes (outside its generated blocks and code) and that neither a
-    generated block of README.md or results/README.md nor the paper's table holds: a figure
+    generated block of the pages (`PAGES`) nor the paper's table holds: a figure
     typed by hand that no record backs (e.g. an SR edited from 0.83 to 0.93). Python versions
     are not figures."""
     from mpcpearl_jax.evaluation.report import PAPER
@@ -145,7 +158,8 @@ def unsourced_figures(root: Path) -> list[str]:
     readme = (root / "README.md").read_text()
     generated = " ".join(
         body
-        for rel in ("README.md", "results/README.md")
+        for rel in PAGES
+        if (root / rel).is_file()
         for _, body in _BLOCK.findall((root / rel).read_text())
     )
     paper = {

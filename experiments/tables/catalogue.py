@@ -37,6 +37,7 @@ _GP_MPC = Entry(
         ("scen_ood", "gp_mpc/scenarios/restaurant_ood.json"),
     ),
 )
+GP_MPC = _GP_MPC  # the GP-MPC's records (README's summary, the paper's table side by side)
 _GP_MPC_TEACHER = Entry(
     "GP-MPC with unsafe-plan recovery (the learned agents' MPC)",
     files=(
@@ -56,32 +57,6 @@ CAMPAIGN_MPC_PEARL = (
     "restaurant/seeds/mpc-pearl-s2",
     "restaurant/seeds/mpc-pearl-s3",
     "restaurant/seeds/mpc-pearl-s4",
-)
-README_QUALITY: tuple[Entry, ...] = (
-    _GP_MPC,
-    Entry("MPC-PEARL 0.2 (`cpu-explore`), 60 min", (_HEADLINE,)),
-    Entry("PEARL (`cpu-explore`), 60 min", ("restaurant/pearl",)),
-    Entry("MPC-SAC 0.2 (`cpu-explore`), 60 min", ("restaurant/mpc-sac",)),
-    Entry(
-        "PEARL (`cpu-tuned`), 60 min, seeds 0 and 1",
-        ("restaurant/ablation/pearl-tuned-60min", "restaurant/ablation/pearl-seed1-60min"),
-    ),
-    Entry(
-        f"MPC-PEARL 0.2 (`cpu-auto`), 24 min, seeds 0-{len(CAMPAIGN_MPC_PEARL) - 1}",
-        CAMPAIGN_MPC_PEARL,
-    ),
-    Entry("MPC-PEARL 0.2 ext. (`cpu-tuned`), 60 min", ("restaurant/ablation/extended-60min",)),
-    Entry("MPC-SAC 0.2 ext. (`cpu-tuned`), 60 min", ("restaurant/ablation/mpc-sac-tuned-60min",)),
-    Entry("MPC-PEARL 0.2 paper alg. (`cpu-paper`), 60 min", ("restaurant/mpc-pearl-eps0.2-paper",)),
-    Entry(
-        "GrBAL, 16 min beside other jobs, paper's observation",
-        ("restaurant/grbal",),
-        absent=_NO_VAL | _NO_SCEN,
-    ),
-    Entry("main command (`default`), 5 min", ("restaurant/main-default",)),
-    Entry("paper MPC-PEARL 0.2", paper="MPC-PEARL 0.2"),
-    Entry("paper PEARL", paper="PEARL"),
-    Entry("paper MPC-SAC", paper="MPC-SAC"),
 )
 
 

@@ -16,7 +16,6 @@ from experiments.tables.catalogue import (
     MAIN_SEEDS,
     PAPER_ORDER,
     PERTURBATIONS,
-    README_QUALITY,
     RESTAURANT,
     ROBUSTNESS,
     ROBUSTNESS_CHOICE,
@@ -106,37 +105,6 @@ SEEDS_NOTE = (
     "a +- b: the standard error over the 192 validation tasks for one seed; for a group of "
     "seeds, mean +- standard error over the seeds, then the worst seed."
 )
-
-
-def render_quality(rec: Records, entries: Sequence[Entry] = README_QUALITY) -> str:
-    """README's table: one column per entry, one row per metric."""
-
-    def metric_row(m: str) -> Callable[[Entry], str]:
-        return lambda e: fmt_metric(entry_values(rec, e, "test", m), m)
-
-    rows: list[tuple[str, Callable[[Entry], str]]] = [(m, metric_row(m)) for m in METRICS]
-    rows += [
-        ("val SR, 192 tasks", lambda e: val8_cell(rec, e, cfr=False)),
-        ("SR / CFR, paper's 25 test scenarios", lambda e: pair_cell(rec, e, "scen_test")),
-        ("SR / CFR, paper's 25 OOD scenarios", lambda e: pair_cell(rec, e, "scen_ood")),
-    ]
-    lines = [
-        "| metric | " + " | ".join(e.label for e in entries) + " |",
-        "|---|" + "---|" * len(entries),
-    ]
-    lines += [f"| {name} | " + " | ".join(f(e) for e in entries) + " |" for name, f in rows]
-    notes = [
-        "",
-        "SR ... MGD: the 24 test tasks after two adaptation episodes; val SR: the 192 validation "
-        "tasks; the scenario rows: the paper's own 25 test and 25 OOD crowds (`--scenarios`). "
-        "Paper columns: the paper's table, measured on its 25 test scenarios "
-        "(`mpcpearl_jax.evaluation.report.PAPER`). "
-        + SEEDS_NOTE
-        + " Records, under `results/`: "
-        + "; ".join(f"{e.label}: {run_ref(e)}" for e in entries if e.sources())
-        + ".",
-    ]
-    return "\n".join(lines + notes)
 
 
 _RESTAURANT_COLUMNS: tuple[tuple[str, Callable[[Records, Entry], str]], ...] = (

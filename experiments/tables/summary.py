@@ -1,0 +1,294 @@
+"""The summary tables at the top of README.md and results/README.md: this project against the
+paper on the paper's own 25 test scenarios with the training budgets beside the scores, the
+main command over its ten seeds, the crowd perturbations of the headline runs, and the speed of
+the CPU and GPU machines (from `benchmarks/results/`). Built on `render`'s cells."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from experiments.tables.catalogue import (
+    CAMPAIGN_MPC_PEARL,
+    GP_MPC,
+    MAIN_PASS,
+    MAIN_SEED_SUMMARY,
+    PERTURBATIONS,
+    ROBUSTNESS,
+    ROBUSTNESS_CHOICE,
+    SEED_GROUPS,
+    Entry,
+)
+from experiments.tables.render import (
+    _minutes,
+    fmt_count,
+    fmt_metric,
+    render_perturbed,
+)
+from experiments.tables.statistics import MISSING, NO_RECORD, Records, entry_values
+from mpcpearl_jax.evaluation.report import PAPER_TRAINING, paper_training
+
+# ---------------------------------------------------------------- budgets
+
+
+def _thousands(x: float) -> str:
+    return f"{int(round(x)):,}"
+
+
+def run_budget(rec: Records, e: Entry) -> str:
+    """'24 min each on a 2-core CPU, 59,500-80,000 gradient steps, 5 seeds' from the runs'
+    curve.json (or metrics.jsonl): wall-clock minutes, the cores their records name, steps."""
+    minutes = fmt_count(entry_values(rec, e, "budget", ""), _minutes)
+    steps = fmt_count(entry_values(rec, e, "grad_steps", ""), _thousands)
+    if MISSING in (minutes, steps):
+        return MISSING
+    cores = set()
+    for run in e.runs:
+        has_curve = (rec.results / run / "curve.json").is_file()
+        curve = rec.read(f"{run}/curve.json") if has_curve else {}
+        cores.add((curve or {}).get("machine", {}).get("cores_available"))
+    known = len(cores) == 1 and None not in cores
+    where = f"a {cores.pop()}-core CPU" if known else "a CPU (cores not recorded)"
+    seeds = f", {len(e.runs)} seeds" if len(e.runs) > 1 else ", 1 seed"
+    each = " each" if len(e.runs) > 1 else ""
+    return f"{minutes} min{each} on {where}, {steps} gradient steps{seeds}"
+
+
+def _paper_budget(method: str) -> str:
+    if method == "MPC-PEARL 0.2":
+        return paper_training("restaurant")
+    if method == "GP-MPC":
+        return "no training"
+    return f"mean over {PAPER_TRAINING['restaurant']['seeds']} seeds; training time not reported"
+
+
+# ---------------------------------------------------------------- README: against the paper
+
+SUMMARY_METRICS = ("SR", "CFR", "TT", "SPL")
+RECIPE = Entry("MPC-PEARL 0.2, this project's recipe", CAMPAIGN_MPC_PEARL)
+
+
+def render_summary(rec: Records) -> str:
+    """README's first table: the paper's MPC-PEARL 0.2 and GP-MPC, this project's recipe over
+    its five seeds and its GP-MPC, on the paper's 25 test scenarios, with each one's training;
+    then the main command over seeds 0-9."""
+    rows = [
+        (Entry("MPC-PEARL 0.2, the paper", paper="MPC-PEARL 0.2"), _paper_budget("MPC-PEARL 0.2")),
+        (RECIPE, run_budget(rec, RECIPE)),
+        (Entry("GP-MPC, the paper", paper="GP-MPC"), _paper_budget("GP-MPC")),
+        (Entry("GP-MPC, this project", files=GP_MPC.files), "no training"),
+    ]
+    head = ["", *SUMMARY_METRICS, "training"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for e, budget in rows:
+        cells = [fmt_metric(entry_values(rec, e, "scen_test", m), m) for m in SUMMARY_METRICS]
+        lines.append(f"| {e.label} | " + " | ".join(cells) + f" | {budget} |")
+    lines += [
+        "",
+        "On the paper's 25 test scenarios after two adaptation episodes (SR, CFR, SPL: higher is "
+        "better; TT: steps of the episode not spent at the goal, lower is better); this project's "
+        "recipe: mean +- standard error over its five seeds (worst seed), `--preset cpu-explore "
+        "--set pearl.auto_entropy=true` (records: "
+        + ", ".join(f"`{r}`" for r in RECIPE.runs)
+        + "); the paper: its published table.",
+        "",
+        _main_command_line(rec),
+    ]
+    return "\n".join(lines)
+
+
+def _main_command_line(rec: Records) -> str:
+    """The main command (`default`) over seeds 0-9 in one sentence."""
+    name, runs = MAIN_SEED_SUMMARY[0]
+    e = Entry(name, tuple(runs))
+    test, val = entry_values(rec, e, "test", "SR"), entry_values(rec, e, "val8", "SR")
+    budget = fmt_count(entry_values(rec, e, "budget", ""), _minutes)
+    if isinstance(test, str) or isinstance(val, str) or budget == MISSING:
+        return f"The main command: {MISSING}"
+    pairs = zip(test, val, strict=True)
+    passed = sum(t.value >= MAIN_PASS and v.value >= MAIN_PASS for t, v in pairs)
+    return (
+        f"The main command (`default`, {budget} min on a 2-core CPU) over seeds 0-{len(runs) - 1}: "
+        f"SR {fmt_metric(test, 'SR')} on the 24 test tasks and {fmt_metric(val, 'SR')} on the 192 "
+        f"validation tasks; {passed} of {len(runs)} seeds reach SR {MAIN_PASS} on both."
+    )
+
+
+# ---------------------------------------------------------------- results/README: side by side
+
+PAPER_METRICS = ("SR", "CFR", "TT", "SPL", "MGD")
+# method in the paper's table -> this project's seed group of the same name (SEED_GROUPS)
+SIDE_BY_SIDE = (
+    ("MPC-PEARL 0.2", "MPC-PEARL 0.2"),
+    ("PEARL", "PEARL"),
+    ("MPC-SAC", "MPC-SAC 0.2"),
+    ("GP-MPC", None),
+    (None, "GrBAL"),
+)
+# further rows of a method: source, run folders (trained on the paper's own training scenarios)
+SIDE_BY_SIDE_MORE = {
+    "MPC-PEARL 0.2": (
+        (
+            "this project, `cpu-explore` trained on the paper's scenarios 0-149",
+            ("restaurant/paper-scenarios/cpu-explore-eps0.2",),
+        ),
+    ),
+}
+
+
+def render_paper(rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEED_GROUPS) -> str:
+    """The paper's table beside this project's five seeds per method (and its GP-MPC), on the
+    paper's 25 test scenarios, with each row's training."""
+    seeds = {name: Entry(name, tuple(runs)) for name, runs in groups}
+    head = ["method", "source", *PAPER_METRICS, "training"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for paper, ours in SIDE_BY_SIDE:
+        name = paper or ours
+        rows: list[tuple[str, Entry | None, str]] = []
+        if paper is not None:
+            rows.append(("the paper", Entry(name, paper=paper), _paper_budget(paper)))
+        else:
+            rows.append(("the paper", None, "not in the paper's table"))
+        if ours is None:
+            rows.append(("this project", Entry(name, files=GP_MPC.files), "no training"))
+        else:
+            rows.append(("this project", seeds[ours], run_budget(rec, seeds[ours])))
+        for source, runs in SIDE_BY_SIDE_MORE.get(name, ()):
+            e = Entry(source, runs)
+            rows.append((source, e, run_budget(rec, e)))
+        for i, (source, e, budget) in enumerate(rows):
+            cells = [
+                NO_RECORD if e is None else fmt_metric(entry_values(rec, e, "scen_test", m), m)
+                for m in PAPER_METRICS
+            ]
+            lines.append("| " + " | ".join([name if i == 0 else "", source, *cells, budget]) + " |")
+    lines += [
+        "",
+        "The paper's 25 test scenarios after two adaptation episodes, the paper's protocol. This "
+        "project: mean +- standard error over seeds (worst seed), each seed trained alone on the "
+        "generated crowds for the budget shown with `--preset cpu-explore --set "
+        "pearl.auto_entropy=true` (GrBAL: `--preset cpu`), so the paper's scenarios are unseen "
+        "crowds; one run of `cpu-explore` trained on the paper's own training scenarios instead "
+        "(`restaurant/paper-scenarios/cpu-explore-eps0.2`); GP-MPC: "
+        "`gp_mpc/scenarios/restaurant_test.json`. The paper: its published table "
+        "(`mpcpearl_jax.evaluation.report.PAPER`, the training from method §9).",
+    ]
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- results/README: robustness
+
+
+def render_robustness_summary(rec: Records) -> str:
+    """The crowd perturbations of the three 60-minute runs of the headline preset, the run
+    trained with randomised crowd timing, and GP-MPC (the full table is in the research log)."""
+    rows = [*ROBUSTNESS, ROBUSTNESS_CHOICE[1], ("GP-MPC", "GP-MPC")]
+    lines = render_perturbed(rec, rows, PERTURBATIONS)
+    lines += [
+        "",
+        "SR / CFR on the 192 validation tasks with every person's timing perturbed on an "
+        "unchanged path: delay K holds everyone at the start K more steps, speed S walks the "
+        "paths S times as fast (docs/method.md §8a). One seed each. Every other committed policy: "
+        'docs/research-log.md, "Crowd perturbations".',
+    ]
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- speed, CPU and GPU
+
+BENCH = {"cpu": "../benchmarks/results", "gpu": "../benchmarks/results/gpu-h100"}
+
+
+def _sig(x: float) -> str:
+    """Three significant digits, trailing zeros kept (16.0, 0.274, 134)."""
+    return f"{x:#.3g}".rstrip(".")
+
+
+def _rate(x: float) -> str:
+    for div, unit in ((1e6, "M"), (1e3, "k")):
+        if x >= div:
+            return f"{_sig(x / div)}{unit}"
+    return _sig(x)
+
+
+def _duration(s: float) -> str:
+    for div, unit in ((1.0, "s"), (1e-3, "ms")):
+        if s >= div or (unit == "s" and s >= 0.1):
+            return f"{_sig(s / div)} {unit}"
+    return f"{_sig(s * 1e6)} us"
+
+
+def _best(rows: list[dict]) -> str:
+    top = max(rows, key=lambda r: r["steps_per_s"])
+    return f"{_rate(top['steps_per_s'])}/s (batch {top['batch']})"
+
+
+def _speed_cells(rec: Records, where: str) -> list[str] | None:
+    env = rec.read(f"{BENCH[where]}/env_throughput.json")
+    step = rec.read(f"{BENCH[where]}/pearl_step.json")
+    it = rec.read(f"{BENCH[where]}/iteration.json")
+    lat = rec.read(f"{BENCH[where]}/policy_latency.json")
+    if None in (env, step, it, lat):
+        return None
+    e, s = env["results"], step["results"]
+    act = next(r for r in lat["results"]["rows"] if r["call"] == "act" and r["batch"] == 1)
+    summ = it["results"]["summary"]
+    main = rec.read(MAIN_JOB[where])
+    if main is None:
+        return None
+    test = main["test_adapt"]
+    return [
+        _best(e["jax_env"]),
+        _best(e["jax_policy"]),
+        f"{_duration(s['step']['jax']['median_s'])} (PyTorch on the same machine: "
+        f"{_duration(s['step']['torch']['median_s'])})",
+        f"{_duration(summ['iteration_scaled_to_750_updates_s'])} (updates "
+        f"{_duration(summ['updates_scaled_to_750_s'])})",
+        _duration(lat["results"]["mpc"]["call"]["median_s"]),
+        _duration(act["latency_us"] * 1e-6),
+        f"{test['SR']:.2f} / {test['CFR']:.2f}",
+    ]
+
+
+SPEED_ROWS = (
+    "restaurant env, random actions (`scan` + `vmap`), best batch",
+    "env + 3 x 300 policy in the loop, best batch",
+    "PEARL gradient step, the paper's sizes (median)",
+    "`paper`-preset iteration, eps 0.2, scaled to 750 updates",
+    "one MPC call (GP + SQP on the host, median)",
+    "trained policy, `load_policy` then `act`, batch 1 (median)",
+    "the main command, seed 0: test SR / CFR (one run on each)",
+)
+# the main command's run on each machine (the CPU's is the committed results/ run)
+MAIN_JOB = {
+    "cpu": "restaurant/main-default/results.json",
+    "gpu": "../benchmarks/results/gpu-h100/main-job-results.json",
+}
+
+
+def render_speed(rec: Records) -> str:
+    """The speed of one 2-core CPU and one GPU, from the benchmark records."""
+    cpu, gpu = _speed_cells(rec, "cpu"), _speed_cells(rec, "gpu")
+    machines = []
+    for where in ("cpu", "gpu"):
+        m = (rec.read(f"{BENCH[where]}/all.json") or {}).get("machine", {})
+        machines.append(
+            f"{m.get('cpu_count', '?')}-core {m.get('cpu_model', '?')}, JAX {m.get('jax', '?')}"
+        )
+    lines = [
+        f"| what | CPU only ({machines[0]}) | one NVIDIA H100 (host: {machines[1]}) |",
+        "|---|---|---|",
+    ]
+    for i, what in enumerate(SPEED_ROWS):
+        c = MISSING if cpu is None else cpu[i]
+        g = MISSING if gpu is None else gpu[i]
+        lines.append(f"| {what} | {c} | {g} |")
+    lines += [
+        "",
+        "`python -m benchmarks.all`; records: `benchmarks/results/` (CPU) and "
+        "`benchmarks/results/gpu-h100/` (GPU; benchmarks/README.md has the commands). Different "
+        "machines, JAX versions and host CPUs: compare the columns as orders of magnitude. The "
+        "MPC's solves run on the host CPU in both (OSQP), so on the GPU they take most of an "
+        "iteration. The two runs of the main command (the CPU's: `restaurant/main-default`) also "
+        "differ in JAX version and code revision: one seed each, no comparison of the devices.",
+    ]
+    return "\n".join(lines)
