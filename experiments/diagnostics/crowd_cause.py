@@ -1,6 +1,6 @@
 """Why does a late crowd cost the policies? Interventions on what the policy sees.
 
-A diagnostic for the robustness table (results/README.md, docs/method.md §8a). On the `val`
+A diagnostic for the robustness table (docs/research-log.md, docs/method.md §8a). On the `val`
 split of each of `--task-seeds` (the 192 tasks of task seeds 1-8 by default, those of
 `python -m experiments.evaluate RUN --split val --task-seeds 1-8 --perturb delay=K`), every run
 of `--runs` is scored by the meta-test protocol (two adaptation episodes, then the scored one;

@@ -1,6 +1,6 @@
 """Test-time safety shield (extension, off in the paper): a one-call geometric filter on actions.
 
-The learned policy's failures are contacts (`results/README.md`: most failing episodes touch a
+The learned policy's failures are contacts (`docs/research-log.md`: most failing episodes touch a
 person or a table, and half of those still reach the goal afterwards). The shield replaces an
 action whose next `lookahead` steps, holding it, would bring the robot within `margin` of a
 collision with what the robot can see, by the nearest action (in the normalised action box) of a
