@@ -386,3 +386,24 @@ def test_check_finds_a_figure_typed_into_readme_prose(tmp_path, monkeypatch, cap
     paper = f"The paper reports SR {PAPER['restaurant']['MPC-PEARL 0.2']['SR']:.2f}.\n"
     (tmp_path / "README.md").write_text(paper + block)
     assert table.main([str(results), "--check"]) == 0
+
+
+def test_summary_tables_set_the_paper_beside_the_recipe_with_budgets():
+    """README's summary: the paper's row with its training (method §9), the recipe over its five
+    seeds with the worst seed and its budget from the records, GP-MPC; the speed table reads both
+    machines' benchmark records."""
+    from experiments.tables import summary
+
+    rec = Records(ROOT / "results")
+    text = summary.render_summary(rec)
+    rows = {r.split(" | ")[0].strip("| "): r for r in text.splitlines() if r.startswith("| ")}
+    paper = rows["MPC-PEARL 0.2, the paper"]
+    assert "| 0.92 | 0.99 |" in paper and "about 27 h on the authors' GPU machine" in paper
+    recipe = rows["MPC-PEARL 0.2, this project's recipe"]
+    assert "(worst " in recipe and "24 min each on a 2-core CPU" in recipe and "5 seeds" in recipe
+    assert "GP-MPC, this project" in rows and "seeds 0-9" in text
+    speed = summary.render_speed(rec)
+    assert "MISSING" not in speed and "2.88 ms" in speed  # the H100's PEARL step
+    assert summary._duration(0.274101) == "0.274 s" and summary._duration(1.5996e-2) == "16.0 ms"
+    assert summary._rate(926533055.98) == "927M" and summary._rate(332409.97) == "332k"
+    assert not rec.missing
