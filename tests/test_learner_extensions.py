@@ -147,9 +147,8 @@ def _guided_trainer(**changes):
     from mpcpearl_jax.training.trainer import Trainer
     from tests.test_training import TINY
 
-    tc = dataclasses.replace(
-        TINY.train, eps=0.2, guide_share=0.5, guide_steps=30, guide_decrement=8, **changes
-    )
+    base = dict(eps=0.2, guide_share=0.5, guide_steps=30, guide_decrement=8)
+    tc = dataclasses.replace(TINY.train, **{**base, **changes})
     return Trainer(TINY.replace(train=tc, mpc={"unsafe_recovery": True, "n_workers": 1}))
 
 
@@ -168,10 +167,12 @@ def test_the_roll_in_bound_shrinks_only_after_guided_success():
 
 
 def test_guided_rows_are_drawn_from_the_policy_rows_and_kept_out_of_its_success_rate():
-    tr = _guided_trainer(explore_start_share=0.5)
+    # no event draw fires (eps tiny): the MPC solves only the few guided steps
+    tr = _guided_trainer(explore_start_share=0.5, guide_steps=4, eps=1e-9)
     state = tr.init_state()
-    state, _ = tr.initial_collection(state)
-    state, stats = tr.posterior_collection(state, jnp.array([[0, 1], [2, 3]]))
+    ids = jnp.array([[0, 1], [2, 3]])
+    state, _ = tr.prior_collection(state, ids)  # the context of the posterior phase
+    state, stats = tr.posterior_collection(state, ids)
     assert set(stats) >= {"guide_rows", "guide_success", "explore_rows", "success"}
     assert np.all(np.asarray(stats["guide_rows"]) + np.asarray(stats["explore_rows"]) <= 1.0)
     tr.close()
@@ -214,9 +215,9 @@ def test_a_checkpoint_holds_the_extension_state_and_restores_it_exactly(tmp_path
 
     tr = _guided_trainer(keep_best=True, keep_tasks=2)
     state = tr.init_state()
-    state, _ = tr.iteration(state)
+    state, _ = tr.update_phase(state)  # parameters that differ from a fresh state's
     state, _ = tr.keep_best(state)
-    state = state.replace(guide_h=jnp.array([22, 14], jnp.int32))
+    state = state.replace(guide_h=jnp.array([22, 14], jnp.int32), iteration=state.iteration + 1)
     ck = Checkpointer(tmp_path, keep=2)
     ck.save(1, state, policy_params(state))
     back = ck.restore(template=tr.init_state())
