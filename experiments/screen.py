@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import re
 import sys
@@ -54,6 +53,8 @@ from pathlib import Path
 from typing import Any
 
 from experiments import campaign
+from experiments.tables import statistics
+from experiments.tables.statistics import cumulative_wall_s
 
 KEYS = ("name", "results", "seeds", "trainer", "common_argv", "evaluate", "baseline", "arms")
 ARM_KEYS = ("argv", "runs")
@@ -61,7 +62,6 @@ TRAINERS = ("restaurant",)  # trainers whose records the report reads (metrics.j
 SET_BY_SCREEN = ("--seed", "--out", "--resume", "--overwrite")
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*\Z")  # a screen or arm name: one folder name
 METRICS = ("SR", "CFR", "TT", "SPL")  # the validation metrics of the report
-LOWER_IS_BETTER = frozenset({"TT"})  # their worst seed is the largest value
 BOOTSTRAP_METRICS = ("SR", "SPL")  # IQM and probability of improvement
 PASS = 0.3  # a seed passes with validation SR and test SR both at least this
 REPS = 2000  # bootstrap samples per interval
@@ -275,25 +275,12 @@ def missing_records(folder: Path, validation: str) -> list[str]:
     return [rel for rel in need if not (folder / rel).is_file()]
 
 
-def _lifetime_wall(rows: list[dict]) -> list[float]:
-    """Each row's wall seconds since the run started. `wall_s` runs on across a resumed run;
-    in records where a resumed process restarted it at 0, the segments add up."""
-    out, total, prev = [], 0.0, 0.0
-    for r in rows:
-        wall = float(r.get("wall_s", prev))
-        if wall < prev:
-            total += prev
-        prev = wall
-        out.append(total + wall)
-    return out
-
-
 def liftoff(rows: list[dict], updates_per_iteration: int) -> tuple[dict | None, dict]:
     """(lift-off, budget) of one run's metrics.jsonl rows: the first iteration whose
     `train_success` is above 0 as {iteration, grad_steps, minutes} (None: it never lifted off),
     and the last iteration the same way."""
     rows = [r for r in rows if "iteration" in r]
-    walls = _lifetime_wall(rows)
+    walls = cumulative_wall_s(rows)
 
     def point(i: int) -> dict:
         it = int(rows[i]["iteration"])
@@ -328,11 +315,11 @@ def seed_report(folder: Path, validation: str) -> dict:
 
 
 def seed_stats(values: list[float], metric: str) -> dict:
-    """Mean, standard error over seeds (ddof 1; None below two seeds) and the worst seed."""
-    n = len(values)
-    mean = sum(values) / n
-    se = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1) / n) if n > 1 else None
-    worst = max(values) if metric in LOWER_IS_BETTER else min(values)
+    """Mean, standard error over seeds (ddof 1; None below two seeds) and the worst seed
+    (`tables.statistics.seed_stats`)."""
+    if len(values) < 2:
+        return {"mean": values[0], "se": None, "worst": values[0]}
+    mean, se, worst = statistics.seed_stats(values, metric)
     return {"mean": mean, "se": se, "worst": worst}
 
 

@@ -111,18 +111,26 @@ def _curve_value(rec: Records, run: str, kind: str, metric: str) -> Stat | None:
     return Stat(last["iteration"] * section["updates_per_iteration"])
 
 
-def lifetime_wall_s(rows: list[dict]) -> float:
-    """A training CLI run's wall seconds over its lifetime from its metrics.jsonl rows. In records
-    written before resumed runs carried their clocks on, the resumed process restarted `wall_s`
-    at 0; each such drop closes a segment, and the segments add up."""
-    total = prev = 0.0
+def cumulative_wall_s(rows: list[dict]) -> list[float]:
+    """Each metrics.jsonl row's wall seconds since the run started (a row without `wall_s` keeps
+    the previous value). In records written before resumed runs carried their clocks on, the
+    resumed process restarted `wall_s` at 0; each such drop closes a segment, and the segments
+    add up."""
+    out, total, prev = [], 0.0, 0.0
     for r in rows:
-        if "wall_s" not in r:
-            continue
-        if r["wall_s"] < prev:
+        wall = float(r.get("wall_s", prev))
+        if wall < prev:
             total += prev
-        prev = r["wall_s"]
-    return total + prev
+        prev = wall
+        out.append(total + wall)
+    return out
+
+
+def lifetime_wall_s(rows: list[dict]) -> float:
+    """A training CLI run's wall seconds over its lifetime from its metrics.jsonl rows
+    (`cumulative_wall_s` of its last row)."""
+    walls = cumulative_wall_s(rows)
+    return walls[-1] if walls else 0.0
 
 
 def entry_values(rec: Records, e: Entry, kind: str, metric: str) -> list[Stat] | str:

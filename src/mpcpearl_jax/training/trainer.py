@@ -576,10 +576,6 @@ class Trainer:
             "kept_replaced": float(np.mean(better_h)),
         }
 
-    def acting(self, state: TrainState) -> dict:
-        """`reported_params(state)`."""
-        return reported_params(state)
-
     def _mpc_log(self) -> dict:
         """The MPC bridge's counters and times of this iteration, summed over processes (each
         solves its own shards' rows); the fallback reasons are this process's. {} without MPC."""
@@ -629,7 +625,7 @@ class Trainer:
         tasks = self.test_tasks if tasks is None else tasks
         key = jax.random.PRNGKey(EVAL_SEED) if key is None else key
         fn = self.evaluate_online if online else self.evaluate_adapt
-        result = to_host(fn(key, self.acting(state), tasks))
+        result = to_host(fn(key, reported_params(state), tasks))
         return eval_lib.summarize(result, tasks, self.env.config.robot_radius), result
 
     def steps_per_iteration(self) -> int:
