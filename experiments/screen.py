@@ -1,7 +1,8 @@
 """A seed screen: training recipes (arms) over the same seeds, trained one run at a time, and a
 report of how they compare, from the run folders alone.
 
-    python -m experiments.screen SCREEN.json [--arms A B ...] [--dry-run] [--report-only]
+    python -m experiments.screen SCREEN.json [--arms A ...] [--seeds S ...] [--dry-run]
+                                             [--report-only]
 
 A screen file names its arms and seeds once; every arm is trained with every seed:
 
@@ -20,9 +21,10 @@ An arm with `runs` reuses finished run folders, one per seed (nothing is trained
 configs must be the ones its argv builds with each seed). An arm with `argv` only is trained:
 seed S becomes the campaign entry `<name>-<arm>-s<S>` with argv = the arm's argv, then
 `common_argv`, then `--seed S`, results folder `<results>/<arm>-s<S>` and the screen's
-`evaluate` list, and the entries are trained arm by arm, seed by seed, as `experiments.campaign`
-trains its queue (one at a time in `runs/campaign/<entry>`, resumed after Ctrl-C by the same
-command, copied without checkpoints, then evaluated). `--arms` trains only the arms named;
+`evaluate` list, and the entries are trained seed by seed, each arm in turn (an interrupted
+screen leaves its arms on equal seeds), as `experiments.campaign` trains its queue (one at a time
+in `runs/campaign/<entry>`, resumed after Ctrl-C by the same command, copied without
+checkpoints, then evaluated). `--arms` and `--seeds` train only the arms and seeds named;
 `--dry-run` prints the entries and the processes left and runs nothing; `--report-only` trains
 nothing. The first `evaluate` entry must be a `--split val` evaluation: its record is the
 validation the report reads.
@@ -550,6 +552,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--arms", nargs="+", default=None, help="train these arms only (the report has them all)"
     )
+    p.add_argument(
+        "--seeds",
+        nargs="+",
+        type=int,
+        default=None,
+        help="train these of the screen's seeds only (the report has them all)",
+    )
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")
     mode.add_argument("--report-only", action="store_true", help="train nothing; write the report")
@@ -565,18 +574,27 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         print(f"error: --arms: no arm named {unknown} in {args.screen}", file=sys.stderr)
         return 2
+    seeds = list(screen.seeds) if args.seeds is None else args.seeds
+    stray = [s for s in seeds if s not in screen.seeds]
+    if stray:
+        print(f"error: --seeds: {stray} not among {args.screen}'s seeds", file=sys.stderr)
+        return 2
     if not args.report_only:
         try:
             check_reused(screen, arms)
         except ValueError as e:
             print(f"error: {args.screen}: {e}", file=sys.stderr)
             return 2
-        todo = []
         for name in arms:
             if screen.arms[name].runs is not None:
                 print(f"[screen] {name}: reuses {len(screen.seeds)} run folders", flush=True)
-                continue
-            for run in runs[name]:
+        # seed by seed, each arm in turn: an interrupted screen leaves its arms on equal seeds
+        todo = []
+        for seed in seeds:
+            for name in arms:
+                if screen.arms[name].runs is not None:
+                    continue
+                run = runs[name][screen.seeds.index(seed)]
                 if args.dry_run:
                     cmd = " ".join([run.module, *run.argv])
                     print(f"[screen] {run.name}: {cmd} -> {run.results}", flush=True)

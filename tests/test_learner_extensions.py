@@ -1,6 +1,7 @@
 """The learner extensions of docs/extensions.md: the MPC as a guide policy (`train.guide_share`),
-the kept policy (`train.keep_best`) and n-step returns (`pearl.n_step`); each off in every
-preset, each checked against a NumPy reference or by the property it promises."""
+the kept policy (`train.keep_best`), n-step returns (`pearl.n_step`) and CrossQ critics
+(`pearl.crossq`); each off in every preset, each checked against a NumPy reference or by the
+property it promises."""
 
 import dataclasses
 
@@ -19,7 +20,7 @@ from mpcpearl_jax.pearl.types import Transitions
 def test_every_preset_leaves_the_learner_extensions_off():
     for name, cfg in PRESETS.items():
         assert cfg.train.guide_share == 0 and not cfg.train.keep_best, name
-        assert cfg.pearl.n_step == 1, name
+        assert cfg.pearl.n_step == 1 and not cfg.pearl.crossq, name
 
 
 @pytest.mark.parametrize(
@@ -37,6 +38,9 @@ def test_every_preset_leaves_the_learner_extensions_off():
         (lambda: TrainConfig(keep_tasks=0), "keep_tasks"),
         (lambda: PearlConfig(n_step=0), "n_step"),
         (lambda: PearlConfig(n_step=2.5), "n_step"),
+        (lambda: PearlConfig(crossq=True, layer_norm=True), "crossq"),
+        (lambda: PearlConfig(crossq=1), "crossq"),
+        (lambda: PearlConfig(crossq=True, crossq_momentum=1.5), "crossq_momentum"),
     ],
 )
 def test_bad_extension_settings_name_their_field(make, field):
@@ -224,5 +228,160 @@ def test_a_checkpoint_holds_the_extension_state_and_restores_it_exactly(tmp_path
     for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(back), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert np.asarray(back.guide_h).tolist() == [22, 14]
+    ck.close()
+    tr.close()
+
+
+# ----------------------------------------------------------------------------- CrossQ critics
+def _np_batchnorm_mlp(p, x, stats=None, eps=1e-5):
+    """NumPy forward of `BatchNormMLP` with the batch's statistics over every leading axis
+    (stats None) or the given running ones; returns (out, batch means, batch variances)."""
+    means, variances = [], []
+    n_dense = sum(k.startswith("Dense") for k in p)
+
+    def norm(y, i):
+        axes = tuple(range(y.ndim - 1))
+        if stats is None:
+            m, v = y.mean(axes), y.var(axes)
+        else:
+            m, v = np.asarray(stats[f"BatchNorm_{i}"]["mean"]), stats[f"BatchNorm_{i}"]["var"]
+        means.append(y.mean(axes))
+        variances.append(y.var(axes))
+        bn = p[f"BatchNorm_{i}"]
+        return (y - m) / np.sqrt(np.asarray(v) + eps) * np.asarray(bn["scale"]) + np.asarray(
+            bn["bias"]
+        )
+
+    x = norm(np.asarray(x, np.float64), 0)
+    for i in range(n_dense - 1):
+        d = p[f"Dense_{i}"]
+        x = np.maximum(x @ np.asarray(d["kernel"]) + np.asarray(d["bias"]), 0.0)
+        x = norm(x, i + 1)
+    d = p[f"Dense_{n_dense - 1}"]
+    return x @ np.asarray(d["kernel"]) + np.asarray(d["bias"]), means, variances
+
+
+def _crossq_setup(gamma=0.9, momentum=0.99):
+    from mpcpearl_jax.pearl.networks import Networks
+
+    cfg = PearlConfig(
+        hidden=(8, 8),
+        encoder_hidden=(8,),
+        latent_dim=2,
+        gamma=gamma,
+        reward_scale=5.0,
+        crossq=True,
+        crossq_momentum=momentum,
+    )
+    nets = Networks(cfg, 3, 2)
+    params = nets.init(jax.random.PRNGKey(0))
+    buf, _ = _episode_buffer()
+    batch = buffers.sample(buf, jax.random.PRNGKey(1), jnp.array([0, 1]), 16)
+    ctx = jnp.concatenate([batch.obs, batch.action, batch.reward[..., None], batch.next_obs], -1)
+    return nets, params, batch, ctx
+
+
+@pytest.mark.parametrize("alpha", [None, 0.3])
+def test_crossq_critic_loss_matches_a_numpy_reference(alpha):
+    """L_psi against r_scale c + gamma (min Q(s', a') - alpha log pi(a'|s')), the two halves
+    normalised together with the joint batch's statistics; running statistics updated with the
+    momentum."""
+    from mpcpearl_jax.pearl.losses import make_losses
+    from mpcpearl_jax.pearl.networks import tanh_gaussian
+
+    nets, params, batch, ctx = _crossq_setup()
+    q_enc = {"q": params["q"], "encoder": params["encoder"]}
+    key = jax.random.PRNGKey(2)
+    a = None if alpha is None else jnp.asarray(alpha)
+    loss, aux = make_losses(nets).critic_encoder_crossq(q_enc, params["policy"], batch, ctx, key, a)
+    # the same draws as the loss: z from k_z, a' from k_next
+    k_z, k_next = jax.random.split(key)
+    z = nets.posterior_sample(params["encoder"], ctx, k_z)[0]
+    zb = np.broadcast_to(np.asarray(z)[:, None, :], (2, 16, 2))
+    mean_n, log_std_n = nets.policy_out(params["policy"], batch.next_obs, jnp.asarray(zb))
+    a_next, logp = tanh_gaussian(mean_n, log_std_n).sample_and_log_prob(seed=k_next)
+    x = np.concatenate(
+        [
+            np.concatenate([batch.obs, batch.action, zb], -1),
+            np.concatenate([batch.next_obs, a_next, zb], -1),
+        ],
+        axis=1,
+    )
+    qp = params["q"]["params"]
+    q1, m1, v1 = _np_batchnorm_mlp(qp["q1"], x)
+    q2 = _np_batchnorm_mlp(qp["q2"], x)[0]
+    q1, q2 = q1[..., 0], q2[..., 0]
+    w = 1.0 if alpha is None else alpha
+    target = 5.0 * np.asarray(batch.reward) + 0.9 * (
+        np.minimum(q1[:, 16:], q2[:, 16:]) - w * np.asarray(logp)
+    )
+    q_loss = np.mean((q1[:, :16] - target) ** 2) + np.mean((q2[:, :16] - target) ** 2)
+    np.testing.assert_allclose(aux["q_loss"], q_loss, rtol=2e-4, atol=1e-7)
+    stats = aux["stats"]["batch_stats"]["q1"]
+    for i, (m, v) in enumerate(zip(m1, v1, strict=True)):  # from mean 0, variance 1
+        np.testing.assert_allclose(stats[f"BatchNorm_{i}"]["mean"], 0.01 * m, rtol=1e-3, atol=1e-7)
+        np.testing.assert_allclose(
+            stats[f"BatchNorm_{i}"]["var"], 0.99 + 0.01 * v, rtol=1e-4, atol=1e-7
+        )
+
+
+def test_crossq_update_trains_q_with_running_statistics_and_leaves_v_alone():
+    """Over jitted steps (traced once): the Q weights and running statistics move, V and its
+    target stay as initialised, and the policy loss reads Q with the running statistics."""
+    import chex
+
+    from mpcpearl_jax.pearl.learner import init_learner, make_update
+
+    nets, _, batch, ctx = _crossq_setup()
+    state = init_learner(jax.random.PRNGKey(0), nets)
+    start = state
+    update = chex.assert_max_traces(make_update(nets, jit=False), n=1)
+    step = jax.jit(update)
+    for i in range(3):
+        state, metrics = step(state, batch, ctx, jax.random.PRNGKey(10 + i))
+    assert int(state.steps) == 3 and float(metrics["v_loss"]) == 0.0
+    for part in ("v", "target_v"):
+        before = start.params["v"] if part == "v" else start.target_v
+        after = state.params["v"] if part == "v" else state.target_v
+        for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(after), strict=True):
+            np.testing.assert_array_equal(a, b)
+    old, new = start.params["q"], state.params["q"]
+    w0, w1 = (q["params"]["q1"]["Dense_0"]["kernel"] for q in (old, new))
+    m0, m1 = (q["batch_stats"]["q1"]["BatchNorm_0"]["mean"] for q in (old, new))
+    assert not np.allclose(w0, w1) and not np.allclose(m0, m1)
+    # running statistics: Q in evaluation mode is the NumPy forward with those statistics
+    x = np.concatenate([batch.obs, batch.action, np.zeros((2, 16, 2))], -1)
+    q1 = nets.q_values(new, batch.obs, batch.action, jnp.zeros((2, 16, 2)))[0]
+    ref = _np_batchnorm_mlp(new["params"]["q1"], x, new["batch_stats"]["q1"])[0][..., 0]
+    np.testing.assert_allclose(q1, ref, rtol=2e-4, atol=1e-6)
+
+
+def test_crossq_networks_round_trip_through_their_spec():
+    from mpcpearl_jax.pearl.networks import Networks
+
+    nets = _crossq_setup(momentum=0.9)[0]
+    back = Networks.from_spec(nets.spec())
+    assert back.cfg.crossq and back.cfg.crossq_momentum == 0.9
+    assert "crossq" not in Networks(PearlConfig(), 3, 2).spec()  # absent where it is off
+
+
+def test_crossq_trains_and_checkpoints_exactly(tmp_path):
+    """A trainer with CrossQ critics runs an update phase and restores bit for bit."""
+    from mpcpearl_jax.training.checkpoint import Checkpointer
+    from mpcpearl_jax.training.run import policy_params
+    from mpcpearl_jax.training.trainer import Trainer
+    from tests.test_training import TINY
+
+    tr = Trainer(TINY.replace(pearl=TINY.pearl.replace(crossq=True)))
+    state = tr.init_state()
+    state, metrics = tr.update_phase(state)
+    assert "batch_stats" in state.learner.params["q"]
+    assert np.isfinite(float(np.mean(np.asarray(metrics["q_loss"]))))
+    state = state.replace(iteration=state.iteration + 1)  # a checkpoint holds its iteration
+    ck = Checkpointer(tmp_path, keep=2)
+    ck.save(1, state, policy_params(state))
+    back = ck.restore(template=tr.init_state())
+    for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(back), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     ck.close()
     tr.close()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -325,6 +326,18 @@ def test_dry_run_lists_the_campaign_entries_with_their_seeds(tmp_path, monkeypat
     assert not (tmp_path / "res").exists() and not (tmp_path / campaign.WORK).exists()
     assert screen.main([str(path), "--dry-run", "--arms", "nosuch"]) == 2
     assert "no arm named ['nosuch']" in capsys.readouterr().err
+
+
+def test_the_queue_goes_seed_by_seed_and_takes_only_the_seeds_named(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    arms = {**GOOD_ARMS, "more": {"argv": ["--set", "pearl.n_step=3"]}}
+    path = write_screen(tmp_path / "s.json", arms, seeds=[3, 5, 7], baseline="base")
+    argv = [str(path), "--dry-run", "--arms", "guide", "more", "--seeds", "7", "3"]
+    assert screen.main(argv) == 0
+    names = re.findall(r"\[screen\] (t-\S+):", capsys.readouterr().out)
+    assert names == ["t-guide-s7", "t-more-s7", "t-guide-s3", "t-more-s3"]
+    assert screen.main([str(path), "--dry-run", "--seeds", "4"]) == 2
+    assert "--seeds: [4] not among" in capsys.readouterr().err
 
 
 def test_training_runs_the_entries_one_at_a_time_and_continues_after_ctrl_c(

@@ -30,6 +30,10 @@ class Losses(NamedTuple):
     value: Callable
     # (log_alpha, log_pi) -> the entropy weight's loss (extension `auto_entropy`)
     temperature: Callable
+    # (q_enc_params {q, encoder}, policy_params, batch [MB, B], context [MB, C, D], key,
+    # alpha=None) -> (L_phi, aux): the critic and KL loss of extension `crossq`; aux["stats"]
+    # holds the Q networks' updated running statistics
+    critic_encoder_crossq: Callable
 
 
 def target_entropy(nets: Networks) -> float:
@@ -91,4 +95,36 @@ def make_losses(nets: Networks) -> Losses:
         below the target and shrinks while it is above."""
         return -log_alpha * jax.lax.stop_gradient(jnp.mean(log_pi) + entropy_target)
 
-    return Losses(critic_encoder, policy, value, temperature)
+    def critic_encoder_crossq(q_enc_params, policy_params, batch, context, key, alpha=None):
+        """Extension `crossq` (Bhatt et al. 2024): L_psi against reward_scale * c + gamma
+        (min_i Q_i(s', a', z) - alpha log pi(a'|s', z)), a' ~ pi(s', z), from the current
+        critic (no target network; alpha None = 1, the paper's temperature). (s, a) and (s',
+        a') go through the batch-normalised Q networks in one forward pass, so both halves are
+        normalised with the same statistics; the target half is detached. Plus beta KL, as in
+        `critic_encoder`; the encoder gets gradients through Q(s, a, z) only."""
+        k_z, k_next = jax.random.split(key)
+        z, mean, var = nets.posterior_sample(q_enc_params["encoder"], context, k_z)  # [MB, L]
+        zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])  # [MB, B, L]
+        z_next = jax.lax.stop_gradient(zb)
+        mean_n, log_std_n = nets.policy_out(policy_params, batch.next_obs, z_next)
+        a_next, logp_next = tanh_gaussian(mean_n, log_std_n).sample_and_log_prob(seed=k_next)
+        b = batch.obs.shape[1]
+        (q1, q2), stats = nets.q_values_train(
+            q_enc_params["q"],
+            jnp.concatenate([batch.obs, batch.next_obs], axis=1),
+            jnp.concatenate([batch.action, jax.lax.stop_gradient(a_next)], axis=1),
+            jnp.concatenate([zb, z_next], axis=1),
+        )
+        entropy = logp_next if alpha is None else alpha * logp_next
+        next_v = jnp.minimum(q1[:, b:], q2[:, b:]) - entropy
+        q1, q2 = q1[:, :b], q2[:, :b]
+        discount = cfg.gamma if batch.discount is None else batch.discount  # n-step: gamma^m
+        q_target = cfg.reward_scale * batch.reward + (1.0 - batch.done) * discount * next_v
+        q_target = jax.lax.stop_gradient(q_target)
+        q_loss = jnp.mean((q1 - q_target) ** 2) + jnp.mean((q2 - q_target) ** 2)
+        kl = jnp.sum(kl_to_standard_normal(mean, var))
+        loss = q_loss + cfg.kl_weight * kl
+        aux = {"q_loss": q_loss, "kl": kl, "z": z, "q1_mean": jnp.mean(q1), "stats": stats}
+        return loss, aux
+
+    return Losses(critic_encoder, policy, value, temperature, critic_encoder_crossq)
