@@ -533,12 +533,16 @@ def _summary_lines(report: dict) -> list[str]:
     for name, arm in report["arms"].items():
         n, total = len(arm["finished"]), len(arm["seeds"])
         line = f"[screen] {name}: {n}/{total} seeds finished"
-        if arm["missing"]:
+        # a seed without a training record is not trained yet; the others name what they lack
+        bare = [s for s, m in arm["missing"].items() if "metrics.jsonl" in m["lacks"]]
+        partial = {s: m for s, m in arm["missing"].items() if s not in bare}
+        if partial:
             shown = ", ".join(
-                f"s{seed} ({m['run']}: no {', '.join(m['lacks'])})"
-                for seed, m in arm["missing"].items()
+                f"s{seed} ({m['run']}: no {', '.join(m['lacks'])})" for seed, m in partial.items()
             )
             line += f"; missing {shown}"
+        if bare:
+            line += f"; not trained: {' '.join(f's{seed}' for seed in bare)}"
         out.append(line)
     return out
 

@@ -310,6 +310,10 @@ def test_report_only_trains_nothing_and_names_the_missing_seeds(tmp_path, monkey
     assert rep["arms"]["new"]["finished"] == [0, 1, 2]
     assert (tmp_path / "res/screen/t-liftoff.png").stat().st_size > 0
     assert not (tmp_path / campaign.WORK).exists()
+    (tmp_path / "res/screen/new-s2/metrics.jsonl").unlink()  # no training record: not trained
+    assert screen.main([str(path), "--report-only"]) == 0
+    out = capsys.readouterr().out
+    assert "new: 2/4 seeds finished; missing s3 (" in out and "; not trained: s2\n" in out
 
 
 def test_dry_run_lists_the_campaign_entries_with_their_seeds(tmp_path, monkeypatch, capsys):
@@ -371,7 +375,8 @@ def test_training_runs_the_entries_one_at_a_time_and_continues_after_ctrl_c(
     assert not (tmp_path / "res/screen/t.json").exists()  # no report of a screen cut short
     assert screen.main([str(path)]) == 0
     trained = [c for c in calls if "experiments.restaurant" in c]
-    assert [c[c.index("--seed") + 1] for c in trained] == ["0", "1", "1", "0", "1"]
+    # seed by seed: base-s0, guide-s0 (cut short, then afresh), base-s1, guide-s1
+    assert [c[c.index("--seed") + 1] for c in trained] == ["0", "0", "0", "1", "1"]
     assert "--resume" not in trained[2]  # stopped before a checkpoint: started afresh
     assert all(c[0] == sys.executable for c in calls)
     rep = json.loads((tmp_path / "res/screen/t.json").read_text())
