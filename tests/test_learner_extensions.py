@@ -385,3 +385,38 @@ def test_crossq_trains_and_checkpoints_exactly(tmp_path):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     ck.close()
     tr.close()
+
+
+def test_the_final_policy_of_a_kept_run_is_written_for_evaluation(tmp_path, capsys):
+    """experiments.diagnostics.final_policy writes the learner's own {policy, encoder} of the
+    newest checkpoint (not the kept one), with the run's config and network files."""
+    from flax import serialization
+
+    from experiments.diagnostics import final_policy
+    from mpcpearl_jax.pearl.learner import acting_params
+    from mpcpearl_jax.training.checkpoint import Checkpointer, save_config, save_network
+    from mpcpearl_jax.training.run import policy_params
+
+    tr = _guided_trainer(keep_best=True, keep_tasks=2, guide_share=0.0)
+    state = tr.init_state()
+    state, _ = tr.keep_best(state)  # kept = the fresh policy
+    state, _ = tr.update_phase(state)  # the learner moves on
+    state = state.replace(iteration=state.iteration + 1)
+    run, work = tmp_path / "run", tmp_path / "work"
+    save_config(run, tr.cfg)
+    save_network(run, tr.nets)
+    ck = Checkpointer(work, keep=2)
+    ck.save(1, state, policy_params(state))
+    ck.close()
+    tr.close()
+    assert final_policy.main([str(run), str(work), "--out", str(tmp_path / "final")]) == 0
+    want = jax.device_get(acting_params(state.learner.params))
+    got = serialization.from_bytes(want, (tmp_path / "final/policy.msgpack").read_bytes())
+    for a, b in zip(jax.tree.leaves(want), jax.tree.leaves(got), strict=True):
+        np.testing.assert_array_equal(a, b)
+    kept = jax.tree.leaves(jax.device_get(state.kept))
+    assert any(not np.array_equal(a, b) for a, b in zip(kept, jax.tree.leaves(got), strict=True))
+    assert (tmp_path / "final/network.json").exists() and (tmp_path / "final/config.json").exists()
+    save_config(run, tr.cfg.replace(train=dataclasses.replace(tr.cfg.train, keep_best=False)))
+    assert final_policy.main([str(run), str(work), "--out", str(tmp_path / "x")]) == 2
+    assert "not a keep_best run" in capsys.readouterr().err
