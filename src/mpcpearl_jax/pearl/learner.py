@@ -90,18 +90,15 @@ def make_update(nets: Networks, jit: bool = True):
         # 1. Q and encoder: L_phi = L_psi + beta KL (line 22)
         q_enc = {"q": p["q"], "encoder": p["encoder"]}
         if crossq:  # extension: the target from the current critic, Q's running statistics
-            (qe_loss, aux), grads = jax.value_and_grad(loss.critic_encoder_crossq, has_aux=True)(
-                q_enc, p["policy"], batch, context, k_z, alpha
-            )
-            # the running statistics get zero gradients (Adam leaves them as they are) and are
-            # replaced by the forward pass's update
-            q_enc, os_qe = opt_step(q_enc, grads, opt_in["q_enc"])
-            q_enc = {"q": {**q_enc["q"], **aux["stats"]}, "encoder": q_enc["encoder"]}
+            critic_loss = loss.critic_encoder_crossq
+            args: tuple = (p["policy"], batch, context, k_z, alpha)
         else:
-            (qe_loss, aux), grads = jax.value_and_grad(loss.critic_encoder, has_aux=True)(
-                q_enc, state.target_v, batch, context, k_z
-            )
-            q_enc, os_qe = opt_step(q_enc, grads, opt_in["q_enc"])
+            critic_loss, args = loss.critic_encoder, (state.target_v, batch, context, k_z)
+        (qe_loss, aux), grads = jax.value_and_grad(critic_loss, has_aux=True)(q_enc, *args)
+        q_enc, os_qe = opt_step(q_enc, grads, opt_in["q_enc"])
+        if crossq:  # the running statistics got zero gradients (Adam leaves them as they are)
+            # and take the forward pass's update
+            q_enc = {"q": {**q_enc["q"], **aux["stats"]}, "encoder": q_enc["encoder"]}
         z = jax.lax.stop_gradient(aux["z"])
         zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])
         # 2. policy L_theta (line 22), z detached, with the updated Q

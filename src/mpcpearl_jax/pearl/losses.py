@@ -57,12 +57,20 @@ def make_losses(nets: Networks) -> Losses:
         zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])  # [MB, B, L]
         q1, q2 = nets.q_values(q_enc_params["q"], batch.obs, batch.action, zb)
         target_v = nets.value(target_v_params, batch.next_obs, jax.lax.stop_gradient(zb))
+        return td_and_kl(q1, q2, td_target(batch, target_v), z, mean, var)
+
+    def td_target(batch, next_v):
+        """reward_scale * c + gamma V(s') (the paper), or for n-step batches (extension
+        `n_step`) their m discounted rewards and gamma^m V(s'); detached."""
         if batch.discount is None:  # one step (the paper)
-            q_target = cfg.reward_scale * batch.reward + (1.0 - batch.done) * cfg.gamma * target_v
+            q_target = cfg.reward_scale * batch.reward + (1.0 - batch.done) * cfg.gamma * next_v
         else:  # extension `n_step`: m discounted rewards, then gamma^m V_bar
-            bootstrap = (1.0 - batch.done) * batch.discount * target_v
+            bootstrap = (1.0 - batch.done) * batch.discount * next_v
             q_target = cfg.reward_scale * batch.reward + bootstrap
-        q_target = jax.lax.stop_gradient(q_target)
+        return jax.lax.stop_gradient(q_target)
+
+    def td_and_kl(q1, q2, q_target, z, mean, var):
+        """(L_psi + beta KL, aux): the twin-Q squared TD errors and the encoder's KL term."""
         q_loss = jnp.mean((q1 - q_target) ** 2) + jnp.mean((q2 - q_target) ** 2)
         kl = jnp.sum(kl_to_standard_normal(mean, var))  # summed over tasks (method §7)
         loss = q_loss + cfg.kl_weight * kl
@@ -117,14 +125,7 @@ def make_losses(nets: Networks) -> Losses:
         )
         entropy = logp_next if alpha is None else alpha * logp_next
         next_v = jnp.minimum(q1[:, b:], q2[:, b:]) - entropy
-        q1, q2 = q1[:, :b], q2[:, :b]
-        discount = cfg.gamma if batch.discount is None else batch.discount  # n-step: gamma^m
-        q_target = cfg.reward_scale * batch.reward + (1.0 - batch.done) * discount * next_v
-        q_target = jax.lax.stop_gradient(q_target)
-        q_loss = jnp.mean((q1 - q_target) ** 2) + jnp.mean((q2 - q_target) ** 2)
-        kl = jnp.sum(kl_to_standard_normal(mean, var))
-        loss = q_loss + cfg.kl_weight * kl
-        aux = {"q_loss": q_loss, "kl": kl, "z": z, "q1_mean": jnp.mean(q1), "stats": stats}
-        return loss, aux
+        loss, aux = td_and_kl(q1[:, :b], q2[:, :b], td_target(batch, next_v), z, mean, var)
+        return loss, {**aux, "stats": stats}
 
     return Losses(critic_encoder, policy, value, temperature, critic_encoder_crossq)
