@@ -1,6 +1,7 @@
-"""Test configuration: a persistent XLA compilation cache shared by the test session, so that
-identical programs (e.g. trainers rebuilt from the same config) compile once; the fault tests'
-reference run (`ref0`), trained once per session."""
+"""Test configuration: a persistent XLA compilation cache shared by the test session and its
+worker processes, so that identical programs (e.g. trainers rebuilt from the same config) compile
+once; the number of worker processes for `-n auto`; the fault tests' reference run (`ref0`),
+trained once per worker process that needs it."""
 
 import os
 import tempfile
@@ -15,6 +16,16 @@ _CACHE = os.environ.get("MPCPEARL_TEST_JAX_CACHE") or os.path.join(
 jax.config.update("jax_compilation_cache_dir", _CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_xdist_auto_num_workers(config) -> int:
+    """`-n auto` (the default in pyproject.toml): one test process per core, at most 4; each
+    process holds its own compiled programs (a few GiB by the end of the suite)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, 4))
 
 
 @pytest.fixture(scope="session")

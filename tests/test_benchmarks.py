@@ -30,7 +30,14 @@ def clean_environ():
     os.environ.update(saved)
 
 
-@pytest.mark.parametrize("name", SCRIPTS)
+# the cheap ones in the fast set; the others (12-32 s each) with the slow tests
+FAST_SCRIPTS = ("env_throughput", "policy_latency")
+
+
+@pytest.mark.parametrize(
+    "name",
+    [n if n in FAST_SCRIPTS else pytest.param(n, marks=pytest.mark.slow) for n in SCRIPTS],
+)
 def test_script_runs_tiny(name: str, tmp_path: Path, clean_environ) -> None:
     module = importlib.import_module(f"benchmarks.{name}")
     module.main(["--tiny", "--out", str(tmp_path)])
@@ -108,6 +115,7 @@ def test_dagger_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     assert list(res["final"]["per_task_seed"]) == [1] and 0.0 <= final["SR"] <= final["CFR"] <= 1
 
 
+@pytest.mark.slow  # a diagnostic outside the README's commands (~20 s)
 def test_shield_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     """`experiments.diagnostics.shield` (a diagnostic) on the committed headline run: one row per
     (controller, shield setting), the unshielded rows with no replaced step, rates in range."""
@@ -192,6 +200,7 @@ def test_crowd_cause_runs_tiny(tmp_path: Path, clean_environ) -> None:
     assert json.loads((tmp_path / "crowd_cause.json").read_text())["config"]["delay"] == 6
 
 
+@pytest.mark.slow  # (~12 s) pearl_step's tiny run is in the fast set
 def test_pearl_step_takes_the_seed_counts_it_is_given(tmp_path: Path, clean_environ) -> None:
     from benchmarks import pearl_step
 

@@ -112,6 +112,7 @@ def _allow_brax_pmap_helpers(monkeypatch):
             monkeypatch.setattr(jax, name, getattr(jax_api, name), raising=False)
 
 
+@pytest.mark.slow  # Brax's PPO end to end (~25 s); the adapter's env is tested fast
 def test_brax_ppo_runs_on_the_task_distribution(env, monkeypatch):
     _allow_brax_pmap_helpers(monkeypatch)
     from brax.training.agents.ppo import networks as ppo_networks

@@ -73,6 +73,7 @@ def test_train_from_python(tmp_path, small_corridor):
     assert (tmp_path / "run" / "trajectory_test0.png").is_file()
 
 
+@pytest.mark.slow  # the command-line path of --env MODULE:NAME (~70 s); the Python API: fast
 def test_train_from_the_command_line(tmp_path, capsys, small_corridor):
     from experiments.common import main
 

@@ -25,7 +25,11 @@ RUNS = {
 EVAL_KEY = jax.random.PRNGKey(12345)  # the trainer's evaluation key
 
 
-@pytest.fixture(scope="module", params=sorted(RUNS))
+# the sidewalk run's replay (~25 s) with the slow tests; every test runs on the restaurant run
+@pytest.fixture(
+    scope="module",
+    params=["restaurant", pytest.param("sidewalk", marks=pytest.mark.slow)],
+)
 def setup(request):
     policy = load_policy(RUNS[request.param])
     cfg = policy.config

@@ -59,6 +59,7 @@ def test_policy_on_each_split(tmp_path, split):
     assert (tmp_path / f"trajectory_{split}5.png").is_file()
 
 
+@pytest.mark.slow  # (~13 s) pooling is also checked in the GrBAL command's test
 def test_task_seeds_pool_the_splits_of_several_task_set_seeds(tmp_path, capsys, monkeypatch):
     evaluators: dict = {}
     monkeypatch.setattr(runners, "_EVALUATORS", evaluators)
@@ -95,6 +96,7 @@ def test_task_seeds_pool_the_splits_of_several_task_set_seeds(tmp_path, capsys, 
     assert "--task-seeds 'x'" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # the online evaluation with its GIF (~17 s); both are tested fast on their own
 def test_online_with_animation(tmp_path):
     argv = [str(RESTAURANT_RUN), "--online", "--tasks", "3", "--animate", "--out", str(tmp_path)]
     assert main(argv) == 0

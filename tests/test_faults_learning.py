@@ -49,6 +49,7 @@ def _points(run: Path) -> list[dict]:
     return [{k: v for k, v in p.items() if k not in skip} for p in rec["points"]]
 
 
+@pytest.mark.slow  # the time-budget run's Ctrl-C resume (~50 s)
 def test_learning_run_stops_on_ctrl_c_and_resumes_exactly(tmp_path, monkeypatch, capsys):
     """experiments.learning stopped by Ctrl-C in its fifth iteration (a fake clock: one second per
     iteration, 6 s of budget, an evaluation every 3 s) saves iteration 4 and exits 130 with one

@@ -99,6 +99,7 @@ def test_kill9_at_random_points_of_the_command_line(tmp_path, eps):
     assert (run / "learning_curves.png").is_file()
 
 
+@pytest.mark.slow  # Ctrl-C, then SIGKILL inside a checkpoint write (~45 s)
 def test_ctrl_c_then_kill9_in_a_checkpoint_write_then_resume_is_exact(tmp_path, ref0):
     """The command line stopped by Ctrl-C (exit 130, the iteration saved, one line), resumed and
     killed with SIGKILL while a checkpoint is being written, resumed again: the run ends

@@ -147,6 +147,7 @@ def test_parse_and_bad_values():
             parse_perturbation(bad)
 
 
+@pytest.mark.slow  # the command line of --perturb (~13 s); perturb_tasks is tested fast
 def test_evaluate_cli_perturb(tmp_path, capsys):
     from experiments import evaluate
 

@@ -250,6 +250,7 @@ def test_gp_mpc_cli_on_scenarios(tmp_path, synthetic, capsys):
     assert "no such directory" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # a training on the authors' scenarios (~60 s); their loading is tested fast
 def test_a_run_trained_on_scenarios_records_its_source_and_evaluates(tmp_path, capsys):
     """One smoke iteration on synthetic scenarios (no OOD file) with the val hold-out: the run
     records its source, its final evaluation says the OOD file is missing (not scoring the

@@ -98,12 +98,14 @@ def one_device(tmp_path_factory):
     return run
 
 
+@pytest.mark.slow  # 4 forced host devices against 1 (~90 s)
 def test_four_devices_of_one_process_match_one_device(one_device, tmp_path):
     run = _train(tmp_path, "four", devices=4)
     assert run[1]["devices"] == 4
     _assert_same_per_seed(one_device, run)
 
 
+@pytest.mark.slow  # sharded resume (~40 s)
 def test_sharded_resume_matches_an_uninterrupted_run(one_device, tmp_path):
     """Stopped after iteration 1 on 4 devices (orbax checkpoint of the sharded state), resumed
     on 4 devices to iteration 2: the same as 2 iterations on one device."""

@@ -196,6 +196,7 @@ def test_shield_step_sees_only_what_the_observation_holds():
     assert bool(did_all) and not bool(did_far)
 
 
+@pytest.mark.slow  # the command line of --shield (~11 s); the evaluator: fast
 def test_evaluate_cli_shield(tmp_path, capsys):
     """`experiments.evaluate RUN --shield` on the committed headline policy (3 tasks): the record
     holds the shield settings and the replaced share; bad combinations are one-line errors."""

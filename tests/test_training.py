@@ -110,6 +110,7 @@ def test_resume_equals_uninterrupted(tmp_path):
         assert log[2][key] > log[1][key] > 1000.0, [r[key] for r in log]
 
 
+@pytest.mark.slow  # exact resume: test_resume_equals_uninterrupted runs in the fast set (~75 s)
 def test_learned_entropy_weight_resumes_exactly(tmp_path):
     """Extension `pearl.auto_entropy`: log alpha and its optimizer state are part of the
     checkpointed learner state (resume is exact), each seed has its own, and the log has it."""
