@@ -105,6 +105,7 @@ def test_adapter_step_by_step_gives_the_online_evaluation_actions(setup):
         assert int(state.added) == env.config.horizon
 
 
+@pytest.mark.slow  # (~21 s); step by step: fast
 def test_adapter_in_a_jitted_scan_reproduces_the_online_evaluation(setup):
     """All test tasks: the adapter's pure functions under jit, vmap and scan; the same
     trajectories, returns and SR as `make_evaluator(online=True)`."""

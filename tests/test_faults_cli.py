@@ -74,6 +74,7 @@ def test_compare_on_a_folder_that_is_not_a_run(tmp_path, capsys):
     assert err == [f"error: {tmp_path / 'empty'}: not a run directory (no config.json)"]
 
 
+@pytest.mark.slow  # (~13 s)
 def test_unreachable_coordinator_is_a_one_line_error_in_bounded_time(tmp_path):
     """No coordinator at the address (process 1), or process 0 left alone: exit 2 and one line
     after --coordinator-timeout, not a C++ abort minutes later."""

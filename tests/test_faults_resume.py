@@ -122,6 +122,7 @@ def test_ctrl_c_then_kill9_in_a_checkpoint_write_then_resume_is_exact(tmp_path, 
     assert_same_run(ref0, run)
 
 
+@pytest.mark.slow  # (~19 s)
 def test_update_chunks_give_one_scan_and_answer_stop():
     """The update phase in chunks of 2 + 1 steps equals one scan of its 3 steps (same keys, bit
     for bit), and a stop request is answered between chunks."""

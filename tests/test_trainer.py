@@ -74,6 +74,7 @@ def test_task_options_reach_the_builder_and_bad_ones_name_the_field():
         ExperimentConfig(task_options=[1])
 
 
+@pytest.mark.slow  # (~21 s)
 def test_redraw_behaviours_changes_only_the_visited_tasks_and_needs_a_family_that_can():
     from mpcpearl_jax.training.trainer import Trainer
     from tests.test_training import TINY

@@ -141,6 +141,7 @@ def _garble(ckpt_dir):
             p.write_bytes(b"garbage")
 
 
+@pytest.mark.slow  # (~14 s); checkpoint errors: test_faults_cli
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path, capsys):
     run = tmp_path / "run"
     train(TINY, run, progress=False)
