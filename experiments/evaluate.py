@@ -408,7 +408,7 @@ def setup(args: argparse.Namespace) -> Setup:
             raise UsageError(f"--seed-index {args.seed_index}: the run has {seeds} seed(s)")
         seed_ids = list(range(seeds)) if args.seed_index is None else [args.seed_index]
         try:  # CheckpointError (no or corrupt policy.msgpack) goes to the caller as it is
-            policies = [load_policy(args.run, s, data=data) for s in seed_ids]
+            policies = [load_policy(args.run, s) for s in seed_ids]
         except (ValueError, TypeError, OSError) as e:
             raise UsageError(f"{args.run}: cannot load the policy: {e}") from e
         label = run_label(cfg)

@@ -18,16 +18,17 @@ A screen file names its arms and seeds once; every arm is trained with every see
               "guide": {"argv": ["--set", "train.guide_share=0.5"]}}}
 
 An arm with `runs` reuses finished run folders, one per seed (nothing is trained for it; their
-configs must be the ones its argv builds with each seed). An arm with `argv` only is trained:
+configs must be the ones its argv builds with each seed). An arm marked `"retired"` (a line naming
+the options since removed that its argv sets, `config.REMOVED_OPTIONS`) is reported from its run
+folders, `<results>/<arm>-s<S>`, and never trained or rebuilt. An arm with `argv` only is trained:
 seed S becomes the campaign entry `<name>-<arm>-s<S>` with argv = the arm's argv, then
-`common_argv`, then `--seed S`, results folder `<results>/<arm>-s<S>` and the screen's
-`evaluate` list, and the entries are trained seed by seed, each arm in turn (an interrupted
-screen leaves its arms on equal seeds), as `experiments.campaign` trains its queue (one at a time
-in `runs/campaign/<entry>`, resumed after Ctrl-C by the same command, copied without
-checkpoints, then evaluated). `--arms` and `--seeds` train only the arms and seeds named;
-`--dry-run` prints the entries and the processes left and runs nothing; `--report-only` trains
-nothing. The first `evaluate` entry must be a `--split val` evaluation: its record is the
-validation the report reads.
+`common_argv`, then `--seed S`, results folder `<results>/<arm>-s<S>` and the screen's `evaluate`
+list, and the entries are trained seed by seed, each arm in turn (an interrupted screen leaves its
+arms on equal seeds), as `experiments.campaign` trains its queue (one at a time in
+`runs/campaign/<entry>`, resumed after Ctrl-C by the same command, copied without checkpoints, then
+evaluated). `--arms` and `--seeds` train only the arms and seeds named; `--dry-run` prints the
+entries and the processes left and runs nothing; `--report-only` trains nothing. The first
+`evaluate` entry must be a `--split val` evaluation: its record is the validation the report reads.
 
 The report (`<results>/<name>.json` and the figure `<results>/<name>-liftoff.png`) covers every
 arm and only its finished seeds (a run folder with results.json, metrics.jsonl, config.json and
@@ -59,7 +60,7 @@ from experiments.tables import statistics
 from experiments.tables.statistics import cumulative_wall_s
 
 KEYS = ("name", "results", "seeds", "trainer", "common_argv", "evaluate", "baseline", "arms")
-ARM_KEYS = ("argv", "runs")
+ARM_KEYS = ("argv", "runs", "retired")
 TRAINERS = ("restaurant",)  # trainers whose records the report reads (metrics.jsonl, results.json)
 SET_BY_SCREEN = ("--seed", "--out", "--resume", "--overwrite")
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*\Z")  # a screen or arm name: one folder name
@@ -75,6 +76,7 @@ class Arm:
     name: str
     argv: tuple[str, ...]
     runs: dict[int, Path] | None = None  # reused run folders by seed; None: trained
+    retired: str | None = None  # the removed options its argv sets: reported, never trained
 
 
 @dataclass(frozen=True)
@@ -200,7 +202,10 @@ def load_screen(path: Path) -> Screen:
         runs = spec.get("runs")
         if runs is not None:
             runs = _reused_runs(runs, seeds, f"{where}: 'runs'")
-        arms[arm] = Arm(arm, argv, runs)
+        retired = spec.get("retired")
+        if retired is not None and (not isinstance(retired, str) or not retired.strip()):
+            raise ValueError(f"{where}: 'retired' must name the removed options (a string)")
+        arms[arm] = Arm(arm, argv, runs, retired)
     baseline = raw["baseline"]
     if baseline not in arms:
         raise ValueError(f"{path}: 'baseline' must name an arm ({list(arms)}), got {baseline!r}")
@@ -234,12 +239,13 @@ def _reused_runs(runs: object, seeds: list[int], where: str) -> dict[int, Path]:
 
 
 def campaign_runs(screen: Screen) -> dict[str, list[campaign.CampaignRun]]:
-    """Arm -> its campaign entries in seed order (none for an arm that reuses runs), each
-    checked as a campaign file's entry is; ValueError naming the file and the arm."""
+    """Arm -> its campaign entries in seed order (none for an arm that reuses runs or is
+    retired), each checked as a campaign file's entry is; ValueError naming the file and the
+    arm."""
     out: dict[str, list[campaign.CampaignRun]] = {}
     for arm in screen.arms.values():
         out[arm.name] = []
-        if arm.runs is not None:
+        if arm.runs is not None or arm.retired is not None:
             continue
         for seed in screen.seeds:
             where = f"{screen.path}: arms.{arm.name} (seed {seed})"
@@ -590,13 +596,16 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {args.screen}: {e}", file=sys.stderr)
             return 2
         for name in arms:
-            if screen.arms[name].runs is not None:
+            if screen.arms[name].retired is not None:
+                why = screen.arms[name].retired
+                print(f"[screen] {name}: retired ({why}); reported, not trained", flush=True)
+            elif screen.arms[name].runs is not None:
                 print(f"[screen] {name}: reuses {len(screen.seeds)} run folders", flush=True)
         # seed by seed, each arm in turn: an interrupted screen leaves its arms on equal seeds
         todo = []
         for seed in seeds:
             for name in arms:
-                if screen.arms[name].runs is not None:
+                if not runs[name]:  # reused or retired: nothing to train
                     continue
                 run = runs[name][screen.seeds.index(seed)]
                 if args.dry_run:

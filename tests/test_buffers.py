@@ -1,4 +1,4 @@
-"""The per-task ring buffers (pearl/buffers.py): masked inserts against a NumPy reference."""
+"""The per-task ring buffers (pearl/buffers.py): inserts against a NumPy reference."""
 
 import jax
 import jax.numpy as jnp
@@ -20,18 +20,18 @@ def _transitions(k, n, start=0.0):
     )
 
 
-def _insert_masked_ref(store, size, ptr, cap, task_ids, reward, mask):
-    """NumPy reference: append the kept rewards of each task to its ring buffer, in order."""
+def _insert_ref(store, size, ptr, cap, task_ids, reward):
+    """NumPy reference: append the rewards of each task to its ring buffer, in order."""
     store, size, ptr = store.copy(), size.copy(), ptr.copy()
     for i, t in enumerate(task_ids):
-        for v in reward[i][mask[i]]:
+        for v in reward[i]:
             store[t, ptr[t]] = v
             ptr[t] = (ptr[t] + 1) % cap
             size[t] = min(size[t] + 1, cap)
     return store, size, ptr
 
 
-def test_insert_masked_matches_numpy_ring_buffer():
+def test_insert_matches_numpy_ring_buffer():
     rng = np.random.default_rng(0)
     cap, n_tasks, n = 7, 4, 5
     buf = buffers.init_buffer(n_tasks, cap, OBS, A)
@@ -41,11 +41,8 @@ def test_insert_masked_matches_numpy_ring_buffer():
     for step in range(6):  # wraps around several times
         ids = rng.choice(n_tasks, 2, replace=False)
         data = _transitions(2, n, start=100.0 * step)
-        mask = rng.uniform(size=(2, n)) < 0.6
-        buf = jax.jit(buffers.insert_masked)(buf, jnp.asarray(ids), data, jnp.asarray(mask))
-        store, size, ptr = _insert_masked_ref(
-            store, size, ptr, cap, ids, np.asarray(data.reward), mask
-        )
+        buf = jax.jit(buffers.insert)(buf, jnp.asarray(ids), data)
+        store, size, ptr = _insert_ref(store, size, ptr, cap, ids, np.asarray(data.reward))
         np.testing.assert_array_equal(np.asarray(buf.size), size)
         np.testing.assert_array_equal(np.asarray(buf.ptr), ptr)
         for t in range(n_tasks):  # only the valid slots are defined
@@ -55,14 +52,3 @@ def test_insert_masked_matches_numpy_ring_buffer():
             np.testing.assert_array_equal(
                 np.asarray(buf.data.obs)[t, : size[t], 0], store[t, : size[t]]
             )
-
-
-def test_insert_masked_all_true_equals_insert():
-    buf = buffers.init_buffer(3, 6, OBS, A)
-    data = _transitions(2, 4)
-    ids = jnp.array([2, 0])
-    a = buffers.insert(buffers.insert(buf, ids, data), ids, data)
-    m = jnp.ones((2, 4), bool)
-    b = buffers.insert_masked(buffers.insert_masked(buf, ids, data, m), ids, data, m)
-    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

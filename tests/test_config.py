@@ -10,14 +10,12 @@ import jax.numpy as jnp
 import pytest
 
 from mpcpearl_jax.config import ExperimentConfig, PearlConfig, TrainConfig, preset, validate
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 
 
 @pytest.mark.parametrize(
     "make, field",
     [
-        (lambda: TrainConfig(mpc_buffer_fraction=1.0), "mpc_buffer_fraction"),
-        (lambda: TrainConfig(mpc_buffer_fraction=-0.1), "mpc_buffer_fraction"),
         (lambda: PearlConfig(layer_norm="False"), "layer_norm"),
         (lambda: TrainConfig(explore_start_share=1.0), "explore_start_share"),
         (lambda: TrainConfig(explore_start_share=-0.1), "explore_start_share"),
@@ -38,7 +36,7 @@ def test_paper_presets_have_every_extension_off(name):
     cfg = preset(name)
     if name == "paper":
         assert cfg.train == TrainConfig() and cfg.pearl == PearlConfig()
-    assert cfg.train.mpc_buffer_fraction == 0 and not cfg.pearl.layer_norm
+    assert not cfg.pearl.layer_norm
     assert not cfg.pearl.auto_entropy and cfg.pearl.target_entropy is None
     assert not cfg.mpc.unsafe_recovery and cfg.train.explore_start_share == 0
     assert cfg.train.crowd_delay_max == 0
@@ -142,6 +140,10 @@ def test_default_preset_keeps_the_sidewalk_crowd():
         ("main-seeds/warmstart20-s0", "train.mpc_demo_share"),
         ("ablation/extended-60min", "pearl.bc_weight"),
         ("main-seeds/rs1-alpha02-s0", "pearl.init_alpha"),
+        ("screen/mpcbuf-s0", "train.mpc_buffer_fraction"),
+        ("screen/keep-s0", "train.keep_best"),
+        ("screen/nstep-s0", "pearl.n_step"),
+        ("screen/crossq-s0", "pearl.crossq"),
     ],
 )
 def test_runs_of_removed_options_evaluate_but_do_not_resume(tmp_path, folder, option):
@@ -206,24 +208,45 @@ def test_runs_of_removed_options_evaluate_but_do_not_resume(tmp_path, folder, op
             [],
         ),
         # behaviour cloning read the MPC buffer's rows
-        ({"pearl.bc_weight": 1.0, "train.mpc_buffer_fraction": 0.5}, ["pearl.bc_weight"]),
+        (
+            {"pearl.bc_weight": 1.0, "train.mpc_buffer_fraction": 0.5},
+            ["train.mpc_buffer_fraction", "pearl.bc_weight"],
+        ),
         (
             {
                 "pearl.bc_weight": 4.0,
                 "pearl.bc_q_filter": False,
                 "train.mpc_buffer_fraction": 0.5,
             },
-            ["pearl.bc_weight", "pearl.bc_q_filter"],
+            ["train.mpc_buffer_fraction", "pearl.bc_weight", "pearl.bc_q_filter"],
         ),
         ({"pearl.bc_q_filter": False}, []),  # the presets' inactive residue
         ({"pearl.init_alpha": 0.2, "pearl.reward_scale": 1.0}, ["pearl.init_alpha"]),
+        # the MPC buffer held MPC transitions only; its capacity acted only with a fraction
+        ({"train.mpc_buffer_fraction": 0.5}, ["train.mpc_buffer_fraction"]),
+        ({"train.eps": 0.0, "train.mpc_buffer_fraction": 0.5}, []),  # PEARL: no MPC rows
+        ({"train.mpc_buffer_capacity": 200}, []),
+        # the kept policy's interval and task count acted only with keep_best
+        (
+            {"train.keep_best": True, "train.keep_tasks": 8},
+            ["train.keep_best", "train.keep_tasks"],
+        ),
+        ({"train.keep_interval": 3}, []),
+        ({"pearl.n_step": 3}, ["pearl.n_step"]),
+        # the CrossQ momentum acted only with CrossQ
+        (
+            {"pearl.crossq": True, "pearl.crossq_momentum": 0.9, "pearl.layer_norm": False},
+            ["pearl.crossq", "pearl.crossq_momentum"],
+        ),
+        ({"pearl.crossq_momentum": 0.9}, []),
     ],
 )
 def test_removed_training_options_load_named_and_round_trip_off(tmp_path, changes, on):
-    """A config.json of `default` with the retired warm start, cloning or init_alpha switched on
-    loads for evaluation with the options dropped and names exactly those that acted (resume
-    refused naming them); their inactive values, and their off values, load silently, resume,
-    and round-trip through to_json without the removed fields."""
+    """A config.json of `default` with a retired option (the warm start, cloning, init_alpha,
+    the MPC buffer, the kept policy, n-step returns, CrossQ) switched on loads for evaluation
+    with the options dropped and names exactly those that acted (resume refused naming them);
+    their inactive values, and their off values, load silently, resume, and round-trip through
+    to_json without the removed fields."""
     import json
 
     from mpcpearl_jax.config import REMOVED_OPTIONS, removed_options_on

@@ -47,6 +47,22 @@ def test_policy_on_the_whole_test_split_matches_the_runs_results(tmp_path, capsy
     assert f"{f['success']} reached the goal without contact" in table
 
 
+def test_a_run_of_a_retired_option_evaluates_as_recorded(tmp_path):
+    """A committed run trained with CrossQ critics (an option since removed: its network.json
+    still names `crossq`) loads, and its validation tasks of task seed 1 score what its
+    committed record says (docs/extensions.md, Removed options)."""
+    run = ROOT / "results" / "restaurant" / "screen" / "crossq-s0"
+    assert json.loads((run / "network.json").read_text())["crossq"] is True
+    argv = [str(run), "--split", "val", "--task-seed", "1", "--figures", "none"]
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    rec = _record(tmp_path)
+    saved = json.loads((run / "eval/policy-val-seeds1-8/results.json").read_text())
+    saved = next(r for r in saved["records"] if r["task_seed"] == 1)
+    assert rec["tasks"] == saved["tasks"]
+    for k in METRICS:
+        assert rec["metrics"][k] == pytest.approx(saved["metrics"][k], rel=1e-5, abs=1e-5), k
+
+
 @pytest.mark.parametrize("split", ["val", "ood", "train"])
 def test_policy_on_each_split(tmp_path, split):
     # 24 tasks, as in the test split: the same program, compiled once

@@ -12,7 +12,7 @@ import pytest
 from faults_helpers import ROOT, _env, _make_unwritable, _one_line_error, small_args
 
 from experiments.common import build_config, main, parser
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.training.run import LOG_FILE
 
 

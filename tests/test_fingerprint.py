@@ -62,7 +62,6 @@ def tiny(name: str):
         posterior_episodes=1,
         updates_per_iteration=3,
         rl_capacity=400,
-        mpc_buffer_capacity=200,
         eval_interval=0,
         checkpoint_interval=1,
     )
@@ -93,7 +92,7 @@ def stand_in_solve_rows(self, probs, inits, num_static):
 
 
 def fingerprint(name: str) -> dict:
-    from mpcpearl_jax.trainer import Trainer
+    from mpcpearl_jax.training.trainer import Trainer
 
     tr = Trainer(tiny(name))
     state = tr.init_state()

@@ -11,7 +11,7 @@ import numpy as np
 import optax
 import pytest
 
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.grbal.config import GrbalConfig, GrbalExperimentConfig
 from mpcpearl_jax.grbal.model import (
     DynamicsModel,

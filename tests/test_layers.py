@@ -20,7 +20,7 @@ LAYERS = [
     ["mpc"],
     ["config", "grbal.config", "grbal.model", "grbal.planner"],
     ["evaluation"],
-    ["training", "trainer", "grbal.trainer"],
+    ["training", "grbal.trainer"],
     ["training.run", "grbal.run", "grbal", "evaluation.runners"],
     ["deploy"],
 ]

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mpcpearl_jax.envs import make_env
-from mpcpearl_jax.envs.types import ConfigError, EnvState, TaskParams, stack_params
+from mpcpearl_jax.envs.types import EnvState, TaskParams, stack_params
+from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.mpc import (
     FALLBACK_POLICY,
     NOT_FIRED,

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 
 
 def test_velocity_observation_matches_numpy():

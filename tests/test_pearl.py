@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.pearl import (
     PearlConfig,
     Transitions,

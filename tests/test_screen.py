@@ -332,9 +332,35 @@ def test_dry_run_lists_the_campaign_entries_with_their_seeds(tmp_path, monkeypat
     assert "no arm named ['nosuch']" in capsys.readouterr().err
 
 
+def test_a_retired_arm_is_reported_from_its_folders_and_never_trained(
+    tmp_path, monkeypatch, capsys
+):
+    """An arm whose argv sets an option since removed (`config.REMOVED_OPTIONS`), marked
+    `retired`: no campaign entry, no config rebuilt from its argv, its run folders reported."""
+    monkeypatch.chdir(tmp_path)
+    for seed in (0, 1):
+        make_run(tmp_path / f"res/screen/old-s{seed}", [0, 1], 0.2 + seed / 10)
+    arms = {
+        **GOOD_ARMS,
+        "old": {"argv": ["--set", "pearl.n_step=3"], "retired": "pearl.n_step"},
+    }
+    path = write_screen(tmp_path / "s.json", arms, baseline="base")
+    s = screen.load_screen(path)
+    assert s.arms["old"].retired == "pearl.n_step" and screen.campaign_runs(s)["old"] == []
+    screen.check_reused(s, ["old"])  # nothing to rebuild (its argv no longer builds a config)
+    assert screen.main([str(path), "--dry-run", "--arms", "old", "guide"]) == 0
+    out = capsys.readouterr().out
+    assert "old: retired (pearl.n_step); reported, not trained" in out
+    assert "t-old-" not in out and "t-guide-s0" in out
+    assert screen.screen_report(s, tmp_path)["arms"]["old"]["finished"] == [0, 1]
+    bad = write_screen(tmp_path / "b.json", {"old": {"argv": [], "retired": ""}})
+    with pytest.raises(ValueError, match="'retired' must name the removed options"):
+        screen.load_screen(bad)
+
+
 def test_the_queue_goes_seed_by_seed_and_takes_only_the_seeds_named(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    arms = {**GOOD_ARMS, "more": {"argv": ["--set", "pearl.n_step=3"]}}
+    arms = {**GOOD_ARMS, "more": {"argv": ["--set", "train.crowd_delay_max=20"]}}
     path = write_screen(tmp_path / "s.json", arms, seeds=[3, 5, 7], baseline="base")
     argv = [str(path), "--dry-run", "--arms", "guide", "more", "--seeds", "7", "3"]
     assert screen.main(argv) == 0

@@ -9,7 +9,7 @@ from mpcpearl_jax.envs import make_tasks
 from mpcpearl_jax.envs.numpy_ref import rounded_box_clearance
 from mpcpearl_jax.envs.sidewalk import SIDEWALK_CONFIG, SyntheticCrowd, sidewalk_boxes
 from mpcpearl_jax.envs.sidewalk.synthetic import reflect
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 
 CFG = SIDEWALK_CONFIG
 

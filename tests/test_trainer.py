@@ -1,6 +1,6 @@
-"""The trainer's optional collection paths (trainer.py, collect.py): the MPC buffer, re-drawn
-crowds, randomised crowd timing, exploring starts, task options; each off in the paper's
-configuration (docs/extensions.md)."""
+"""The trainer's optional collection paths (trainer.py, collect.py): re-drawn crowds, randomised
+crowd timing, exploring starts, task options; each off in the paper's configuration
+(docs/extensions.md)."""
 
 import dataclasses
 
@@ -10,56 +10,15 @@ import numpy as np
 import pytest
 
 from mpcpearl_jax.config import ExperimentConfig, TrainConfig
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 
 
-def _mpc_buffer_config(**train_changes) -> ExperimentConfig:
-    """One seed of the tiny config with the MPC on every event and the MPC buffer at half of
-    every batch."""
-    from tests.test_training import TINY
-
-    tc = dataclasses.replace(
-        TINY.train,
-        eps=1.0,
-        tasks_per_iteration=2,
-        initial_episodes=1,
-        posterior_episodes=0,
-        mpc_buffer_fraction=0.5,
-        mpc_buffer_capacity=200,
-        updates_per_iteration=200,  # meta-batches of 3 of 120 tasks: some hit tasks 0 and 1
-        **train_changes,
-    )
-    return TINY.replace(seeds=1, train=tc, mpc={"unsafe_recovery": True})
-
-
-def test_mpc_buffer_holds_exactly_the_mpc_transitions():
-    from mpcpearl_jax.training.trainer import Trainer
-
-    tr = Trainer(_mpc_buffer_config())
-    state = tr.init_state()
-    ids = jnp.array([[0, 1]])
-    state, stats = tr.prior_collection(state, ids)
-    assert 0 < float(stats["mpc_share"][0]) <= float(stats["event_rate"][0]) + 1e-6
-    n_mpc = int(round(float(stats["mpc_share"][0]) * 2 * tr.horizon))
-    assert int(jnp.sum(state.mpc.size[0])) == n_mpc
-    assert int(jnp.sum(state.rl.size[0])) == 2 * tr.horizon  # the RL buffer keeps everything
-    # the stored MPC actions are what the episode applied: each is also in the RL buffer
-    for task in (0, 1):
-        rl_actions = np.asarray(state.rl.data.action[0, task, : tr.horizon])
-        mpc_actions = np.asarray(state.mpc.data.action[0, task, : int(state.mpc.size[0, task])])
-        for a in mpc_actions:
-            assert np.min(np.abs(rl_actions - a).sum(-1)) < 1e-6
-    state, losses = tr.update_phase(state)
-    assert all(np.all(np.isfinite(np.asarray(v))) for v in losses.values())
-
-
-def test_pearl_baseline_never_builds_the_mpc_even_with_extensions_set():
+def test_pearl_baseline_never_builds_the_mpc():
     from mpcpearl_jax.training.trainer import Trainer
     from tests.test_training import TINY
 
-    tc = dataclasses.replace(TINY.train, eps=0.0, mpc_buffer_fraction=0.5)
-    tr = Trainer(TINY.replace(train=tc))
-    assert tr.bridge is None and not tr.use_mpc_buffer and tr.init_state().mpc is None
+    tr = Trainer(TINY.replace(train=dataclasses.replace(TINY.train, eps=0.0)))
+    assert tr.bridge is None
 
 
 def test_task_options_reach_the_builder_and_bad_ones_name_the_field():

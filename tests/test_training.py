@@ -10,7 +10,7 @@ import pytest
 
 from mpcpearl_jax.config import ExperimentConfig, PearlConfig, TrainConfig, preset
 from mpcpearl_jax.deploy.policy import load_policy
-from mpcpearl_jax.envs.types import ConfigError
+from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.training.checkpoint import CheckpointError
 from mpcpearl_jax.training.run import train
 from mpcpearl_jax.training.trainer import Trainer

@@ -43,11 +43,6 @@ class TrainConfig:
     keep_checkpoints: int = 3
     # ---- extensions beyond the paper (all off by default and in the `paper` preset; docs/
     # extensions.md describes and measures each one)
-    # MPC transitions kept apart: every transition the MPC produced (solved, not a fallback) is
-    # also stored in a per-task MPC buffer of mpc_buffer_capacity, and this fraction of every
-    # RL batch is drawn from it (symmetric sampling as in RLPD when 0.5).
-    mpc_buffer_fraction: float = 0.0
-    mpc_buffer_capacity: int = 4000
     # behaviours re-drawn: each time a training task is visited (after the initial collection),
     # its people get a fresh behaviour on the same table layout, so no crowd motion can be
     # learned by heart (domain randomization against the train/test gap); the task's buffers
@@ -75,15 +70,6 @@ class TrainConfig:
     guide_steps: int = 80
     guide_decrement: int = 8
     guide_success: float = 0.5
-    # TD7-style kept policy (Fujimoto et al. 2023): every keep_interval iterations the acting
-    # policy is scored on the first keep_tasks training tasks (the evaluation protocol: two
-    # adaptation episodes, then one scored; deterministic, a fixed key) by its success rate,
-    # ties broken by its worst episode's return; only a better score replaces the kept policy
-    # and encoder, which are what the run reports, saves and exports (training goes on with
-    # the current ones). Validation and test tasks are never used for the choice
-    keep_best: bool = False
-    keep_interval: int = 5
-    keep_tasks: int = 16
 
     def __post_init__(self) -> None:
         v.ints(
@@ -98,10 +84,7 @@ class TrainConfig:
             "checkpoint_interval",
             "keep_checkpoints",
             "eval_adapt_episodes",
-            "mpc_buffer_capacity",
             "guide_steps",
-            "keep_interval",
-            "keep_tasks",
         )
         v.ints(
             self, "posterior_episodes", "eval_interval", "crowd_delay_max", "guide_decrement", lo=0
@@ -109,15 +92,12 @@ class TrainConfig:
         v.interval(
             self,
             "eps",
-            "mpc_buffer_fraction",
             "explore_start_share",
             "guide_share",
             "guide_success",
             lo=0.0,
             hi=1.0,
         )
-        v.flags(self, "keep_best")
-        v.check(self.mpc_buffer_fraction < 1.0, self, "mpc_buffer_fraction", "must be below 1")
         v.flags(self, "redraw_behaviours")
         v.check(
             self.explore_start_share < 1.0,
@@ -151,8 +131,7 @@ class TrainConfig:
 
     @property
     def uses_mpc(self) -> bool:
-        """Whether collection calls the MPC: eps = 0 is PEARL, and then the MPC buffer
-        (`mpc_buffer_fraction`) has nothing to hold."""
+        """Whether collection calls the MPC: eps = 0 is PEARL."""
         return self.eps > 0
 
 
@@ -233,13 +212,20 @@ class ExperimentConfig(SerializableConfig):
 
 
 # Options removed after they measured no gain (docs/extensions.md, "Removed options"), with
-# their off value: section -> {field: off value}. Every one of them acted on training only.
+# their off value: section -> {field: off value}. Every one of them acted on training only
+# (what the critics learned, or, `keep_best`, which of the trained policies was saved), never
+# on the policy's inputs or networks.
 REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
     "train": {
         "mpc_dagger_labels": False,
         "mpc_demo_share": 0.0,
         "mpc_demo_iterations": 0,
         "mpc_demo_step_prob": 1.0,
+        "mpc_buffer_fraction": 0.0,
+        "mpc_buffer_capacity": 4000,
+        "keep_best": False,
+        "keep_interval": 5,
+        "keep_tasks": 16,
     },
     "pearl": {
         "policy_ema": 0.0,
@@ -247,6 +233,9 @@ REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
         "bc_weight": 0.0,
         "bc_q_filter": True,
         "init_alpha": 1.0,
+        "n_step": 1,
+        "crossq": False,
+        "crossq_momentum": 0.99,
     },
     "env_overrides": {"w_collision": 0.0},
 }
@@ -254,8 +243,11 @@ REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
 # their off value, that must all differ from it for this one to have changed training. The MPC
 # warm start ran only with a share and an iteration count above 0 and with the MPC (eps > 0);
 # its step probability and the cloning's Q filter qualified an option that had to be on, and
-# cloning read the MPC buffer's rows. So the inactive values the presets carried (step
-# probability 0.5, no Q filter) leave a committed run resumable.
+# cloning read the MPC buffer's rows. The MPC buffer held MPC transitions only (eps > 0), its
+# capacity acted only with a fraction above 0, the kept policy's interval and task count only
+# with `keep_best`, the CrossQ momentum only with CrossQ. So the inactive values the presets
+# carried (step probability 0.5, no Q filter, an MPC buffer fraction with eps 0) leave a
+# committed run resumable.
 _ACTIVE_ONLY_WITH: dict[str, dict[str, Any]] = {
     "train.mpc_demo_share": {"train.mpc_demo_iterations": 0, "train.eps": 0.0},
     "train.mpc_demo_iterations": {"train.mpc_demo_share": 0.0, "train.eps": 0.0},
@@ -270,6 +262,11 @@ _ACTIVE_ONLY_WITH: dict[str, dict[str, Any]] = {
         "train.mpc_buffer_fraction": 0.0,
         "train.eps": 0.0,
     },
+    "train.mpc_buffer_fraction": {"train.eps": 0.0},
+    "train.mpc_buffer_capacity": {"train.mpc_buffer_fraction": 0.0, "train.eps": 0.0},
+    "train.keep_interval": {"train.keep_best": False},
+    "train.keep_tasks": {"train.keep_best": False},
+    "pearl.crossq_momentum": {"pearl.crossq": False},
 }
 
 

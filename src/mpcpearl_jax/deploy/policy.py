@@ -138,13 +138,8 @@ def _spec_from_shapes(raw: dict, cfg: ExperimentConfig) -> dict:
     return Networks(cfg.pearl, n_in - cfg.pearl.latent_dim, n_out // 2).spec()
 
 
-def load_policy(
-    path: str | Path, seed_index: int = 0, data: str | Path | None = None
-) -> LoadedPolicy:
-    """Rebuild the trained policy of seed `seed_index` from a run directory (see module doc).
-
-    data: accepted for compatibility and ignored (no data file is needed)."""
-    del data
+def load_policy(path: str | Path, seed_index: int = 0) -> LoadedPolicy:
+    """Rebuild the trained policy of seed `seed_index` from a run directory (see module doc)."""
     run_dir = Path(path)
     cfg = load_config(run_dir)
     if not 0 <= seed_index < cfg.seeds:

@@ -20,7 +20,6 @@ from flax import struct
 from jax import Array
 
 from mpcpearl_jax import validate
-from mpcpearl_jax.errors import ConfigError  # noqa: F401  (home: errors.py; re-exported)
 
 
 @dataclasses.dataclass(frozen=True)

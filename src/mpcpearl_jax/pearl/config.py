@@ -42,32 +42,14 @@ class PearlConfig:
     # policy's entropy is pulled to the target; target_entropy None = -(action dimension)
     auto_entropy: bool = False
     target_entropy: float | None = None
-    # n-step returns: the critic's target is the discounted sum of the next n rewards of the
-    # stored episode (fewer at its end) plus gamma^m V_bar of the state after them, without
-    # off-policy correction (Rainbow; RLPD); 1 = the paper's one-step target
-    n_step: int = 1
-    # CrossQ critics (Bhatt et al., ICLR 2024): batch normalisation in the twin Q networks, no
-    # target network, and the Q target from the current critic, r + gamma (min_i Q_i(s', a') -
-    # alpha log pi(a'|s')) with a' ~ pi(s'), (s, a) and (s', a') in one forward pass so both
-    # halves share the batch statistics; PEARL's V network is then not trained. Replaces
-    # layer_norm in the critics (the two cannot be combined)
-    crossq: bool = False
-    crossq_momentum: float = 0.99  # the running statistics' momentum (CrossQ's 0.99)
 
     def __post_init__(self) -> None:
-        v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size", "n_step")
+        v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size")
         v.int_tuples(self, "hidden", "encoder_hidden")
         v.positive(self, "lr", "reward_scale", "min_posterior_var")
         v.interval(self, "gamma", "tau", lo=0.0, hi=1.0)
         v.nonnegative(self, "kl_weight", "policy_mean_reg", "policy_std_reg")
-        v.flags(self, "use_context", "layer_norm", "auto_entropy", "crossq")
-        v.interval(self, "crossq_momentum", lo=0.0, hi=1.0)
-        v.check(
-            not (self.crossq and self.layer_norm),
-            self,
-            "crossq",
-            "replaces layer_norm in the critics: set pearl.layer_norm=false with it",
-        )
+        v.flags(self, "use_context", "layer_norm", "auto_entropy")
         v.check(
             self.target_entropy is None or v.is_number(self.target_entropy),
             self,

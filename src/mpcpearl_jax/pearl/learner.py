@@ -73,7 +73,6 @@ def make_update(nets: Networks, jit: bool = True):
     caller); jit=False gives the plain function, for composing into scans (see `trainer`). The
     losses are built once (`losses.make_losses`)."""
     opt, loss = _optimizer(nets.cfg), losses.make_losses(nets)
-    crossq = nets.cfg.crossq
 
     def opt_step(params, grads, opt_state):
         upd, opt_state = opt.update(grads, opt_state, params)
@@ -89,16 +88,10 @@ def make_update(nets: Networks, jit: bool = True):
         alpha = None if state.log_alpha is None else jnp.exp(state.log_alpha)
         # 1. Q and encoder: L_phi = L_psi + beta KL (line 22)
         q_enc = {"q": p["q"], "encoder": p["encoder"]}
-        if crossq:  # extension: the target from the current critic, Q's running statistics
-            critic_loss = loss.critic_encoder_crossq
-            args: tuple = (p["policy"], batch, context, k_z, alpha)
-        else:
-            critic_loss, args = loss.critic_encoder, (state.target_v, batch, context, k_z)
-        (qe_loss, aux), grads = jax.value_and_grad(critic_loss, has_aux=True)(q_enc, *args)
+        (qe_loss, aux), grads = jax.value_and_grad(loss.critic_encoder, has_aux=True)(
+            q_enc, state.target_v, batch, context, k_z
+        )
         q_enc, os_qe = opt_step(q_enc, grads, opt_in["q_enc"])
-        if crossq:  # the running statistics got zero gradients (Adam leaves them as they are)
-            # and take the forward pass's update
-            q_enc = {"q": {**q_enc["q"], **aux["stats"]}, "encoder": q_enc["encoder"]}
         z = jax.lax.stop_gradient(aux["z"])
         zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])
         # 2. policy L_theta (line 22), z detached, with the updated Q
@@ -106,16 +99,11 @@ def make_update(nets: Networks, jit: bool = True):
             p["policy"], q_enc["q"], batch.obs, zb, k_pi, alpha
         )
         policy, os_pi = opt_step(p["policy"], g_pi, opt_in["policy"])
-        # 3. value (line 23), target from the same policy sample and the updated Q; extension
-        # `crossq` trains no V (its Q target needs none)
-        if crossq:
-            v, os_v, target_v = p["v"], opt_in["v"], state.target_v
-            v_loss = jnp.zeros(())
-        else:
-            v_target = jax.lax.stop_gradient(pi_aux["v_target"])
-            v_loss, g_v = jax.value_and_grad(loss.value)(p["v"], batch.obs, zb, v_target)
-            v, os_v = opt_step(p["v"], g_v, opt_in["v"])
-            target_v = optax.incremental_update(v, state.target_v, nets.cfg.tau)
+        # 3. value (line 23), target from the same policy sample and the updated Q
+        v_target = jax.lax.stop_gradient(pi_aux["v_target"])
+        v_loss, g_v = jax.value_and_grad(loss.value)(p["v"], batch.obs, zb, v_target)
+        v, os_v = opt_step(p["v"], g_v, opt_in["v"])
+        target_v = optax.incremental_update(v, state.target_v, nets.cfg.tau)
         opt_state = {"q_enc": os_qe, "policy": os_pi, "v": os_v}
         # 4. entropy weight (extension `auto_entropy`), from the same policy sample's log pi
         log_alpha = state.log_alpha

@@ -30,10 +30,6 @@ class Losses(NamedTuple):
     value: Callable
     # (log_alpha, log_pi) -> the entropy weight's loss (extension `auto_entropy`)
     temperature: Callable
-    # (q_enc_params {q, encoder}, policy_params, batch [MB, B], context [MB, C, D], key,
-    # alpha=None) -> (L_phi, aux): the critic and KL loss of extension `crossq`; aux["stats"]
-    # holds the Q networks' updated running statistics
-    critic_encoder_crossq: Callable
 
 
 def target_entropy(nets: Networks) -> float:
@@ -50,8 +46,7 @@ def make_losses(nets: Networks) -> Losses:
 
     def critic_encoder(q_enc_params, target_v_params, batch, context, key):
         """L_phi = L_psi + beta KL(q(z|c) || N(0, I)) (paper Sec. III-A), L_psi the Q TD error
-        against reward_scale * c + gamma V_bar(s', z) (n-step batches: their discounted reward
-        sum and gamma^m). The encoder gets gradients from the Q
+        against reward_scale * c + gamma V_bar(s', z). The encoder gets gradients from the Q
         loss and the KL only."""
         z, mean, var = nets.posterior_sample(q_enc_params["encoder"], context, key)  # [MB, L]
         zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])  # [MB, B, L]
@@ -60,13 +55,8 @@ def make_losses(nets: Networks) -> Losses:
         return td_and_kl(q1, q2, td_target(batch, target_v), z, mean, var)
 
     def td_target(batch, next_v):
-        """reward_scale * c + gamma V(s') (the paper), or for n-step batches (extension
-        `n_step`) their m discounted rewards and gamma^m V(s'); detached."""
-        if batch.discount is None:  # one step (the paper)
-            q_target = cfg.reward_scale * batch.reward + (1.0 - batch.done) * cfg.gamma * next_v
-        else:  # extension `n_step`: m discounted rewards, then gamma^m V_bar
-            bootstrap = (1.0 - batch.done) * batch.discount * next_v
-            q_target = cfg.reward_scale * batch.reward + bootstrap
+        """reward_scale * c + gamma V(s') (the paper); detached."""
+        q_target = cfg.reward_scale * batch.reward + (1.0 - batch.done) * cfg.gamma * next_v
         return jax.lax.stop_gradient(q_target)
 
     def td_and_kl(q1, q2, q_target, z, mean, var):
@@ -103,29 +93,4 @@ def make_losses(nets: Networks) -> Losses:
         below the target and shrinks while it is above."""
         return -log_alpha * jax.lax.stop_gradient(jnp.mean(log_pi) + entropy_target)
 
-    def critic_encoder_crossq(q_enc_params, policy_params, batch, context, key, alpha=None):
-        """Extension `crossq` (Bhatt et al. 2024): L_psi against reward_scale * c + gamma
-        (min_i Q_i(s', a', z) - alpha log pi(a'|s', z)), a' ~ pi(s', z), from the current
-        critic (no target network; alpha None = 1, the paper's temperature). (s, a) and (s',
-        a') go through the batch-normalised Q networks in one forward pass, so both halves are
-        normalised with the same statistics; the target half is detached. Plus beta KL, as in
-        `critic_encoder`; the encoder gets gradients through Q(s, a, z) only."""
-        k_z, k_next = jax.random.split(key)
-        z, mean, var = nets.posterior_sample(q_enc_params["encoder"], context, k_z)  # [MB, L]
-        zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])  # [MB, B, L]
-        z_next = jax.lax.stop_gradient(zb)
-        mean_n, log_std_n = nets.policy_out(policy_params, batch.next_obs, z_next)
-        a_next, logp_next = tanh_gaussian(mean_n, log_std_n).sample_and_log_prob(seed=k_next)
-        b = batch.obs.shape[1]
-        (q1, q2), stats = nets.q_values_train(
-            q_enc_params["q"],
-            jnp.concatenate([batch.obs, batch.next_obs], axis=1),
-            jnp.concatenate([batch.action, jax.lax.stop_gradient(a_next)], axis=1),
-            jnp.concatenate([zb, z_next], axis=1),
-        )
-        entropy = logp_next if alpha is None else alpha * logp_next
-        next_v = jnp.minimum(q1[:, b:], q2[:, b:]) - entropy
-        loss, aux = td_and_kl(q1[:, :b], q2[:, :b], td_target(batch, next_v), z, mean, var)
-        return loss, {**aux, "stats": stats}
-
-    return Losses(critic_encoder, policy, value, temperature, critic_encoder_crossq)
+    return Losses(critic_encoder, policy, value, temperature)

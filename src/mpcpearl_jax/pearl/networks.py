@@ -51,48 +51,15 @@ class MLP(nn.Module):
         )(x)
 
 
-class BatchNormMLP(nn.Module):
-    """CrossQ's critic body (extension `crossq`): batch normalisation of the input and after
-    each hidden ReLU, the rlkit initialisation otherwise. train=True normalises with the batch's
-    statistics (over every leading axis) and updates the running ones (collection
-    `batch_stats`); train=False uses the running ones."""
-
-    hidden: Sequence[int]
-    out_dim: int
-    momentum: float = 0.99
-
-    @nn.compact
-    def __call__(self, x: Array, train: bool = False) -> Array:
-        def norm(y: Array) -> Array:
-            return nn.BatchNorm(use_running_average=not train, momentum=self.momentum)(y)
-
-        x = norm(x)
-        for h in self.hidden:
-            x = nn.Dense(h, kernel_init=_fanin_init, bias_init=nn.initializers.constant(0.1))(x)
-            x = norm(nn.relu(x))
-        return nn.Dense(
-            self.out_dim, kernel_init=_uniform_init(LAST_INIT), bias_init=_uniform_init(LAST_INIT)
-        )(x)
-
-
 class TwinQ(nn.Module):
-    """Two Q heads Q_i(s, a, z): returns ([...], [...]). With `batch_norm` (extension `crossq`)
-    each head is a `BatchNormMLP` and `train` picks batch or running statistics."""
+    """Two Q heads Q_i(s, a, z): returns ([...], [...])."""
 
     hidden: Sequence[int]
     layer_norm: bool = False
-    batch_norm: bool = False
-    momentum: float = 0.99
 
     @nn.compact
-    def __call__(
-        self, obs: Array, action: Array, z: Array, train: bool = False
-    ) -> tuple[Array, Array]:
+    def __call__(self, obs: Array, action: Array, z: Array) -> tuple[Array, Array]:
         x = jnp.concatenate([obs, action, z], axis=-1)
-        if self.batch_norm:
-            q1 = BatchNormMLP(self.hidden, 1, self.momentum, name="q1")(x, train)[..., 0]
-            q2 = BatchNormMLP(self.hidden, 1, self.momentum, name="q2")(x, train)[..., 0]
-            return q1, q2
         q1 = MLP(self.hidden, 1, self.layer_norm, name="q1")(x)[..., 0]
         q2 = MLP(self.hidden, 1, self.layer_norm, name="q2")(x)[..., 0]
         return q1, q2
@@ -186,7 +153,7 @@ class Networks:
         self.action_dim = int(action_dim)
         self.context_dim = 2 * obs_dim + action_dim + 1
         self.policy = PolicyNet(cfg.hidden, action_dim, cfg.log_std_min, cfg.log_std_max)
-        self.q = TwinQ(cfg.hidden, cfg.layer_norm, cfg.crossq, cfg.crossq_momentum)
+        self.q = TwinQ(cfg.hidden, cfg.layer_norm)
         self.v = ValueNet(cfg.hidden, cfg.layer_norm)
         self.encoder = ContextEncoder(cfg.encoder_hidden, cfg.latent_dim, cfg.min_posterior_var)
 
@@ -202,22 +169,21 @@ class Networks:
         for f in NETWORK_FIELDS:
             v = getattr(self.cfg, f)
             out[f] = list(v) if isinstance(v, tuple) else v
-        if self.cfg.crossq:  # the critics' extension `crossq`, named only where it is on
-            out["crossq"], out["crossq_momentum"] = True, self.cfg.crossq_momentum
         return out
 
     @classmethod
     def from_spec(cls, spec: dict[str, Any], cfg: PearlConfig | None = None) -> Networks:
         """The networks of `spec` (see `spec`); the other PearlConfig fields (losses, schedule)
-        come from `cfg` (default: PearlConfig()). ValueError if the spec is incomplete or its
-        context_dim does not match its obs and action dims."""
+        come from `cfg` (default: PearlConfig()). Other entries are ignored (a run trained with
+        the removed CrossQ critics names `crossq` there; its policy and encoder are these).
+        ValueError if the spec is incomplete or its context_dim does not match its obs and
+        action dims."""
         missing = [f for f in ("obs_dim", "action_dim", *NETWORK_FIELDS) if f not in spec]
         if missing:
             raise ValueError(f"network spec lacks {missing}")
         fields = {
             f: tuple(spec[f]) if isinstance(spec[f], list) else spec[f] for f in NETWORK_FIELDS
         }
-        fields.update({f: spec[f] for f in ("crossq", "crossq_momentum") if f in spec})
         nets = cls((cfg or PearlConfig()).replace(**fields), spec["obs_dim"], spec["action_dim"])
         if "context_dim" in spec and spec["context_dim"] != nets.context_dim:
             raise ValueError(
@@ -247,14 +213,6 @@ class Networks:
 
     def q_values(self, params: Any, obs: Array, action: Array, z: Array) -> tuple[Array, Array]:
         return cast(tuple[Array, Array], self.q.apply(params, obs, action, z))
-
-    def q_values_train(
-        self, params: Any, obs: Array, action: Array, z: Array
-    ) -> tuple[tuple[Array, Array], Any]:
-        """Extension `crossq`: Q values with the batch's statistics, and the updated running
-        statistics ({"batch_stats": ...})."""
-        out, stats = self.q.apply(params, obs, action, z, True, mutable=["batch_stats"])
-        return cast(tuple[Array, Array], out), stats
 
     def value(self, params: Any, obs: Array, z: Array) -> Array:
         return cast(Array, self.v.apply(params, obs, z))

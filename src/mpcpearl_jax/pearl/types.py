@@ -18,9 +18,6 @@ class Transitions(NamedTuple):
     reward: Array  # [...] unscaled
     next_obs: Array  # [..., O]
     done: Array  # [...] 1.0 on true termination (never in these tasks: time limits bootstrap)
-    # [...] the discount of the bootstrap V(next_obs): None = gamma (one step); n-step batches
-    # (extension `PearlConfig.n_step`) carry gamma^m, reward then holding m discounted rewards
-    discount: Array | None = None
 
 
 def context_from(t: Transitions) -> Array:

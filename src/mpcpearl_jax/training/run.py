@@ -35,6 +35,7 @@ from mpcpearl_jax.config import ExperimentConfig, validate
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, RunDirError
 from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
+from mpcpearl_jax.pearl.learner import acting_params
 from mpcpearl_jax.training.checkpoint import (
     RUN_RECORDS,
     Checkpointer,
@@ -52,12 +53,7 @@ from mpcpearl_jax.training.loop import Progress, train_loop
 from mpcpearl_jax.training.machine import machine_info
 from mpcpearl_jax.training.resources import check_state_fits
 from mpcpearl_jax.training.runlock import RunLock
-from mpcpearl_jax.training.trainer import (
-    IterationAbandoned,
-    Trainer,
-    TrainState,
-    reported_params,
-)
+from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer, TrainState
 
 LOG_FILE = "metrics.jsonl"
 
@@ -165,7 +161,7 @@ def _check_pearl_fits(trainer: Trainer) -> None:
     check_state_fits(  # before anything is allocated
         trainer.init_state,
         "the training state (replay buffers, networks)",
-        "train.rl_capacity, train.mpc_buffer_capacity, the training tasks or the seeds",
+        "train.rl_capacity, the training tasks or the seeds",
     )
 
 
@@ -556,7 +552,7 @@ def train_iterations(sess: Session, progress: bool = True, handle_sigint: bool =
 
 def policy_params(state: TrainState) -> dict:
     """The {policy, encoder} parameters of every seed, on the host (what policy.msgpack holds)."""
-    return to_host(reported_params(state))
+    return to_host(acting_params(state.learner.params))
 
 
 def final_evaluation(

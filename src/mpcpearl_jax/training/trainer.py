@@ -43,7 +43,7 @@ from mpcpearl_jax.pearl.learner import (
     make_update,
 )
 from mpcpearl_jax.pearl.networks import Networks
-from mpcpearl_jax.pearl.types import Transitions, context_from
+from mpcpearl_jax.pearl.types import context_from
 from mpcpearl_jax.training import collect as collect_lib
 
 
@@ -89,17 +89,11 @@ class TrainState(struct.PyTreeNode):
     learner: LearnerState
     rl: buffers.TaskBuffer
     enc: buffers.TaskBuffer
-    # MPC transitions kept apart (extension `mpc_buffer_fraction`; None when it is off)
-    mpc: buffers.TaskBuffer | None
     tasks: TaskParams  # [S, N, ...] training tasks as collected (redraw_behaviours changes them)
     key: Array  # [S, 2] PRNG keys
     iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
     # the guide's roll-in bound h [S] int32 (extension `guide_share`; None when it is off)
     guide_h: Array | None = None
-    # the kept acting params {policy, encoder} [S] and their score [S, 2] (success rate, worst
-    # return) (extension `keep_best`; None when it is off)
-    kept: dict | None = None
-    kept_score: Array | None = None
 
 
 def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
@@ -176,28 +170,6 @@ def _check_finite(losses: dict, iteration: int) -> None:
         )
 
 
-def _with_mpc_rows(batch: Transitions, mpc: buffers.TaskBuffer, tids, key, n_mpc: int):
-    """Extension `mpc_buffer_fraction`: the last n_mpc rows of each task's batch [MB, B] drawn
-    from the task's MPC buffer instead (a task whose MPC buffer is still empty keeps its RL
-    rows)."""
-    from_mpc = buffers.sample(mpc, key, tids, n_mpc)
-    has = (mpc.size[tids] > 0)[:, None]  # [MB, 1]
-
-    def mix(b, d):
-        keep = has.reshape(has.shape + (1,) * (d.ndim - 2))
-        return b.at[:, -n_mpc:].set(jnp.where(keep, d, b[:, -n_mpc:]))
-
-    return jax.tree_util.tree_map(mix, batch, from_mpc)
-
-
-def reported_params(state: TrainState) -> dict:
-    """The {policy, encoder} params [S] a run reports, saves and exports: the kept ones
-    (extension `keep_best`) or the learner's current ones."""
-    if state.kept is not None:
-        return state.kept
-    return acting_params(state.learner.params)
-
-
 class Trainer:
     """Builds everything for an experiment; see module docstring."""
 
@@ -214,7 +186,6 @@ class Trainer:
         self.num_train = int(self.train_tasks.start.shape[0])
         self._task_kw = dict(cfg.task_options)
         validate(cfg)
-        self._check_n_step(cfg)
         self.mesh = make_mesh(cfg.seeds, cfg.devices)  # None: one device, no sharding
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         self.action_dim = self.env.action_dim
@@ -232,7 +203,6 @@ class Trainer:
         )
         self._update_body = make_update(self.nets, jit=False)
         self.collect_phase = jax.jit(self._collect_phase, static_argnums=2, donate_argnums=0)
-        self.use_mpc_buffer = tc.mpc_buffer_fraction > 0 and tc.uses_mpc
         self.update_chunk = UPDATE_CHUNK
         self._init_state_jit = jax.jit(self._init_state)
         self._update_steps_jit = jax.jit(self._update_steps, donate_argnums=0)
@@ -243,23 +213,6 @@ class Trainer:
         self.evaluate_online = eval_lib.make_evaluator(
             self.env, self.nets, online=True, t_update=tc.t_update
         )
-
-    def _check_n_step(self, cfg: ExperimentConfig) -> None:
-        """n-step returns read whole episodes in order from the replay buffer: its capacity must
-        be a multiple of the horizon, and MPC-buffer rows (not stored in order) cannot mix."""
-        if cfg.pearl.n_step <= 1:
-            return
-        horizon = self.env.config.horizon
-        if cfg.train.rl_capacity % horizon:
-            raise ConfigError(
-                f"PearlConfig.n_step: needs train.rl_capacity a multiple of the horizon "
-                f"({horizon}), got {cfg.train.rl_capacity}"
-            )
-        if cfg.train.mpc_buffer_fraction > 0 and cfg.train.uses_mpc:
-            raise ConfigError(
-                "PearlConfig.n_step: cannot be combined with train.mpc_buffer_fraction (the MPC "
-                "buffer keeps single transitions)"
-            )
 
     # ------------------------------------------------------------------ state
     def init_state(self) -> TrainState:
@@ -278,23 +231,15 @@ class Trainer:
         n, od, ad, lead = self.num_train, self.obs_dim, self.action_dim, (cfg.seeds,)
         rl = buffers.init_buffer(n, cfg.train.rl_capacity, od, ad, lead)
         enc = buffers.init_buffer(n, self.enc_capacity, od, ad, lead)
-        mpc = None
-        if self.use_mpc_buffer:
-            mpc = buffers.init_buffer(n, cfg.train.mpc_buffer_capacity, od, ad, lead)
         tasks = jax.tree_util.tree_map(
             lambda x: jnp.array(jnp.broadcast_to(x, (cfg.seeds, *x.shape))), self.train_tasks
         )
         iteration = jnp.zeros((cfg.seeds,), jnp.int32)
-        guide_h = kept = kept_score = None
+        guide_h = None
         if cfg.train.guide_share > 0:
             h0 = min(cfg.train.guide_steps, self.horizon)
             guide_h = jnp.full((cfg.seeds,), h0, jnp.int32)
-        if cfg.train.keep_best:
-            kept = jax.tree_util.tree_map(
-                lambda x: jnp.array(x, copy=True), acting_params(learner.params)
-            )
-            kept_score = jnp.full((cfg.seeds, 2), -jnp.inf, jnp.float32)
-        state = TrainState(learner, rl, enc, mpc, tasks, keys, iteration, guide_h, kept, kept_score)
+        state = TrainState(learner, rl, enc, tasks, keys, iteration, guide_h)
         return constrain(state, self.mesh)
 
     # ------------------------------------------------------------- collection
@@ -365,10 +310,7 @@ class Trainer:
         rl = jax.vmap(buffers.insert)(state.rl, task_ids, per_task)
         if phase.to_encoder:
             enc = jax.vmap(buffers.insert)(enc, task_ids, per_task)
-        mpc = state.mpc
-        if self.use_mpc_buffer:
-            mpc = jax.vmap(buffers.insert_masked)(mpc, task_ids, per_task, to_task(ep.used_mpc))
-        new = state.replace(rl=rl, enc=enc, mpc=mpc, key=keys)
+        new = state.replace(rl=rl, enc=enc, key=keys)
         return constrain(new, self.mesh), _episode_stats(ep, explore, guided)
 
     # ------------------------------------------------------ tasks of a visit
@@ -445,7 +387,7 @@ class Trainer:
             if stop is not None and stop():
                 raise IterationAbandoned
             chunk = step_keys[:, lo : lo + self.update_chunk]
-            learner, ms = self._update_steps_jit(learner, state.rl, state.enc, state.mpc, chunk)
+            learner, ms = self._update_steps_jit(learner, state.rl, state.enc, chunk)
             parts.append(jax.block_until_ready(ms))  # a stop request waits one chunk at most
         ms = jax.tree_util.tree_map(lambda *x: jnp.mean(jnp.concatenate(x, axis=1), axis=1), *parts)
         return state.replace(learner=learner, key=keys), ms
@@ -456,48 +398,37 @@ class Trainer:
         steps = self.cfg.train.updates_per_iteration
         return keys, jax.vmap(lambda k: jax.random.split(k, steps))(sub[:, 0])
 
-    def _update_steps(self, learner, rl, enc, mpc, step_keys: Array) -> tuple[Any, dict]:
+    def _update_steps(self, learner, rl, enc, step_keys: Array) -> tuple[Any, dict]:
         """Gradient steps with keys [S, n, 2] (one scan, vmapped over seeds), each over a
-        meta-batch of tasks with a context c^i and a batch B^i (Algorithm 1 line 20; the MPC
-        buffer's rows mixed in, extension `mpc_buffer_fraction`) and the update of
-        `pearl.learner` (lines 21-23); -> (learner, per-step losses [S, n])."""
+        meta-batch of tasks with a context c^i and a batch B^i (Algorithm 1 line 20) and the
+        update of `pearl.learner` (lines 21-23); -> (learner, per-step losses [S, n])."""
         cfg, n = self.cfg.pearl, self.num_train
-        frac = self.cfg.train.mpc_buffer_fraction
-        n_mpc = int(round(cfg.batch_size * frac)) if self.use_mpc_buffer else 0
 
-        def per_seed(learner, rl, enc, mpc, keys):
+        def per_seed(learner, rl, enc, keys):
             def body(learner, k):
                 k_t, k_b, k_c, k_u = jax.random.split(k, 4)
                 tids = jax.random.choice(k_t, n, (cfg.meta_batch,), replace=cfg.meta_batch > n)
-                if cfg.n_step > 1:  # extension: n-step returns
-                    batch = buffers.sample_n_step(
-                        rl, k_b, tids, cfg.batch_size, cfg.n_step, cfg.gamma, self.horizon
-                    )
-                else:
-                    batch = buffers.sample(rl, k_b, tids, cfg.batch_size)
+                batch = buffers.sample(rl, k_b, tids, cfg.batch_size)
                 ctx = context_from(buffers.sample(enc, k_c, tids, cfg.context_size))
-                if n_mpc:
-                    batch = _with_mpc_rows(batch, mpc, tids, jax.random.fold_in(k_b, 1), n_mpc)
                 return self._update_body(learner, batch, ctx, k_u)
 
             return jax.lax.scan(body, learner, keys)
 
-        out = jax.vmap(per_seed)(learner, rl, enc, mpc, step_keys)
+        out = jax.vmap(per_seed)(learner, rl, enc, step_keys)
         return constrain(out, self.mesh)
 
     # -------------------------------------------------------------- iteration
     def iteration(
         self, state: TrainState, stop: Callable[[], bool] | None = None
     ) -> tuple[TrainState, dict]:
-        """One meta-training iteration, Algorithm 1 lines 3-23 (as in the authors' PEARL code),
-        for every seed: the data collection (lines 4-17) on `tasks_per_iteration` training tasks
-        drawn at random, then the training (lines 18-23). Every step of an episode is acted by
-        the MPC when an event fires and rand <= eps (lines 8-11; `collect`), else by pi_theta
-        (line 13). The extensions (docs/extensions.md) hook in where named: re-drawn or delayed
-        crowds per visit, exploring-start rows in the posterior phase, the MPC buffer in the
-        batches. stop (e.g. set by Ctrl-C) is polled before the updates and between update
-        chunks; once true the iteration is abandoned with IterationAbandoned (the state passed
-        in is consumed)."""
+        """One meta-training iteration, Algorithm 1 lines 3-23 (as in the authors' PEARL code), for
+        every seed: the data collection (lines 4-17) on `tasks_per_iteration` training tasks drawn
+        at random, then the training (lines 18-23). Every step of an episode is acted by the MPC
+        when an event fires and rand <= eps (lines 8-11; `collect`), else by pi_theta (line 13). The
+        extensions (docs/extensions.md) hook in where named: re-drawn or delayed crowds per visit,
+        exploring-start and guided rows in the posterior phase. stop (e.g. set by Ctrl-C) is polled
+        before the updates and between update chunks; once true the iteration is abandoned with
+        IterationAbandoned (the state passed in is consumed)."""
         t0 = time.perf_counter()
         if self.bridge is not None:
             self.bridge.reset_stats()
@@ -522,9 +453,6 @@ class Trainer:
         _check_finite(losses, it + 1)
         state = state.replace(iteration=state.iteration + 1)
         log: dict[str, Any] = {"iteration": it + 1, "collect_s": t1 - t0, "update_s": t2 - t1}
-        if state.kept is not None and self._keep_due(it + 1):  # extension: the kept policy
-            state, kept_log = self.keep_best(state)
-            log.update(kept_log)
         if state.guide_h is not None:
             log["guide_h"] = float(np.mean(to_host(state.guide_h)))
         log.update(_collection_log(prior, post))
@@ -542,39 +470,6 @@ class Trainer:
         passed = (post["guide_rows"] > 0) & (post["guide_success"] >= tc.guide_success)
         h = jnp.where(passed, jnp.maximum(state.guide_h - tc.guide_decrement, 0), state.guide_h)
         return state.replace(guide_h=h.astype(jnp.int32))
-
-    def _keep_due(self, iteration: int) -> bool:
-        tc = self.cfg.train
-        return iteration % tc.keep_interval == 0 or iteration == tc.iterations
-
-    def keep_best(self, state: TrainState) -> tuple[TrainState, dict]:
-        """Extension `keep_best` (TD7's checkpoints, Fujimoto et al. 2023): score the acting
-        policy of every seed on the first keep_tasks training tasks (the evaluation protocol,
-        a fixed key) by (success rate, worst episode's return), and keep it where it beats the
-        kept one's score. -> (state, log of the scores)."""
-        n = min(self.cfg.train.keep_tasks, self.num_train)
-        tasks = jax.tree_util.tree_map(lambda x: x[:n], self.train_tasks)
-        params = acting_params(state.learner.params)
-        result = self.evaluate_adapt(jax.random.PRNGKey(EVAL_SEED + 1), params, tasks)
-        m = eval_lib.episode_metrics(result, tasks, self.env.config.robot_radius)
-        score = jnp.stack([jnp.mean(m.success, -1), jnp.min(result["return"], -1)], -1)
-        old = state.kept_score
-        assert old is not None and state.kept is not None
-        tie = score[:, 0] == old[:, 0]
-        better = (score[:, 0] > old[:, 0]) | (tie & (score[:, 1] > old[:, 1]))
-        pick = lambda new, cur: jnp.where(  # noqa: E731
-            better.reshape(better.shape + (1,) * (new.ndim - 1)), new, cur
-        )
-        kept = jax.tree_util.tree_map(pick, params, state.kept)
-        kept_score = jnp.where(better[:, None], score, old)
-        state = constrain(state.replace(kept=kept, kept_score=kept_score), self.mesh)
-        score_h, kept_h, better_h = to_host((score, kept_score, better))
-        return state, {
-            "keep_score_sr": float(np.mean(score_h[:, 0])),
-            "keep_score_worst": float(np.mean(score_h[:, 1])),
-            "kept_sr": float(np.mean(kept_h[:, 0])),
-            "kept_replaced": float(np.mean(better_h)),
-        }
 
     def _mpc_log(self) -> dict:
         """The MPC bridge's counters and times of this iteration, summed over processes (each
@@ -625,7 +520,7 @@ class Trainer:
         tasks = self.test_tasks if tasks is None else tasks
         key = jax.random.PRNGKey(EVAL_SEED) if key is None else key
         fn = self.evaluate_online if online else self.evaluate_adapt
-        result = to_host(fn(key, reported_params(state), tasks))
+        result = to_host(fn(key, acting_params(state.learner.params), tasks))
         return eval_lib.summarize(result, tasks, self.env.config.robot_radius), result
 
     def steps_per_iteration(self) -> int:
