@@ -55,6 +55,28 @@ def test_summary_over_tasks():
     assert out["MGD"] == pytest.approx((2.25 + 20.5 + 12.5 + 1.75) / 4, rel=1e-6)
 
 
+def test_one_table_names_orders_directs_and_formats_the_metrics():
+    """`metrics.METRICS`: the paper's five metrics in its order, each the mean of one
+    `EpisodeMetrics` field, lower better for TT and MGD only; the evaluator's summary, the
+    per-task scoring and the tables read it."""
+    from experiments.tables import render, statistics
+    from mpcpearl_jax.evaluation.report import metrics_table
+
+    assert metrics.METRIC_NAMES == ("SR", "TT", "CFR", "SPL", "MGD")
+    assert {m.field for m in metrics.METRICS.values()} <= set(metrics.EpisodeMetrics._fields)
+    assert metrics.LOWER_IS_BETTER == {"TT", "MGD"}
+    assert statistics.LOWER_IS_BETTER == {"TT", "MGD", "first_success_min"}
+    assert statistics.seed_stats([1.0, 3.0], "TT")[2] == 3.0  # the worst TT is the largest
+    assert statistics.seed_stats([1.0, 3.0], "SPL")[2] == 1.0
+    m = metrics.episode_metrics(*map(jnp.asarray, _episodes()))
+    values = metrics.metric_values(m)
+    assert tuple(values) == metrics.METRIC_NAMES
+    np.testing.assert_array_equal(values["CFR"], m.collision_free)
+    assert metrics.format_metric("TT", 2.5) == "2.50" and render.METRICS == metrics.METRIC_NAMES
+    table = metrics_table([("run", {"SR": 0.5, "MGD": 12.345})])
+    assert "| SR | 0.50 |" in table and "| MGD | 12.35 |" in table and "| TT | - |" in table
+
+
 def test_robot_radius_enters_spl():
     pos, col, goal_in, goal = map(jnp.asarray, _episodes())
     m = metrics.episode_metrics(pos[:1], col[:1], goal_in[:1], goal[:1], robot_radius=0.5)

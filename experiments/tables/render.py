@@ -41,6 +41,8 @@ from experiments.tables.statistics import (
     signed,
     verdict,
 )
+from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
+from mpcpearl_jax.evaluation.metrics import METRICS as METRIC_SPECS
 
 # ---------------------------------------------------------------- cells
 
@@ -54,11 +56,12 @@ def fmt_metric(stats: list[Stat] | str, metric: str, with_se: bool = False) -> s
     asked), a seed group as 'mean +- se (worst w)' over seeds."""
     if isinstance(stats, str):
         return stats
+    fmt = METRIC_SPECS[metric].format if metric in METRIC_SPECS else f2
     if len(stats) == 1:
         s = stats[0]
-        return f2(s.value) + (f" +- {f2(s.se)}" if with_se and s.se is not None else "")
+        return fmt(s.value) + (f" +- {fmt(s.se)}" if with_se and s.se is not None else "")
     mean, se, worst = seed_stats([s.value for s in stats], metric)
-    return f"{f2(mean)} +- {f2(se)} (worst {f2(worst)})"
+    return f"{fmt(mean)} +- {fmt(se)} (worst {fmt(worst)})"
 
 
 def fmt_count(stats: list[Stat] | str, fmt: Callable[[float], str]) -> str:
@@ -100,7 +103,7 @@ def run_ref(e: Entry) -> str:
 
 # ---------------------------------------------------------------- the tables
 
-METRICS = ("SR", "TT", "CFR", "SPL", "MGD")
+METRICS = METRIC_NAMES
 SEEDS_NOTE = (
     "a +- b: the standard error over the 192 validation tasks for one seed; for a group of "
     "seeds, mean +- standard error over the seeds, then the worst seed."

@@ -34,6 +34,7 @@ from mpcpearl_jax.deploy.exported import (
 )
 from mpcpearl_jax.deploy.policy import load_policy
 from mpcpearl_jax.envs.dynamics import DELTA_MAX
+from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.checkpoint import CONFIG_FILE, POLICY_FILE, RUN_RECORDS, atomic_write
 
@@ -41,7 +42,6 @@ EXPORT_FILE = "policy.export"
 DEFAULT_PLATFORMS = ("cpu", "cuda")
 PLATFORMS = ("cpu", "cuda", "rocm", "tpu")  # what jax.export lowers for
 RESULT_KEYS = ("test_adapt", "test_online", "ood_adapt")
-METRICS = ("SR", "TT", "CFR", "SPL", "MGD")
 
 
 def _functions(policy) -> dict[str, Any]:
@@ -109,7 +109,7 @@ def _results(run_dir: Path) -> dict[str, Any]:
     out = {}
     for k in RESULT_KEYS:
         if isinstance(raw.get(k), dict):
-            out[k] = {m: raw[k][m] for m in METRICS if m in raw[k]}
+            out[k] = {m: raw[k][m] for m in METRIC_NAMES if m in raw[k]}
     return out
 
 

@@ -140,14 +140,8 @@ def episode_metrics(result: dict, tasks: TaskParams, robot_radius: float) -> met
 def summarize(result: dict, tasks: TaskParams, robot_radius: float) -> dict:
     """method §8 metrics per seed [S] plus the mean return, as lists/floats."""
     m = episode_metrics(result, tasks, robot_radius)
-    per_seed = {
-        "SR": jnp.mean(m.success, axis=-1),
-        "TT": jnp.mean(m.travel_time, axis=-1),
-        "CFR": jnp.mean(m.collision_free, axis=-1),
-        "SPL": jnp.mean(m.spl, axis=-1),
-        "MGD": jnp.mean(m.mgd, axis=-1),
-        "return": jnp.mean(result["return"], axis=-1),
-    }
+    per_seed = {k: jnp.mean(v, axis=-1) for k, v in metrics.metric_values(m).items()}
+    per_seed["return"] = jnp.mean(result["return"], axis=-1)
     out: dict[str, Any] = {k: float(jnp.mean(v)) for k, v in per_seed.items()}
     out.update({f"{k}_per_seed": [float(x) for x in v] for k, v in per_seed.items()})
     return out

@@ -1,5 +1,9 @@
 """Navigation metrics of the paper (method §8, authors' definitions), defined once.
 
+`METRICS` is the one table of the metrics: name, the per-episode value it averages, which way is
+better and how it is printed; the evaluator, the scoring, the reports and the table generator
+read it (`metric_values`, `METRIC_NAMES`, `LOWER_IS_BETTER`, `format_metric`).
+
 Inputs are batches of evaluated episodes (any leading batch shape ``...``):
   position:  [..., T + 1, 2] robot positions including the start.
   collision: [..., T] bool, a real collision on that step.
@@ -16,7 +20,39 @@ from jax import Array
 
 from mpcpearl_jax.envs import physics
 
-METRIC_NAMES = ("SR", "TT", "CFR", "SPL", "MGD")
+
+class Metric(NamedTuple):
+    """One metric of method §8 as it is reported: the mean over episodes of an `EpisodeMetrics`
+    field."""
+
+    name: str  # as reported: SR, TT, CFR, SPL, MGD
+    field: str  # the `EpisodeMetrics` field it averages
+    higher_is_better: bool
+    decimals: int  # printed with this many decimals
+    meaning: str
+
+    def format(self, x: float) -> str:
+        return f"{x:.{self.decimals}f}"
+
+
+# method §8, in the paper's order
+METRICS: dict[str, Metric] = {
+    m.name: m
+    for m in (
+        Metric("SR", "success", True, 2, "success rate: collision-free and reached the goal"),
+        Metric("TT", "travel_time", False, 2, "travel time: steps not spent at the goal"),
+        Metric("CFR", "collision_free", True, 2, "collision-free rate"),
+        Metric("SPL", "spl", True, 2, "success weighted by (shortest) path length"),
+        Metric("MGD", "mgd", False, 2, "mean squared distance to the goal over the steps"),
+    )
+}
+METRIC_NAMES = tuple(METRICS)
+LOWER_IS_BETTER = frozenset(n for n, m in METRICS.items() if not m.higher_is_better)
+
+
+def format_metric(name: str, x: float) -> str:
+    """x as metric `name` is printed."""
+    return METRICS[name].format(x)
 
 
 class EpisodeMetrics(NamedTuple):
@@ -47,15 +83,14 @@ def episode_metrics(
     return EpisodeMetrics(success, collision_free, travel_time.astype(jnp.float32), spl, mgd)
 
 
+def metric_values(m: EpisodeMetrics) -> dict[str, Array]:
+    """Each metric of `METRICS` by name -> its per-episode values (the batch's shape)."""
+    return {name: getattr(m, spec.field) for name, spec in METRICS.items()}
+
+
 def summarize(m: EpisodeMetrics) -> dict[str, float]:
-    """Mean over all episodes (tasks): SR, TT, CFR, SPL, MGD as Python floats."""
-    return {
-        "SR": float(jnp.mean(m.success)),
-        "TT": float(jnp.mean(m.travel_time)),
-        "CFR": float(jnp.mean(m.collision_free)),
-        "SPL": float(jnp.mean(m.spl)),
-        "MGD": float(jnp.mean(m.mgd)),
-    }
+    """Mean over all episodes (tasks) of every metric (`METRICS`), as Python floats."""
+    return {k: float(jnp.mean(v)) for k, v in metric_values(m).items()}
 
 
 def compute(

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
+from mpcpearl_jax.evaluation.metrics import METRIC_NAMES, format_metric
 
 # method §8: the paper's numbers (restaurant: 24 unseen tasks after two adaptation episodes).
 PAPER = {
@@ -68,7 +68,7 @@ def metrics_table(columns: Sequence[tuple[str, dict]]) -> str:
         "|---|" + "---|" * len(columns),
     ]
     for m in METRIC_NAMES:
-        cells = ["-" if d.get(m) is None else f"{d[m]:.2f}" for _, d in columns]
+        cells = ["-" if d.get(m) is None else format_metric(m, d[m]) for _, d in columns]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 from mpcpearl_jax.envs.types import NavConfig, TaskParams
-from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
+from mpcpearl_jax.evaluation.metrics import METRIC_NAMES, metric_values
 
 
 @functools.partial(jax.jit, static_argnums=(4, 5))
@@ -45,12 +45,8 @@ def per_task_metrics(result: dict, tasks: TaskParams, cfg: NavConfig) -> dict[st
         cfg.robot_radius,
         cfg.human_radius,
     )
-    out = {
-        "SR": np.asarray(m.success, float),
-        "TT": np.asarray(m.travel_time, float),
-        "CFR": np.asarray(m.collision_free, float),
-        "SPL": np.asarray(m.spl, float),
-        "MGD": np.asarray(m.mgd, float),
+    out = {k: np.asarray(v, float) for k, v in metric_values(m).items()}
+    out |= {
         "return": np.asarray(result["return"], float),
         "contact_step": np.asarray(c.step, int),
         "contact_person": np.asarray(c.with_person, float),

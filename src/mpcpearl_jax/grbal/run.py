@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from mpcpearl_jax.errors import CheckpointError
+from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
@@ -97,7 +98,7 @@ def _eval_row(trainer: GrbalTrainer, state: GrbalState) -> dict[str, Any]:
     return row
 
 
-_ROW_KEYS = ("SR", "TT", "CFR", "SPL", "MGD", "return")
+_ROW_KEYS = (*METRIC_NAMES, "return")
 
 
 def _progress_line(log: dict, total: int) -> str:
