@@ -10,18 +10,18 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "mpcpearl_jax"
 
 # lowest first; every module of the package is ranked, by its longest listed prefix (a
 # package's name ranks its modules not listed on their own). The packages are the layers:
-# envs < pearl, mpc < config < evaluation < training, grbal < deploy. The evaluation command's
-# controller runners sit above training: one of them (the policy with MPC infusion) collects
-# training-style episodes (`training.collect`).
+# envs < pearl, mpc < collection < config < evaluation < training, grbal < deploy. Collection
+# (episodes with event-triggered MPC infusion) sits below both training and evaluation, which
+# import it downward (the trainer, and the evaluation command's policy with MPC infusion).
 LAYERS = [
     ["errors", "validate", "distributed"],
     ["envs.types", "envs.dynamics", "envs.physics", "pearl.types", "pearl.config", "mpc.config"],
     ["envs", "pearl", "evaluation.metrics"],
-    ["mpc"],
+    ["mpc", "collection"],
     ["config", "grbal.config", "grbal.model", "grbal.planner"],
     ["evaluation"],
     ["training", "grbal.trainer"],
-    ["training.run", "grbal.run", "grbal", "evaluation.runners"],
+    ["training.run", "grbal.run", "grbal"],
     ["deploy"],
 ]
 RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}
@@ -70,13 +70,23 @@ def test_every_module_is_in_a_layer():
     assert not unplaced, f"modules in no layer: {unplaced}"
 
 
+def test_collection_sits_below_training_and_evaluation():
+    """Both the trainer and the evaluation command's runners collect episodes through
+    `collection`, downward; no module of the evaluation package imports training."""
+    assert RANK["collection"] < RANK["evaluation"] < RANK["training"]
+    evaluation = [(m, p) for m, p in _modules() if m.split(".")[0] == "evaluation"]
+    assert evaluation and all(_rank(m) <= RANK["evaluation"] for m, _ in evaluation)
+    for m, path in evaluation:
+        assert not [i for i in _imports(path) if i.split(".")[0] == "training"], m
+
+
 def test_the_knots_of_issue_11_stay_untied():
     text = {m: p.read_text() for m, p in _modules()}
     assert "mpcpearl_jax.envs" not in text["training.checkpoint"]
     assert "mpcpearl_jax.envs" not in text["envs.physics"]
     for m in ("config", "pearl.config", "mpc.config", "grbal.config"):
         assert "envs.types import ConfigError" not in text[m], m
-    for m in ("pearl.buffers", "training.collect", "evaluation.evaluate"):
+    for m in ("pearl.buffers", "collection", "evaluation.evaluate"):
         assert "pearl.learner" not in text[m], m
     assert 'cfg.env == "sidewalk"' not in text["training.run"]
     assert "except ImportError" not in text["envs"]

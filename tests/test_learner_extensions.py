@@ -38,9 +38,9 @@ def test_bad_extension_settings_name_their_field(make, field):
 def test_the_guide_acts_on_every_step_before_the_hand_over_and_never_after():
     """A stand-in MPC marks its steps: with events switched off (eps so small no draw fires),
     exactly the steps t < handover of each row are the MPC's."""
+    from mpcpearl_jax.collection import make_collector, rows_of
     from mpcpearl_jax.envs import make_env, tasks_for
     from mpcpearl_jax.pearl.networks import Networks
-    from mpcpearl_jax.training.collect import make_collector, rows_of
     from tests.test_training import TINY
 
     env = make_env("restaurant")

@@ -116,11 +116,11 @@ def run_gp_mpc(s: Setup, key: jax.Array) -> tuple[dict, dict]:
 
 
 def run_policy_mpc(s: Setup, key: jax.Array, eps: float) -> tuple[dict, dict]:
-    """Training-style episodes (`mpcpearl_jax.training.collect.make_collector`): prior z, stochastic
+    """Training-style episodes (`mpcpearl_jax.collection.make_collector`): prior z, stochastic
     policy, the MPC on an event with probability eps; arrays [S, N, ...]."""
+    from mpcpearl_jax import collection as collect_lib
     from mpcpearl_jax.envs.navigation import NavEnv
     from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
-    from mpcpearl_jax.training import collect as collect_lib
 
     env = NavEnv(s.env_config)
     nets = s.policies[0].nets

@@ -27,6 +27,7 @@ import numpy as np
 from flax import struct
 from jax import Array
 
+from mpcpearl_jax import collection as collect_lib
 from mpcpearl_jax.config import ExperimentConfig, validate
 from mpcpearl_jax.distributed import constrain, first_local, make_mesh, sum_over_processes, to_host
 from mpcpearl_jax.envs import make_env, redraw_tasks, tasks_for
@@ -44,7 +45,6 @@ from mpcpearl_jax.pearl.learner import (
 )
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import context_from
-from mpcpearl_jax.training import collect as collect_lib
 
 
 class IterationAbandoned(Exception):
@@ -277,7 +277,7 @@ class Trainer:
     def _collect_phase(
         self, state: TrainState, task_ids: Array, phase: Phase
     ) -> tuple[TrainState, dict]:
-        """Collect `phase.episodes` per task of task_ids [S, k] (`collect`, event-triggered MPC
+        """Collect `phase.episodes` per task of task_ids [S, k] (`collection`, event-triggered MPC
         included) and store them. Returns (state, stats [S])."""
         keys, sub = _split_keys(state.key, 2)
         rows = jnp.repeat(task_ids, phase.episodes, axis=1)  # [S, k * E]
@@ -424,11 +424,11 @@ class Trainer:
         """One meta-training iteration, Algorithm 1 lines 3-23 (as in the authors' PEARL code), for
         every seed: the data collection (lines 4-17) on `tasks_per_iteration` training tasks drawn
         at random, then the training (lines 18-23). Every step of an episode is acted by the MPC
-        when an event fires and rand <= eps (lines 8-11; `collect`), else by pi_theta (line 13). The
-        extensions (docs/extensions.md) hook in where named: re-drawn or delayed crowds per visit,
-        exploring-start and guided rows in the posterior phase. stop (e.g. set by Ctrl-C) is polled
-        before the updates and between update chunks; once true the iteration is abandoned with
-        IterationAbandoned (the state passed in is consumed)."""
+        when an event fires and rand <= eps (lines 8-11; `collection`), else by pi_theta (line
+        13). The extensions (docs/extensions.md) hook in where named: re-drawn or delayed crowds
+        per visit, exploring-start and guided rows in the posterior phase. stop (e.g. set by
+        Ctrl-C) is polled before the updates and between update chunks; once true the iteration
+        is abandoned with IterationAbandoned (the state passed in is consumed)."""
         t0 = time.perf_counter()
         if self.bridge is not None:
             self.bridge.reset_stats()
