@@ -287,7 +287,8 @@ def out_of_memory(e: BaseException) -> str:
 
 def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
     from mpcpearl_jax.errors import CheckpointError, RunDirError, TrainingDiverged
-    from mpcpearl_jax.training.run import RunInterrupted, final_evaluation, train_iterations
+    from mpcpearl_jax.evaluation.final import final_evaluation
+    from mpcpearl_jax.training.run import RunInterrupted, train_iterations
 
     cfg, out, trainer = sess.cfg, sess.run_dir, sess.trainer
     start, t0 = sess.done, time.perf_counter()

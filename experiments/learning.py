@@ -18,8 +18,8 @@ eval points, time to the first success and to SR 0.5 / 0.75 on test and val), cu
 metrics.jsonl (one line per iteration, as `run.train` writes it), curve-points.jsonl (the eval
 points so far), config.json, the policy and training state as `run.train` saves them
 (`mpcpearl_jax.load_policy(out)` works; `experiments.<env> --resume --out DIR --iterations N`
-continues the run), and what `run.final_evaluation` writes (results.json, learning_curves.png,
-trajectory figures).
+continues the run), and what `evaluation.final.final_evaluation` writes (results.json,
+learning_curves.png, trajectory figures).
 
 A learning run is a run (`mpcpearl_jax.training.run.open_session`: one writer per folder, the same
 checks,
@@ -527,15 +527,10 @@ def _run_session(
     import dataclasses
 
     from mpcpearl_jax.envs import validation_tasks
+    from mpcpearl_jax.evaluation.final import final_evaluation
     from mpcpearl_jax.training.checkpoint import POLICY_FILE, save_config, save_params
     from mpcpearl_jax.training.machine import available_cores, machine_info, print_table
-    from mpcpearl_jax.training.run import (
-        LOG_FILE,
-        RunInterrupted,
-        final_evaluation,
-        policy_params,
-        read_log,
-    )
+    from mpcpearl_jax.training.run import LOG_FILE, RunInterrupted, policy_params, read_log
 
     cfg, trainer, out = sess.cfg, sess.trainer, sess.run_dir
     online = cfg.online_eval
