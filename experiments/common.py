@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from mpcpearl_jax.config import PRESETS, ExperimentConfig, read_config, resolve, validate
+from mpcpearl_jax.config import PRESETS, ExperimentConfig, read_config, resolve
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.evaluation.report import run_label
 
@@ -166,7 +166,7 @@ def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfi
     """The config of the command line `args` for family `env` (`mpcpearl_jax.config.resolve`):
     --preset or --config, the task source, then --eps, --iterations, --seeds, --seed,
     --devices, --algo and `extra` (top-level fields; `mpc`: a dict of MPCConfig fields), then
-    --set. Not validated across fields (`validate`)."""
+    --set; checked across fields (`validate`, which `resolve` runs)."""
     base: str | ExperimentConfig = args.preset
     if getattr(args, "config", None) is not None:
         base = read_config(args.config)
@@ -231,7 +231,7 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         # before any JAX work
         initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
         family = _family(args.env)
-        cfg = validate(build_config(args, family, **extra))
+        cfg = build_config(args, family, **extra)
         out = args.out or Path("runs") / f"{family}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"
         print(
             f"[{family}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "

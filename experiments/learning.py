@@ -304,11 +304,10 @@ def main(argv: Sequence[str] | None = None, clock=time.perf_counter) -> int:
     or folder), 1 training diverged, 130 Ctrl-C (saved; continue with --resume). `clock` times
     the training (tests give a fake one)."""
     args = parse_args(argv)
-    from mpcpearl_jax.config import validate
     from mpcpearl_jax.errors import ConfigError
 
     try:
-        cfg = validate(build_config(args, args.env))
+        cfg = build_config(args, args.env)
     except (ConfigError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

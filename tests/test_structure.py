@@ -41,6 +41,27 @@ def test_one_run_driver():
         assert "_sigint_flag" not in text and "Checkpointer(" not in text, user
 
 
+def test_the_config_is_validated_once_where_it_is_resolved():
+    """The checks across fields (`config.validate`) run in one place, `config.resolve`, which
+    every command builds its config with; not again in the commands, the session or the
+    trainer."""
+    callers = {
+        str(p.relative_to(ROOT)): _calls(p, "validate")
+        for tree in ("src", "experiments", "examples")
+        for p in (ROOT / tree).rglob("*.py")
+    }
+    assert {p: n for p, n in callers.items() if n} == {
+        "src/mpcpearl_jax/config.py": _calls(SRC / "config.py", "validate")
+    }
+    assert len(callers["src/mpcpearl_jax/config.py"]) == 1
+    resolve = next(
+        node
+        for node in ast.walk(ast.parse((SRC / "config.py").read_text()))
+        if isinstance(node, ast.FunctionDef) and node.name == "resolve"
+    )
+    assert resolve.lineno <= callers["src/mpcpearl_jax/config.py"][0] <= resolve.end_lineno
+
+
 def test_nothing_imports_a_command_line_module():
     """Library modules and benchmarks never import from experiments/ (command lines parse
     arguments, call the library and print)."""

@@ -309,9 +309,10 @@ def _without_removed(d: dict) -> dict:
 
 
 def validate(cfg: ExperimentConfig) -> ExperimentConfig:
-    """Every check of a config that involves more than one field, run once before a command
-    touches anything (`experiments.common.main`, `run.open_session`, the learning harness; `Trainer`
-    runs it too, for callers that build one directly). The type and range of each single field
+    """Every check of a config that involves more than one field, run once, where the config is
+    resolved (`resolve`, which every command builds its config with), before a command touches
+    anything; a config built by hand is checked by calling it (the session and the trainer take
+    a checked config). The type and range of each single field
     are the dataclasses' own invariants, checked when a section is built (`__post_init__`,
     through `mpcpearl_jax.validate`); here: the seeds split evenly over the devices, the env
     overrides' values on the family's own NavConfig, and whether the family can re-draw its
@@ -649,8 +650,8 @@ def resolve(
     config.json, `read_config`) is taken as recorded; `env`, if given, must be its family.
     Then, in this order (a later one wins): the task source (`task_source`: `scenarios`,
     `hold_out_val`, `data`), the typed `changes` and the `--set` `overrides`
-    (`apply_overrides`). ConfigError naming the field; checks across fields are `validate`'s,
-    which every command runs on the result, e.g. `validate(resolve("default", env="sidewalk"))`.
+    (`apply_overrides`). Last, the checks across fields (`validate`): the result is a config a
+    run can start from. ConfigError naming the field.
     """
     from mpcpearl_jax.envs import can_redraw, mpc_defaults, online_eval
 
@@ -669,4 +670,4 @@ def resolve(
         if env is not None and env != cfg.env:
             raise ConfigError(f"ExperimentConfig.env: the config is of {cfg.env!r}, not {env!r}")
     cfg = cfg.replace(**task_source(cfg.env, scenarios, hold_out_val, data))
-    return apply_overrides(cfg, overrides, changes)
+    return validate(apply_overrides(cfg, overrides, changes))

@@ -29,7 +29,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from mpcpearl_jax.config import ExperimentConfig, validate
+from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, RunDirError
 from mpcpearl_jax.pearl.learner import acting_params
@@ -148,7 +148,6 @@ class RunKind:
     iterations: Callable[[Any], int]  # cfg -> the iterations the run is asked for
     iterations_field: str  # the field that may change on --resume ('train.iterations')
     saved_params: Callable[[Any, Any], Any]  # (trainer, state) -> what policy.msgpack holds
-    validate: Callable[[Any], Any] = lambda cfg: cfg
     network_file: bool = False  # write network.json (what `load_policy` needs)
 
 
@@ -168,7 +167,6 @@ PEARL = RunKind(
     iterations=lambda cfg: cfg.train.iterations,
     iterations_field="train.iterations",
     saved_params=lambda trainer, state: policy_params(state),
-    validate=validate,
     network_file=True,
 )
 
@@ -360,18 +358,18 @@ def open_session(
     tensorboard: bool = False,
     overwrite: bool = False,
 ) -> Session:
-    """Open a run folder for training. Every check before training, in this order: the config
-    (`kind.validate`), the folder's lock (one writer per folder), resume compatibility, writable
-    folders, data and tasks (building the trainer) and the memory its state needs, checkpoint
-    restore (falling back past corrupt ones; nothing to resume from is an error where iterations
-    were logged), the asked iterations against the finished count (not with until_budget: a run
-    that stops on a time budget, `experiments.learning`). A new run (not `resume`) refuses a
-    folder that holds a run's records, unless `overwrite` says to replace that run (its outputs
-    are removed once the folder is locked). Only then is config.json written and metrics.jsonl
-    cut back to the restored iteration. Close the session (`with` or `close()`) once the run's
-    last file is written."""
+    """Open a run folder for training, with a config checked where it was resolved
+    (`config.resolve`). Every check before training, in this order: the folder's lock (one
+    writer per folder), resume compatibility, writable folders, data and tasks (building the
+    trainer) and the memory its state needs, checkpoint restore (falling back past corrupt ones;
+    nothing to resume from is an error where iterations were logged), the asked iterations
+    against the finished count (not with until_budget: a run that stops on a time budget,
+    `experiments.learning`). A new run (not `resume`) refuses a folder that holds a run's
+    records, unless `overwrite` says to replace that run (its outputs are removed once the
+    folder is locked). Only then is config.json written and metrics.jsonl cut back to the
+    restored iteration. Close the session (`with` or `close()`) once the run's last file is
+    written."""
     run_dir = Path(out)
-    kind.validate(cfg)
     if resume:
         kind.load_config(run_dir, False)  # a run folder at all, before the lock creates anything
     elif not overwrite:

@@ -28,7 +28,7 @@ from flax import struct
 from jax import Array
 
 from mpcpearl_jax import collection as collect_lib
-from mpcpearl_jax.config import ExperimentConfig, validate
+from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.distributed import constrain, first_local, make_mesh, sum_over_processes, to_host
 from mpcpearl_jax.envs import make_env, redraw_tasks, tasks_for
 from mpcpearl_jax.envs.perturb import delay_people
@@ -185,7 +185,6 @@ class Trainer:
             raise ConfigError(f"ExperimentConfig.task_options: {e}") from e
         self.num_train = int(self.train_tasks.start.shape[0])
         self._task_kw = dict(cfg.task_options)
-        validate(cfg)
         self.mesh = make_mesh(cfg.seeds, cfg.devices)  # None: one device, no sharding
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         self.action_dim = self.env.action_dim
