@@ -455,8 +455,9 @@ def train_for(
     try:
         state = sess.train(
             until=lambda p: p.train_s >= budget_s,
-            evaluate=evaluate,
-            evaluate_after=lambda p: p.train_s >= schedule["next_eval_s"],
+            on_row=lambda row, state, p: (
+                evaluate(state, p) if p.last or p.train_s >= schedule["next_eval_s"] else None
+            ),
             checkpoint_after=lambda p, evaluated: (
                 evaluated or bool(checkpoint_every and p.iterations % checkpoint_every == 0)
             ),

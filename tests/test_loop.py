@@ -1,6 +1,6 @@
 """mpcpearl_jax.training.loop.train_loop, the one training loop, with a fake trainer and a fake
-clock:
-its rules (until, evaluation, checkpoints), rows, Ctrl-C between and inside iterations, and
+clock: its rules (until, checkpoints), the one callback after every iteration (evaluating when
+its rule says so and on the last iteration), rows, Ctrl-C between and inside iterations, and
 errors propagating with the progress telling the last checkpoint."""
 
 from __future__ import annotations
@@ -40,12 +40,20 @@ class FakeTrainer:
 
 def _loop(trainer, state, progress, clock, **kw):
     rows, saves, evals = [], [], []
+
+    def on_row(row, s, p):
+        """Evaluates (0.5 fake seconds) every second iteration and on the last one."""
+        if not (p.last or p.iterations % 2 == 0):
+            return None
+        evals.append(p.iterations)
+        clock.t += 0.5
+        return {"test_SR": s / 10, "eval_s": 0.5}
+
     defaults = dict(
         until=lambda p: p.iterations >= 5,
         save=lambda it, s: saves.append((it, s)),
-        on_row=rows.append,
-        evaluate_after=lambda p: p.iterations % 2 == 0,
-        evaluate=lambda s, p: evals.append(p.iterations) or {"test_SR": s / 10, "eval_s": 0.5},
+        on_row=on_row,
+        log=rows.append,
         checkpoint_after=lambda p, evaluated: p.iterations % 3 == 0,
         clock=clock,
     )
@@ -64,6 +72,8 @@ def test_rules_rows_and_checkpoints():
     assert [r["iteration"] for r in rows] == [1, 2, 3, 4, 5]
     assert [r["train_s"] for r in rows] == [2.0, 4.0, 6.0, 8.0, 10.0]
     assert rows[1]["test_SR"] == 0.2 and "test_SR" not in rows[0]
+    # wall_s is taken before the evaluation; train_s never counts it
+    assert [r["wall_s"] for r in rows] == [2.0, 4.0, 6.5, 8.5, 11.0]
     assert p.first_iteration_s == 2.0 and p.log == {"iteration": 5, "train_return": 5.0}
 
 
@@ -83,7 +93,7 @@ def test_ctrl_c_between_iterations_saves_the_whole_state():
     clock = Clock()
     flag = {"stop": False}
 
-    def on_row(row):
+    def on_row(row, state, p):
         if row["iteration"] == 2:
             flag["stop"] = True  # pressed during iteration 2's bookkeeping
 
@@ -95,7 +105,8 @@ def test_ctrl_c_between_iterations_saves_the_whole_state():
         p,
         clock,
         stop=lambda: flag["stop"],
-        on_row=lambda r: (rows.append(r), on_row(r)),
+        on_row=on_row,
+        log=rows.append,
     )
     assert p.stopped == "interrupted" and state == 2 and p.saved == 2
     assert [it for it, _ in saves] == [2] and [r["iteration"] for r in rows] == [1, 2]

@@ -24,7 +24,7 @@ from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
 from mpcpearl_jax.training.checkpoint import CONFIG_FILE, write_json
 from mpcpearl_jax.training.loop import Progress
 from mpcpearl_jax.training.resources import check_fits, tree_bytes
-from mpcpearl_jax.training.run import LOG_FILE, RunKind, Session, open_session, read_log
+from mpcpearl_jax.training.run import LOG_FILE, Session, open_session, read_log
 
 LABEL = "GrBAL"
 # The paper prints no GrBAL numbers (its restaurant bar charts only); its text (Sec. IV-A):
@@ -117,19 +117,27 @@ def _progress_line(log: dict, total: int) -> str:
     return "  ".join(parts)
 
 
-def _load_for_session(run_dir: Path, resume: bool) -> GrbalExperimentConfig:
-    return load_config(run_dir)
+class GrbalRun:
+    """GrBAL's `training.run.RunKind`: `GrbalTrainer`, its dynamics model in policy.msgpack,
+    iterations and checkpoints in the `grbal` section."""
+
+    section = "grbal"
+    network_file = False
+
+    def load_config(self, run_dir: Path, resume: bool) -> GrbalExperimentConfig:
+        return load_config(run_dir)
+
+    def make_trainer(self, cfg: GrbalExperimentConfig) -> GrbalTrainer:
+        return GrbalTrainer(cfg)
+
+    def check_fits(self, trainer: GrbalTrainer) -> None:
+        _check_memory(trainer)
+
+    def saved_params(self, trainer: GrbalTrainer, state: GrbalState) -> Any:
+        return trainer.model_params(state)
 
 
-GRBAL = RunKind(
-    load_config=_load_for_session,
-    make_trainer=GrbalTrainer,
-    check_fits=lambda trainer: _check_memory(trainer),
-    keep_checkpoints=lambda cfg: cfg.grbal.keep_checkpoints,
-    iterations=lambda cfg: cfg.grbal.iterations,
-    iterations_field="grbal.iterations",
-    saved_params=lambda trainer, state: trainer.model_params(state),
-)
+GRBAL = GrbalRun()
 
 
 def train(
@@ -183,20 +191,19 @@ def train_iterations(
             decided[p.iterations] = p.iterations >= g.iterations or not more_time
         return decided[p.iterations]
 
-    def evaluate(state: GrbalState, p: Progress) -> dict[str, Any]:
-        t0 = time.perf_counter()
-        return {**_eval_row(trainer, state), "eval_s": time.perf_counter() - t0}
-
-    def show(row: dict[str, Any]) -> None:
+    def on_row(row: dict[str, Any], state: GrbalState, p: Progress) -> dict[str, Any] | None:
+        fields = None
+        if p.last or (g.eval_interval > 0 and p.iterations % g.eval_interval == 0):
+            t0 = time.perf_counter()
+            fields = {**_eval_row(trainer, state), "eval_s": time.perf_counter() - t0}
         if progress is not None:
-            progress(_progress_line(row, g.iterations))
+            progress(_progress_line({**row, **(fields or {})}, g.iterations))
+        return fields
 
     state = sess.train(
         until=until,
-        evaluate=evaluate,
-        evaluate_after=lambda p: g.eval_interval > 0 and p.iterations % g.eval_interval == 0,
+        on_row=on_row,
         checkpoint_after=lambda p, _: p.iterations % g.checkpoint_interval == 0,
-        on_row=show,
     )
     if sess.progress.iterations < g.iterations and progress is not None:
         progress(

@@ -1,12 +1,11 @@
 """The run session, the one run driver: `open_session` opens a run folder (every check, the
 lock, the restored state, the log cut back to it, progress rebuilt from it, TensorBoard),
-`Session.train` trains under a caller's rules (the one training loop, `loop.train_loop`, with
-Ctrl-C and write errors handled), `Session.close` closes it (checkpointer, the MPC bridge's
-worker pool, TensorBoard, lock). Its users keep only their rules: the training command
-(`train_iterations`, then `evaluation.final.final_evaluation`: results.json, figures and the
-results table),
-the learning-curve command (`experiments.learning`) and GrBAL (`grbal.run`, with its own
-`RunKind`).
+`Session.train` trains under a caller's rules and its one callback per row (the one training
+loop, `loop.train_loop`, with logging, Ctrl-C and write errors handled), `Session.close` closes
+it (checkpointer, the MPC bridge's worker pool, TensorBoard, lock). Its users keep only their
+rules: the training command (`train_iterations`, then `evaluation.final.final_evaluation`:
+results.json, figures and the results table), the learning-curve command
+(`experiments.learning`) and GrBAL (`grbal.run`, with its own `RunKind`).
 
 Resume is exact: everything that shapes the rest of a run is in the checkpointed TrainState or
 rebuilt deterministically from the config, so a run stopped at any moment (kill -9, Ctrl-C, power
@@ -27,7 +26,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
@@ -135,44 +134,60 @@ def check_writable(run_dir: Path) -> None:
             ) from e
 
 
-@dataclasses.dataclass(frozen=True)
-class RunKind:
-    """What differs between the trainers a session runs (PEARL's `Trainer`, GrBAL's
-    `GrbalTrainer`): how a run folder's config is read, how the trainer is built and checked,
-    how many checkpoints are kept, the iteration count, and what policy.msgpack holds."""
+class RunKind(Protocol):
+    """What differs between the kinds of run a session trains (`PEARL` here, `grbal.run.GRBAL`):
+    the config section that holds `iterations` and `keep_checkpoints` ('train'), how a run
+    folder's config is read, how the trainer is built and checked against the free memory, what
+    policy.msgpack holds, and whether network.json (what `load_policy` needs) is written."""
 
-    load_config: Callable[[Path, bool], Any]  # (run_dir, resume) -> the folder's config
-    make_trainer: Callable[[Any], Any]
-    check_fits: Callable[[Any], None]  # trainer -> None; ConfigError when its state won't fit
-    keep_checkpoints: Callable[[Any], int]
-    iterations: Callable[[Any], int]  # cfg -> the iterations the run is asked for
-    iterations_field: str  # the field that may change on --resume ('train.iterations')
-    saved_params: Callable[[Any, Any], Any]  # (trainer, state) -> what policy.msgpack holds
-    network_file: bool = False  # write network.json (what `load_policy` needs)
+    section: str
+    network_file: bool
 
+    def load_config(self, run_dir: Path, resume: bool) -> Any: ...
 
-def _check_pearl_fits(trainer: Trainer) -> None:
-    check_state_fits(  # before anything is allocated
-        trainer.init_state,
-        "the training state (replay buffers, networks)",
-        "train.rl_capacity, the training tasks or the seeds",
-    )
+    def make_trainer(self, cfg: Any) -> Any: ...
+
+    def check_fits(self, trainer: Any) -> None: ...  # ConfigError when its state won't fit
+
+    def saved_params(self, trainer: Any, state: Any) -> Any: ...
 
 
-PEARL = RunKind(
-    load_config=lambda run_dir, resume: load_config(run_dir, resume=resume),
-    make_trainer=Trainer,
-    check_fits=_check_pearl_fits,
-    keep_checkpoints=lambda cfg: cfg.train.keep_checkpoints,
-    iterations=lambda cfg: cfg.train.iterations,
-    iterations_field="train.iterations",
-    saved_params=lambda trainer, state: policy_params(state),
-    network_file=True,
-)
+def _section(kind: RunKind, cfg: Any) -> Any:
+    return getattr(cfg, kind.section)
+
+
+class PearlRun:
+    """MPC-PEARL's `RunKind`: `Trainer`, its {policy, encoder} in policy.msgpack, network.json."""
+
+    section = "train"
+    network_file = True
+
+    def load_config(self, run_dir: Path, resume: bool) -> ExperimentConfig:
+        return load_config(run_dir, resume=resume)
+
+    def make_trainer(self, cfg: ExperimentConfig) -> Trainer:
+        return Trainer(cfg)
+
+    def check_fits(self, trainer: Trainer) -> None:
+        check_state_fits(  # before anything is allocated
+            trainer.init_state,
+            "the training state (replay buffers, networks)",
+            "train.rl_capacity, the training tasks or the seeds",
+        )
+
+    def saved_params(self, trainer: Trainer, state: TrainState) -> dict:
+        return policy_params(state)
+
+
+PEARL = PearlRun()
 
 
 def _never(*_: Any) -> bool:
     return False
+
+
+def _nothing(*_: Any) -> None:
+    return None
 
 
 @dataclasses.dataclass
@@ -245,22 +260,31 @@ class Session:
             raise CheckpointError(f"{self.run_dir}: this session keeps no checkpoints")
         self.ckpt.save(iteration, state, self.kind.saved_params(self.trainer, state))
 
+    def log(self, row: dict[str, Any]) -> None:
+        """One row of the run: kept in `rows`, appended to metrics.jsonl (process 0) and
+        mirrored to TensorBoard."""
+        self.rows.append(row)
+        if is_primary():
+            append_log(self.log_path, row)
+        if self.tb is not None:
+            self.tb.write(row)
+
     def train(
         self,
         *,
         until: Callable[[Progress], bool],
-        evaluate: Callable[[Any, Progress], dict[str, Any]] | None = None,
-        evaluate_after: Callable[[Progress], bool] = _never,
+        on_row: Callable[[dict[str, Any], Any, Progress], dict[str, Any] | None] = _nothing,
         checkpoint_after: Callable[[Progress, bool], bool] = _never,
         save: Callable[[int, Any], None] | None | str = "checkpoint",
-        on_row: Callable[[dict[str, Any]], None] | None = None,
         handle_sigint: bool = False,
         clock: Callable[[], float] = time.perf_counter,
     ) -> Any:
-        """Train under the caller's rules (`loop.train_loop`: until, evaluation and checkpoint
-        schedules) and return the state. Every row is appended to metrics.jsonl (process 0),
-        mirrored to TensorBoard and handed to `on_row`. save: "checkpoint" (the session's
-        checkpointer), a function (iteration, state), or None (no saves).
+        """Train under the caller's rules (`loop.train_loop`: until and the checkpoint schedule)
+        and return the state. After every iteration the caller's one callback, `on_row(row,
+        state, progress)`, evaluates when its rule says so (always when `progress.last`),
+        returning the evaluation's fields (None: not evaluated), and prints; the session then
+        logs the row (`log`). save: "checkpoint" (the session's checkpointer), a function
+        (iteration, state), or None (no saves).
 
         With handle_sigint, Ctrl-C stops at the next phase boundary, saves the last finished
         iteration if it is still in memory, and raises RunInterrupted (a second Ctrl-C:
@@ -268,16 +292,6 @@ class Session:
         file and the iteration a resume starts from; TrainingDiverged propagates."""
         saver = self.save if save == "checkpoint" else save
         where = self.progress
-
-        def row_out(row: dict[str, Any]) -> None:
-            self.rows.append(row)
-            if is_primary():
-                append_log(self.log_path, row)
-            if self.tb is not None:
-                self.tb.write(row)
-            if on_row is not None:
-                on_row(row)
-
         with _sigint_flag(handle_sigint) as stop:
             try:
                 self.state = train_loop(
@@ -285,10 +299,9 @@ class Session:
                     self.state,
                     where,
                     until=until,
+                    on_row=on_row,
+                    log=self.log,
                     save=saver,  # type: ignore[arg-type]
-                    on_row=row_out,
-                    evaluate_after=evaluate_after,
-                    evaluate=evaluate,
                     checkpoint_after=checkpoint_after,
                     stop=stop,
                     clock=clock,
@@ -396,7 +409,8 @@ def _open_locked(
     for partial in remove_partial(run_dir) if is_primary() else []:  # a save killed midway
         _warn(f"{partial}: removed an unfinished checkpoint (its save was interrupted)")
     if resume:
-        check_resumable(kind.load_config(run_dir, True), cfg, run_dir, kind.iterations_field)
+        field = f"{kind.section}.iterations"
+        check_resumable(kind.load_config(run_dir, True), cfg, run_dir, field)
         if not committed_steps(run_dir):
             check_nothing_lost(run_dir)
     else:
@@ -414,18 +428,17 @@ def _open_locked(
             with contextlib.suppress(OSError):
                 (run_dir / "checkpoints").rmdir()
         raise
-    ckpt = Checkpointer(run_dir, keep=kind.keep_checkpoints(cfg))
+    ckpt = Checkpointer(run_dir, keep=_section(kind, cfg).keep_checkpoints)
     try:
         state = trainer.init_state()
         if resume and ckpt.steps():
             state = ckpt.restore(state)
         done = int(first_local(state.iteration))
-        total = kind.iterations(cfg)
+        total = _section(kind, cfg).iterations
         if not until_budget and total < done:
-            field = kind.iterations_field.split(".")[-1]
             raise CheckpointError(
-                f"{run_dir} has finished {done} iterations; --{field} {total} is below that "
-                f"(give --{field} {done} or more, or another --out)"
+                f"{run_dir} has finished {done} iterations; --iterations {total} is below that "
+                f"(give --iterations {done} or more, or another --out)"
             )
         if kind.network_file:
             save_network(run_dir, trainer.nets)  # what load_policy needs beside policy.msgpack
@@ -515,27 +528,26 @@ def train_iterations(sess: Session, progress: bool = True, handle_sigint: bool =
             total=total, initial=sess.done, desc=f"{cfg.env} eps={tc.eps}", dynamic_ncols=True
         )
 
-    def evaluate(state: TrainState, p: Progress) -> dict[str, Any]:
-        t0 = time.perf_counter()
-        ev = trainer.evaluate(state, online=cfg.online_eval)
-        row = {f"test_{k}": v for k, v in ev.items() if not k.endswith("_per_seed")}
-        return {**row, "eval_s": time.perf_counter() - t0}
-
-    def show(row: dict[str, Any]) -> None:
+    def on_row(row: dict[str, Any], state: TrainState, p: Progress) -> dict[str, Any] | None:
+        fields = None
+        if p.last or (tc.eval_interval > 0 and p.iterations % tc.eval_interval == 0):
+            t0 = time.perf_counter()
+            ev = trainer.evaluate(state, online=cfg.online_eval)
+            fields = {f"test_{k}": v for k, v in ev.items() if not k.endswith("_per_seed")}
+            fields["eval_s"] = time.perf_counter() - t0
         if bar is not None:
             post = {"ret": f"{row['train_return']:.0f}", "mpc": f"{row['train_mpc_share']:.2f}"}
-            if "test_SR" in row:
-                post.update(SR=f"{row['test_SR']:.2f}", CFR=f"{row['test_CFR']:.2f}")
+            if fields is not None:
+                post.update(SR=f"{fields['test_SR']:.2f}", CFR=f"{fields['test_CFR']:.2f}")
             bar.set_postfix(post)
             bar.update(1)
+        return fields
 
     try:
         return sess.train(
             until=lambda p: p.iterations >= total,
-            evaluate=evaluate,
-            evaluate_after=lambda p: tc.eval_interval > 0 and p.iterations % tc.eval_interval == 0,
+            on_row=on_row,
             checkpoint_after=lambda p, _: p.iterations % tc.checkpoint_interval == 0,
-            on_row=show,
             handle_sigint=handle_sigint,
         )
     finally:
