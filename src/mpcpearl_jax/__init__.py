@@ -10,12 +10,14 @@ back up):
 
 - `envs`: the robot (dynamics, physics), the navigation env and the task families;
 - `pearl`, `mpc`: the learner (networks, losses, buffers) and the risk-aware MPC (GP, SQP,
-  the host bridge, the safety shield);
+  the host bridge, the safety shield); `collection`: episodes with event-triggered MPC
+  infusion, for training and evaluation;
 - `config`: the experiment configuration, its presets and `resolve`;
 - `evaluation`: meta-test rollouts (Algorithm 2), the method's metrics, the controller runners,
   tables and figures;
 - `training`: the trainer (Algorithm 1), the run session (checkpoints, logs, Ctrl-C) and the
-  one training loop; `grbal`: the GrBAL baseline on the same session;
+  one training loop; `grbal`: the GrBAL baseline on the same session; `evaluation.final`: a
+  trained run's final evaluation (results.json, figures);
 - `deploy`: a trained policy in your own code (`load_policy`, `Adapter`, `export_policy`,
   `load_exported`).
 """
