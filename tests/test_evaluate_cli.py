@@ -47,6 +47,7 @@ def test_policy_on_the_whole_test_split_matches_the_runs_results(tmp_path, capsy
     assert f"{f['success']} reached the goal without contact" in table
 
 
+@pytest.mark.slow  # 24 tasks of 3 episodes: half a minute on 2 cores
 def test_a_run_of_a_retired_option_evaluates_as_recorded(tmp_path):
     """A committed run trained with CrossQ critics (an option since removed: its network.json
     still names `crossq`) loads, and its validation tasks of task seed 1 score what its
