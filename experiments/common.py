@@ -11,6 +11,7 @@ from pathlib import Path
 from mpcpearl_jax.config import PRESETS, ExperimentConfig, read_config, resolve
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.evaluation.report import run_label
+from mpcpearl_jax.training.stopping import stop_exit_code, stoppable
 
 
 def add_run_mode_options(p: argparse.ArgumentParser) -> None:
@@ -82,7 +83,8 @@ def add_config_options(
         "--preset",
         default=default_preset,
         choices=sorted(PRESETS),
-        help="smoke: ~2 min pipeline check; default: about 5 minutes on a 2-core CPU; "
+        help="smoke: ~2 min pipeline check; default: 4-5 minutes of training on a quiet 2-core "
+        "CPU; "
         "cpu-explore: the recommended CPU recipe; cpu-paper: the paper's algorithm on the CPU "
         "schedule; paper: method §7 exactly (docs/usage.md)",
     )
@@ -140,7 +142,15 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
     p.add_argument("--iterations", type=int, help="meta-training iterations")
     p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-eps<eps>)")
     add_run_mode_options(p)
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bar (it says 'compiling' during the first iteration, then shows per "
+        "iteration the training episodes' mean 'episode return', the share of their steps the "
+        "MPC acted ('MPC-acted steps') and, at evaluations, the test tasks' success rate "
+        "('test SR') and collision-free rate ('test CFR'); its ETA leaves out the first "
+        "iteration)",
+    )
     p.add_argument(
         "--tensorboard",
         action="store_true",
@@ -207,9 +217,11 @@ def error_line(e: BaseException) -> str:
     return text[0] if text else type(e).__name__
 
 
+@stoppable
 def main(env: str, argv: list[str] | None = None, **extra) -> int:
     """Exit codes: 0 done, 2 a command-line error (config, data, checkpoint, permissions: one
-    line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (resumable)."""
+    line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (128 + the
+    signal for SIGTERM, SIGHUP; saved and resumable)."""
     args = parser(env).parse_args(argv)
     from mpcpearl_jax.errors import CheckpointError, RunDirError
     from mpcpearl_jax.training.run import open_session
@@ -255,14 +267,16 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         return fail(MemoryError(out_of_memory(e)))
     except KeyboardInterrupt:
         print("interrupted before training started", file=sys.stderr, flush=True)
-        return 130
+        return stop_exit_code()
     with sess:  # the run folder stays locked until its last file is written
         return _train_and_evaluate(args, sess, fail)
 
 
 DEFAULT_NOTE = (
-    "the default preset: a first look of about 5 minutes on a 2-core CPU, far shorter than the "
-    "paper's training (how long that was is printed under the results table)"
+    "the default preset: a first look, 75 iterations, about 4-5 minutes of training on a quiet "
+    "2-core CPU, longer on a slower or busy one (the README gives the range over ten seeds); the "
+    "first iteration compiles, up to a minute of it. Far shorter than the paper's training "
+    "(printed under the results table)"
 )
 
 
@@ -296,10 +310,10 @@ def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
         state = train_iterations(sess, progress=not args.no_progress, handle_sigint=True)
     except RunInterrupted as e:
         print(str(e), file=sys.stderr, flush=True)
-        return 130
+        return stop_exit_code()
     except KeyboardInterrupt:  # a second Ctrl-C: stopped at once, the last checkpoint stands
         print("interrupted; continue with --resume", file=sys.stderr, flush=True)
-        return 130
+        return stop_exit_code()
     except (OSError, CheckpointError, RunDirError) as e:
         return fail(e)
     except TrainingDiverged as e:
@@ -321,7 +335,7 @@ def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
             file=sys.stderr,
             flush=True,
         )
-        return 130
+        return stop_exit_code()
     print(trained_line(cfg, train_s, start), flush=True)
     print(LONGER if cfg.env == "restaurant" else LONGER_ANY, flush=True)
     print(f"results, curves and figures in {out}", flush=True)

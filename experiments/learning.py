@@ -25,9 +25,9 @@ A learning run is a run (`mpcpearl_jax.training.run.open_session`: one writer pe
 checks,
 checkpoints and log): the training state is checkpointed every `train.checkpoint_interval`
 iterations and after every evaluation, so a crash (kill -9) loses at most the work since then.
-Ctrl-C stops at the next phase boundary, saves, and exits 130; `--resume` (the same options;
---minutes may grow) continues exactly: the curve points so far are kept and the budget counts the
-training minutes already spent.
+Ctrl-C (or SIGTERM, SIGHUP) saves and stops, and exits 130 (128 + the signal); `--resume` (the
+same options; --minutes may grow) continues exactly: the curve points so far are kept and the
+budget counts the training minutes already spent.
 
 Train alone: other work on the machine slows every iteration down and so shifts the whole curve.
 The 1-minute load average at the start is recorded, with a warning above LOAD_WARN.
@@ -51,6 +51,7 @@ from experiments.common import add_config_options, build_config
 from mpcpearl_jax.envs import env_names
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.checkpoint import write_json
+from mpcpearl_jax.training.stopping import stop_exit_code, stoppable
 
 METRICS = ("SR", "CFR", "TT", "SPL", "MGD", "return")
 SPLITS = ("test", "val")
@@ -299,6 +300,7 @@ def summary_rows(record: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+@stoppable
 def main(argv: Sequence[str] | None = None, clock=time.perf_counter) -> int:
     """Exit codes: 0 done, 2 an error before or around training (one line naming the field, file
     or folder), 1 training diverged, 130 Ctrl-C (saved; continue with --resume). `clock` times
@@ -355,7 +357,7 @@ def _locked_run(args: argparse.Namespace, cfg, label: str, out: Path, clock) -> 
         return 2
     except KeyboardInterrupt:  # before training, or a second Ctrl-C: the last checkpoint stands
         print("interrupted; continue with --resume", file=sys.stderr, flush=True)
-        return 130
+        return stop_exit_code()
     except RuntimeError as e:
         if not out_of_memory(e):
             raise
@@ -625,7 +627,7 @@ def _run_session(
         if args.policy_only:
             line = f"interrupted at iteration {saved} (--policy-only: no checkpoint to resume from)"
         print(line, file=sys.stderr, flush=True)
-        return 130
+        return stop_exit_code()
     if done == 0:
         print(f"error: no iteration finished; {curve_path} written", file=sys.stderr)
         return 1

@@ -18,7 +18,9 @@ plan memory and stamp kept per shard (docs/distributed.md).
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import threading
 import time
 from collections import Counter
@@ -37,12 +39,13 @@ from mpcpearl_jax.envs.types import EnvState, TaskParams
 from mpcpearl_jax.mpc.config import MPCConfig
 from mpcpearl_jax.mpc.gp import predict_row
 from mpcpearl_jax.mpc.solver import (
+    STOP_SIGNALS,
     RowProblem,
     SolveResult,
     SQPSolver,
+    pool_worker_init,
     solve_in_worker,
     solver_params,
-    watch_parent,
 )
 
 # per-row status codes returned by the bridge
@@ -59,6 +62,21 @@ STATUS_NAMES = {
 
 
 _SHARD_CALLBACK: Any = None
+
+
+@contextlib.contextmanager
+def _stop_signals_blocked():
+    """Block the stop signals in this thread while the pool may start workers: a worker
+    inherits the mask, so a Ctrl-C that comes before its initializer (`pool_worker_init`)
+    cannot kill it; the training process gets the signal once it is unblocked."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _shard_callback(fn, out_shapes, *args):
@@ -344,10 +362,12 @@ class MPCBridge:
                 self._pool = ProcessPoolExecutor(
                     self.cfg.n_workers,
                     mp_context=get_context("spawn"),
-                    initializer=watch_parent,
+                    initializer=pool_worker_init,
                     initargs=(os.getpid(),),
                 )
-            return list(self._pool.map(solve_in_worker, [params] * len(probs), probs, inits))
+            with _stop_signals_blocked():  # workers start here, blocked until pool_worker_init
+                results = self._pool.map(solve_in_worker, [params] * len(probs), probs, inits)
+            return list(results)
         solver = self._solvers.get(params)
         if solver is None:
             solver = self._solvers[params] = SQPSolver(params)
@@ -396,9 +416,9 @@ class MPCBridge:
             plan_t[:] = -10
 
     def close(self) -> None:
-        """Shut the worker pool down (if any)."""
+        """Shut the worker pool down (if any; solves not yet started are cancelled)."""
         if self._pool is not None:
-            self._pool.shutdown()
+            self._pool.shutdown(cancel_futures=True)
             self._pool = None
 
 

@@ -20,7 +20,9 @@ by a line search on the exact SAA merit (cost + slack_penalty * violations).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import signal
 import time
 from typing import NamedTuple
 
@@ -515,6 +517,33 @@ def solve_in_worker(
     if solver is None:
         solver = _WORKER_SOLVERS[params] = SQPSolver(params)
     return solver.solve(prob, u_init)
+
+
+# the signals a user stops a training with: Ctrl-C (to the terminal's whole process group), a closed
+# terminal, `kill` or a scheduler's SIGTERM (possibly to the whole group)
+STOP_SIGNALS = tuple(
+    getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)
+)
+
+
+def pool_worker_init(parent_pid: int) -> None:
+    """Pool-worker initializer: the worker leaves the training's process group and ignores
+    Ctrl-C and a closed terminal, so a stop signal reaches the training process only, which
+    saves and shuts its pool down (a worker killed by the signal would break the pool);
+    `watch_parent` ends the worker if the training process is gone. The pool starts its
+    workers with the stop signals blocked (`MPCBridge`), so one sent before this runs waits:
+    SIGINT and SIGHUP are then ignored, and a SIGTERM sent to the old group is dropped."""
+    import os
+
+    with contextlib.suppress(OSError):
+        os.setpgid(0, 0)
+    for s in STOP_SIGNALS:
+        signal.signal(s, signal.SIG_IGN)  # ignoring a blocked, pending signal discards it
+    if hasattr(signal, "SIGTERM"):
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # the pool's own terminate() works
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+    watch_parent(parent_pid)
 
 
 def watch_parent(parent_pid: int, interval_s: float = 2.0) -> None:

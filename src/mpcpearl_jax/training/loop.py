@@ -18,11 +18,14 @@ metrics.jsonl and TensorBoard; the session's users keep only their rules and the
 
 The row holds the iteration's own log, `train_s` (seconds spent in `trainer.iteration` over the
 run's lifetime), `wall_s` (seconds since the run started, before the evaluation) and the
-evaluation's fields. `stop()` (Ctrl-C) is polled before every iteration and inside it: between
-iterations the state is whole, so it is saved (if not yet) and the loop returns with
-`progress.stopped == "interrupted"`; inside an iteration `trainer.iteration` raises
-`IterationAbandoned` (its state was consumed), which propagates with `progress` telling the last
-saved iteration. `TrainingDiverged` propagates the same way.
+evaluation's fields. `stop()` (Ctrl-C, SIGTERM, SIGHUP) is polled before every iteration: the
+state is whole there, so it is saved (if not yet) and the loop returns with
+`progress.stopped == "interrupted"`. Inside an iteration it is polled only where stopping loses
+no finished iteration (the last one is saved, or none has finished): `trainer.iteration` then
+raises `IterationAbandoned` (its state was consumed), which propagates with `progress` telling
+the last saved iteration; otherwise the iteration under way is finished, saved, and the loop
+stops, so a run stopped before its first scheduled checkpoint still resumes from where it
+stopped. `TrainingDiverged` propagates the same way.
 """
 
 from __future__ import annotations
@@ -76,7 +79,11 @@ def train_loop(
     of training and a stop request, which always save).
     """
     stopping = stop or (lambda: False)
-    kw = {"stop": stop} if stop is not None else {}
+
+    def abandon() -> bool:  # inside an iteration only when that loses no finished iteration
+        return stopping() and (save is None or progress.iterations == max(progress.saved, 0))
+
+    kw = {"stop": abandon} if stop is not None else {}
     t0 = clock()
 
     def checkpoint() -> None:

@@ -20,9 +20,7 @@ import dataclasses
 import json
 import os
 import shutil
-import signal
 import sys
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -47,13 +45,15 @@ from mpcpearl_jax.training.checkpoint import (
 from mpcpearl_jax.training.loop import Progress, train_loop
 from mpcpearl_jax.training.resources import check_state_fits
 from mpcpearl_jax.training.runlock import RunLock
+from mpcpearl_jax.training.stopping import stop_flag
 from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer, TrainState
 
 LOG_FILE = "metrics.jsonl"
 
 
 class RunInterrupted(Exception):
-    """Training stopped on Ctrl-C (SIGINT); `iteration` iterations are saved and resumable."""
+    """Training stopped by a stop signal (Ctrl-C, SIGTERM, SIGHUP); `iteration` iterations are
+    saved and resumable."""
 
     def __init__(self, iteration: int, lost: int = 0):
         self.iteration, self.lost = iteration, lost
@@ -292,7 +292,7 @@ class Session:
         file and the iteration a resume starts from; TrainingDiverged propagates."""
         saver = self.save if save == "checkpoint" else save
         where = self.progress
-        with _sigint_flag(handle_sigint) as stop:
+        with stop_flag(handle_sigint, where) as stop:
             try:
                 self.state = train_loop(
                     self.trainer,
@@ -474,27 +474,6 @@ def check_nothing_lost(run_dir: Path) -> None:
     _warn(f"{run_dir}: no checkpoint yet (stopped before its first one); starting at iteration 0")
 
 
-@contextlib.contextmanager
-def _sigint_flag(enabled: bool):
-    """A stop flag set by the first Ctrl-C (SIGINT); a second one stops at once."""
-    flag = {"stop": False}
-    if not enabled or threading.current_thread() is not threading.main_thread():
-        yield None
-        return
-
-    def handler(signum, frame):
-        if flag["stop"]:
-            raise KeyboardInterrupt
-        flag["stop"] = True
-        _warn("\nCtrl-C: stopping at the next phase boundary (Ctrl-C again: stop at once)")
-
-    old = signal.signal(signal.SIGINT, handler)
-    try:
-        yield lambda: flag["stop"]
-    finally:
-        signal.signal(signal.SIGINT, old)
-
-
 def train(
     cfg: ExperimentConfig,
     out: str | Path,
@@ -522,11 +501,7 @@ def train_iterations(sess: Session, progress: bool = True, handle_sigint: bool =
     tc, total = cfg.train, cfg.train.iterations
     bar = None
     if progress and is_primary():
-        from tqdm import tqdm
-
-        bar = tqdm(
-            total=total, initial=sess.done, desc=f"{cfg.env} eps={tc.eps}", dynamic_ncols=True
-        )
+        bar = ProgressBar(total, sess.done, f"{cfg.env} eps={tc.eps}")
 
     def on_row(row: dict[str, Any], state: TrainState, p: Progress) -> dict[str, Any] | None:
         fields = None
@@ -536,11 +511,7 @@ def train_iterations(sess: Session, progress: bool = True, handle_sigint: bool =
             fields = {f"test_{k}": v for k, v in ev.items() if not k.endswith("_per_seed")}
             fields["eval_s"] = time.perf_counter() - t0
         if bar is not None:
-            post = {"ret": f"{row['train_return']:.0f}", "mpc": f"{row['train_mpc_share']:.2f}"}
-            if fields is not None:
-                post.update(SR=f"{fields['test_SR']:.2f}", CFR=f"{fields['test_CFR']:.2f}")
-            bar.set_postfix(post)
-            bar.update(1)
+            bar.row({**row, **(fields or {})})
         return fields
 
     try:
@@ -553,6 +524,65 @@ def train_iterations(sess: Session, progress: bool = True, handle_sigint: bool =
     finally:
         if bar is not None:
             bar.close()
+
+
+class ProgressBar:
+    """The training command's progress bar (tqdm): "compiling (first iteration, about a
+    minute)" until the first iteration of this process ends (it compiles the training
+    programs); then the time that took, and a rate and ETA from the iterations after it only;
+    `PROGRESS_FIELDS` as self-explaining fields. `clock` (seconds) and `tqdm_kw` are for tests."""
+
+    def __init__(
+        self,
+        total: int,
+        done: int,
+        label: str,
+        clock: Callable[[], float] = time.perf_counter,
+        **tqdm_kw: Any,
+    ):
+        from tqdm import tqdm
+
+        self.label, self.clock, self.t0, self.first = label, clock, clock(), True
+        self.bar = tqdm(total=total, desc=f"{label}: {COMPILING}", dynamic_ncols=True, **tqdm_kw)
+        self.bar._time = clock  # tqdm's clock, the same as ours
+        self._restart(done)
+
+    def _restart(self, n: int) -> None:
+        """`n` done; the clock and the smoothed rate start again from now."""
+        self.bar.reset(total=self.bar.total)
+        self.bar.initial = self.bar.n = self.bar.last_print_n = n
+        self.bar.refresh()
+
+    def row(self, row: dict[str, Any]) -> None:
+        """A finished iteration's metrics row."""
+        if self.first:  # the first iteration compiled: the rate (and ETA) start after it
+            self.first = False
+            took = self.bar.format_interval(self.clock() - self.t0)
+            self.bar.set_description(f"{self.label} (first iteration, compiling: {took})")
+            self._restart(row["iteration"])
+        else:
+            self.bar.update(row["iteration"] - self.bar.n)
+        self.bar.set_postfix(progress_fields(row))
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+# the progress bar before the first iteration, which compiles the training programs
+COMPILING = "compiling (first iteration, about a minute)"
+
+# the progress bar's fields (also in the training command's --help): label, row key, format
+PROGRESS_FIELDS = (
+    ("episode return", "train_return", "{:.0f}"),  # mean over the iteration's training episodes
+    ("MPC-acted steps", "train_mpc_share", "{:.0%}"),  # share of their steps the MPC acted
+    ("test SR", "test_SR", "{:.2f}"),  # success rate on the test tasks (at evaluations)
+    ("test CFR", "test_CFR", "{:.2f}"),  # collision-free rate on the test tasks
+)
+
+
+def progress_fields(row: dict[str, Any]) -> dict[str, str]:
+    """The progress bar's postfix of a metrics row: each `PROGRESS_FIELDS` field the row has."""
+    return {label: fmt.format(row[key]) for label, key, fmt in PROGRESS_FIELDS if key in row}
 
 
 def policy_params(state: TrainState) -> dict:

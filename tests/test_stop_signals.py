@@ -1,0 +1,201 @@
+"""Stopping a training the ways a user stops it: Ctrl-C in a terminal (SIGINT to the whole process
+group, MPC pool workers included), SIGTERM (to the group, as `kill -TERM -PGID` or a scheduler
+sends it) and SIGHUP: exit 128 + the signal, one line `interrupted at iteration N; continue with
+--resume`, no traceback, a checkpoint of the iteration it stopped at (before the first scheduled
+one too), the MPC workers gone, and `--resume` continuing the run."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from faults_helpers import ROOT, _interrupted_at, rows_at_least, small_args, spawn
+
+from mpcpearl_jax.training.loop import Progress, train_loop
+from mpcpearl_jax.training.run import LOG_FILE, read_log
+from mpcpearl_jax.training.trainer import IterationAbandoned
+
+
+def _children(pid: int) -> list[int]:
+    """The live processes whose parent is `pid` (from /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()  # state, ppid, ...
+        if int(fields[1]) == pid and fields[0] != "Z":
+            found.append(int(entry.name))
+    return found
+
+
+def _mpc_workers(pid: int) -> list[int]:
+    """The spawned pool workers among `pid`'s children (their command line runs spawn_main)."""
+    workers = []
+    for child in _children(pid):
+        try:
+            cmd = Path(f"/proc/{child}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmd:
+            workers.append(child)
+    return workers
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc (Linux)")
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_signal_to_the_whole_process_group_saves_and_resumes(tmp_path, sig):
+    """The command line with MPC infusion (eps 0.5) and two MPC pool workers, in a process group
+    of its own as a terminal starts it, gets the signal sent to the whole group after its second
+    iteration (before its first scheduled checkpoint, every 50 iterations): exit 128 + the signal,
+    one `interrupted at iteration N` line, no traceback, a checkpoint at N, the workers gone; the
+    same command with --resume continues from N."""
+    run, log = tmp_path / "run", tmp_path / "log.txt"
+    extra = ("--set", "mpc.n_workers=2", "--set", "train.checkpoint_interval=50")
+    args = small_args(0.5, run, 40, *extra)
+    proc = spawn(args, log, cli=True, start_new_session=True)
+    workers: list[int] = []
+    try:
+        deadline = time.monotonic() + 240
+        while not (rows_at_least(run, 2)() and len(workers := _mpc_workers(proc.pid)) >= 2):
+            assert proc.poll() is None, log.read_text()[-3000:]
+            assert time.monotonic() < deadline, "no MPC workers after two iterations"
+            time.sleep(0.05)
+        os.killpg(proc.pid, sig)  # what Ctrl-C in a terminal does (SIGINT to the group)
+        rc = proc.wait(timeout=90)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    text = log.read_text()
+    assert rc == 128 + sig, text[-3000:]
+    assert "Traceback" not in text and "BrokenProcessPool" not in text, text[-3000:]
+    n = _interrupted_at(text)
+    assert n >= 2 and (run / "checkpoints" / str(n)).is_dir(), text[-3000:]
+    assert len(read_log(run / LOG_FILE)) == n
+    deadline = time.monotonic() + 10
+    while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(w) for w in workers), "MPC workers outlived the run"
+    # the same command continued (train only: the final evaluation is not what is tested here)
+    resumed = spawn([*small_args(0.5, run, n + 1, *extra), "--resume"], log)
+    assert resumed.wait(timeout=240) == 0, log.read_text()[-3000:]
+    assert [r["iteration"] for r in read_log(run / LOG_FILE)] == list(range(1, n + 2))
+    assert (run / "checkpoints" / str(n + 1)).is_dir()
+
+
+_POOL_PARENT = """
+import os, signal, sys, time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from mpcpearl_jax.mpc.bridge import _stop_signals_blocked
+from mpcpearl_jax.mpc.solver import pool_worker_init
+
+if __name__ == "__main__":
+    got = []
+    signal.signal(signal.SIGINT, lambda s, f: got.append(s))
+    signal.signal(signal.SIGHUP, lambda s, f: got.append(s))
+    pool = ProcessPoolExecutor(2, mp_context=get_context("spawn"),
+                               initializer=pool_worker_init, initargs=(os.getpid(),))
+    with _stop_signals_blocked():
+        first = list(pool.map(time.sleep, [0.5, 0.5]))
+    groups = set(pool.map(os.getpgid, [0, 0]))
+    print("ready", flush=True)
+    while len(got) < 2:
+        time.sleep(0.01)
+    print(os.getpgid(0) in groups, sorted(pool.map(abs, [-1, -2, -3, -4])), got, flush=True)
+    pool.shutdown()
+"""
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="POSIX signals")
+def test_mpc_pool_workers_survive_ctrl_c_and_hangup_to_the_process_group(tmp_path):
+    """Ctrl-C and a closed terminal (SIGINT, SIGHUP to the whole process group) reach the training
+    process only: the pool's workers (`pool_worker_init`) are in a group of their own and ignore
+    both, so the pool still works and the training process can save and shut it down."""
+    script = tmp_path / "parent.py"
+    script.write_text(_POOL_PARENT)
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    proc = subprocess.Popen(
+        [sys.executable, str(script)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env=env,
+    )
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        os.killpg(proc.pid, signal.SIGINT)
+        time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGHUP)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert out.strip() == f"False [1, 2, 3, 4] {[int(signal.SIGINT), int(signal.SIGHUP)]}", err
+
+
+class _Trainer:
+    """One iteration = +1; `stop()` is polled inside the iteration it is given to."""
+
+    def __init__(self, flag: dict, stop_in: int):
+        self.flag, self.stop_in, self.polled = flag, stop_in, []
+
+    def iteration(self, state, stop=None):
+        it = state + 1
+        if it == self.stop_in:
+            self.flag["stop"] = True  # the signal arrives during this iteration
+        if stop is not None and stop():
+            self.polled.append(it)
+            raise IterationAbandoned
+        return it, {"iteration": it}
+
+
+@pytest.mark.parametrize("interval,stop_in,saved", [(50, 3, 3), (1, 3, 2), (50, 1, None)])
+def test_a_stop_inside_an_iteration_finishes_it_when_abandoning_would_lose_work(
+    interval, stop_in, saved
+):
+    """A stop inside iteration k: with iteration k - 1 unsaved (no checkpoint yet) the loop
+    finishes k, saves it and stops; with k - 1 saved (a checkpoint every iteration), or in the
+    first iteration, it abandons k at once (nothing is lost)."""
+    flag = {"stop": False}
+    trainer, saves = _Trainer(flag, stop_in), []
+    p = Progress()
+    kw = dict(
+        until=lambda p: p.iterations >= 10,
+        save=lambda it, s: saves.append(it),
+        on_row=lambda row: None,
+        checkpoint_after=lambda p, _: p.iterations % interval == 0,
+        stop=lambda: flag["stop"],
+    )
+    if saved is None:  # the first iteration: abandoned, nothing to save (resume starts at 0)
+        with pytest.raises(IterationAbandoned):
+            train_loop(trainer, 0, p, **kw)
+        assert p.saved == -1 and p.iterations == 0 and saves == []
+        return
+    if interval == 1:
+        with pytest.raises(IterationAbandoned):
+            train_loop(trainer, 0, p, **kw)
+        assert trainer.polled == [stop_in] and p.saved == saved == p.iterations
+        return
+    state = train_loop(trainer, 0, p, **kw)
+    assert p.stopped == "interrupted" and state == saved and saves == [saved]
+    assert trainer.polled == []
