@@ -45,3 +45,58 @@ def test_sidewalk_mpc_speed_default_comes_from_its_registration():
     assert cfg.mpc.v_max is None
     cfg = build_config(p.parse_args(["--preset", "smoke", "--set", "mpc.v_max=3"]), "sidewalk")
     assert cfg.mpc.v_max == 3
+
+
+def test_the_results_table_spells_out_each_metric_and_column_once():
+    """Under the table: each metric's name, meaning and better direction, once; what "(online)"
+    and "(OOD)" mean; the paper's note stays last."""
+    m = {"SR": 0.5, "TT": 40.0, "CFR": 0.9, "SPL": 0.4, "MGD": 20.0}
+    res = {
+        "label": "MPC-PEARL 0.2",
+        "env": "restaurant",
+        "test_adapt": m,
+        "test_online": m,
+        "ood_adapt": m,
+        "paper": PAPER["restaurant"],
+        "config": {"train": {"eval_adapt_episodes": 2}},
+    }
+    text = results_table(res)
+    lines = text.splitlines()
+    for name, words, better in (
+        ("SR", "success rate", "higher"),
+        ("TT", "time to goal", "lower"),
+        ("CFR", "collision-free rate", "higher"),
+        ("SPL", "success weighted by path length", "higher"),
+        ("MGD", "mean goal distance", "lower"),
+    ):
+        defs = [x for x in lines if x.startswith(f"{name} ") and words in x]
+        assert len(defs) == 1 and f"({better} is better)" in defs[0], (name, lines)
+    cols = [x for x in lines if x.startswith("columns: ")]
+    assert len(cols) == 1 and "2 adaptation episodes" in cols[0]
+    assert "(online): adapting within the one scored episode" in cols[0]
+    assert "(OOD): out-of-distribution tasks" in cols[0]
+    assert lines[-1].startswith("paper columns: the paper's published table")
+    no_ood = results_table({**res, "ood_adapt": {"skipped": "none"}})
+    assert "(OOD)" not in no_ood
+
+
+def test_the_learning_curve_figure_marks_the_saved_policy(tmp_path, monkeypatch):
+    import matplotlib.figure
+
+    from mpcpearl_jax.evaluation.report import plot_learning_curves
+
+    titles = []
+    real = matplotlib.figure.Figure.suptitle
+    monkeypatch.setattr(
+        matplotlib.figure.Figure,
+        "suptitle",
+        lambda self, t, **kw: titles.append(t) or real(self, t, **kw),
+    )
+    rows = [
+        {"iteration": i, "train_return": -i, "test_return": -i, "test_SR": s, "test_CFR": 1.0}
+        for i, s in ((25, 0.1), (50, 0.29), (75, 0.12))
+    ]
+    assert plot_learning_curves([("x", rows)], tmp_path / "a.png", saved="last").is_file()
+    assert titles[-1].startswith("dashed line: the saved policy, the last iteration's (75)")
+    plot_learning_curves([("x", rows)], tmp_path / "b.png", saved="kept")
+    assert "the kept one" in titles[-1]

@@ -77,15 +77,61 @@ def paper_columns(paper: dict) -> list[tuple[str, dict]]:
     return [(f"paper {k}", v) for k, v in paper.items()]
 
 
+# each metric spelled out once (`metrics.episode_metrics` computes them; method §8), with the way
+# that is better: what the results table prints under itself, and the README says
+METRIC_LEGEND = (
+    (
+        "SR",
+        "success rate: share of episodes that reach the goal without a collision (higher is "
+        "better)",
+    ),
+    (
+        "TT",
+        "time to goal: steps of the episode spent outside the goal radius, the whole episode "
+        "when the goal is never reached (lower is better)",
+    ),
+    ("CFR", "collision-free rate: share of episodes without a collision (higher is better)"),
+    (
+        "SPL",
+        "success weighted by path length: success x straight-line distance / distance "
+        "driven (higher is better)",
+    ),
+    (
+        "MGD",
+        "mean goal distance: squared distance to the goal (m^2) averaged over the "
+        "episode's steps (lower is better)",
+    ),
+)
+
+
+def metric_legend(online: bool = True, ood: bool = False, adapt_episodes: int = 2) -> str:
+    """The lines under a results table: each metric, and what the columns' suffixes mean."""
+    width = max(len(m) for m, _ in METRIC_LEGEND)
+    lines = [f"{m:<{width}}  {text}" for m, text in METRIC_LEGEND]
+    cols = [f"a bare column: the test tasks, each after {adapt_episodes} adaptation episodes"]
+    if online:
+        cols.append("(online): adapting within the one scored episode, no earlier episode")
+    if ood:
+        cols.append(
+            "(OOD): out-of-distribution tasks, unlike any seen in training (shifted layouts "
+            f"or crowds), after {adapt_episodes} adaptation episodes"
+        )
+    return "\n".join([*lines, "columns: " + "; ".join(cols)])
+
+
 def results_table(results: dict[str, Any]) -> str:
-    """One run's results.json: adaptation / online / OOD next to the paper's columns, and a line
-    saying where the paper's columns come from and how long its agents trained."""
+    """One run's results.json: adaptation / online / OOD next to the paper's columns, each
+    metric and column spelled out under it (`metric_legend`), and a line saying where the
+    paper's columns come from and how long its agents trained."""
     label = results["label"]
     cols = [(f"{label}", results["test_adapt"]), (f"{label} (online)", results["test_online"])]
-    if "SR" in results.get("ood_adapt", {}):
+    ood = "SR" in results.get("ood_adapt", {})
+    if ood:
         cols.append((f"{label} (OOD)", results["ood_adapt"]))
     paper = results.get("paper", {})
+    adapt = results.get("config", {}).get("train", {}).get("eval_adapt_episodes", 2)
     table = metrics_table(cols + paper_columns(paper))
+    table = f"{table}\n{metric_legend(online=True, ood=ood, adapt_episodes=adapt)}"
     if not paper:
         return table
     trained = paper_training(results.get("env", ""))
@@ -102,9 +148,14 @@ def comparison_table(results: Sequence[tuple[str, dict]], paper: dict) -> str:
     return metrics_table(cols + paper_columns(paper))
 
 
-def plot_learning_curves(runs: Sequence[tuple[str, list[dict]]], path: Path) -> Path | None:
+def plot_learning_curves(
+    runs: Sequence[tuple[str, list[dict]]], path: Path, saved: str | None = None
+) -> Path | None:
     """Train return, test return, SR and CFR against iteration for each (label, metrics rows)
-    (a legend when there are several); None when there is nothing to plot."""
+    (a legend when there are several); None when there is nothing to plot. `saved` ("last" or
+    "kept"), for one run: mark which policy the run saved and evaluated (policy.msgpack,
+    results.json): the last iteration's (a dashed line there), or the kept one (extension
+    `keep_best`), so that a lower last point reads as what it is."""
     if not any(rows for _, rows in runs):
         return None
     import matplotlib
@@ -126,7 +177,18 @@ def plot_learning_curves(runs: Sequence[tuple[str, list[dict]]], path: Path) -> 
         ax.grid(alpha=0.3)
     if len(runs) > 1:
         axes[1].legend()
-    fig.tight_layout()
+    last = max((r["iteration"] for _, rows in runs for r in rows), default=0)
+    if saved == "last":
+        for ax in axes[1:]:
+            ax.axvline(last, color="k", ls="--", lw=0.8)
+        note = f"dashed line: the saved policy, the last iteration's ({last}), not the best point"
+    elif saved == "kept":
+        note = "saved policy: the kept one (best score on training tasks), not the last point"
+    else:
+        note = ""
+    if note:
+        fig.suptitle(note, fontsize=9)
+    fig.tight_layout(rect=(0, 0, 1, 0.94) if note else None)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
