@@ -9,7 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-brax_base = pytest.importorskip("brax.envs.base")
+# brax is an optional extra (`brax`; the `dev` extra includes it, so the suite tests the adapter)
+brax_base = pytest.importorskip(
+    "brax.envs.base", reason='brax not installed (an optional extra): pip install -e ".[brax]"'
+)
 
 from mpcpearl_jax.envs import make_env, make_tasks  # noqa: E402
 from mpcpearl_jax.envs.brax_adapter import BraxNavEnv, wrap_for_training  # noqa: E402

@@ -6,7 +6,13 @@ import pytest
 
 from mpcpearl_jax.training import livelog
 
+# tensorboardX is an optional extra (`tensorboard`; the `dev` extra includes it)
+needs_tensorboardx = pytest.mark.skipif(
+    livelog.missing() is not None, reason='tensorboardX not installed: pip install -e ".[dev]"'
+)
 
+
+@needs_tensorboardx
 def test_tensorboard_log_holds_the_metrics_rows(tmp_path):
     rows = [
         {"iteration": 1, "train_return": -50.0, "mpc_reasons": {"solved": 3}, "note": "x"},
@@ -60,6 +66,7 @@ class _Trainer:
         return {"SR": state / 10, "CFR": 1.0, "TT": 80.0, "SPL": 0.0, "MGD": 1.0, "return": -1.0}
 
 
+@needs_tensorboardx
 def test_learning_benchmark_mirrors_its_rows(tmp_path):
     from experiments import learning
     from mpcpearl_jax.training.run import Session
@@ -92,6 +99,7 @@ def test_learning_benchmark_mirrors_its_rows(tmp_path):
 
 
 @pytest.mark.slow
+@needs_tensorboardx
 def test_training_cli_tensorboard_and_episode_gif(tmp_path):
     """`python -m experiments.restaurant --tensorboard`: every metrics.jsonl number is in the event
     file under its own name; the final evaluation writes episode_test0.gif."""

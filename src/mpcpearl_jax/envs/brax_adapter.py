@@ -17,9 +17,16 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from brax.envs import base as brax_base
-from brax.envs.wrappers import training as brax_training
 from jax import Array
+
+try:  # brax is an optional extra
+    from brax.envs import base as brax_base
+    from brax.envs.wrappers import training as brax_training
+except ImportError as e:
+    raise ImportError(
+        f'the brax adapter needs brax, an optional extra: pip install -e ".[brax]" (or pip '
+        f"install brax) ({e})"
+    ) from None
 
 from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import TaskParams

@@ -4,7 +4,8 @@
 scalar under the same name (nested dicts such as `mpc_reasons` as `mpc_reasons/<key>`), with the
 iteration as the step, and flushes after each row so that a long run can be watched with
 `tensorboard --logdir runs/` (the `tensorboard` viewer is a separate `pip install tensorboard`).
-The writer is `tensorboardX` (installed with brax), imported only when a log is opened.
+The writer is `tensorboardX` (the optional extra `tensorboard`: `pip install -e ".[tensorboard]"`),
+imported only when a log is opened.
 `read_scalars(logdir)` reads the event files back without TensorBoard.
 """
 
@@ -28,7 +29,10 @@ def missing() -> str | None:
     try:
         import tensorboardX  # noqa: F401
     except ImportError as e:
-        return f"--tensorboard needs the tensorboardX package (pip install tensorboardX): {e}"
+        return (
+            "--tensorboard needs the tensorboardX package, an optional extra: pip install -e "
+            f'".[tensorboard]" (or pip install tensorboardX) ({e})'
+        )
     return None
 
 
