@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 from pathlib import Path
 
 from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
@@ -72,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
             if len(names) != len(loaded) or not all(names):
                 raise NotARun(f"--labels: give {len(loaded)} non-empty names, one per run")
         args.out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=args.out, prefix=".write-probe-"):
+            pass  # --out writable, before anything is plotted
     except (NotARun, OSError) as e:
         if args.debug:
             raise

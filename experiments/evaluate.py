@@ -46,9 +46,9 @@ from typing import Any
 import jax
 import numpy as np
 
-from experiments.common import add_task_source_options
+from experiments.common import add_task_source_options, error_line
 from mpcpearl_jax.config import ExperimentConfig
-from mpcpearl_jax.envs import SPLITS, make_env, tasks_for
+from mpcpearl_jax.envs import SPLITS, env_names, make_env, tasks_for
 from mpcpearl_jax.envs.perturb import parse_perturbation, perturb_tasks
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.evaluation.evaluate import EVAL_SEED
@@ -158,10 +158,11 @@ def make_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _parse_ranges(text: str, what: str) -> set[int]:
-    """'0,3,5' | '0-3' (inclusive) | a mix -> the set of integers; UsageError for an empty or
-    reversed range (5-1) and for nothing at all."""
-    out: set[int] = set()
+def _parse_spans(text: str, what: str) -> list[tuple[int, int]]:
+    """'0,3,5' | '0-3' (inclusive) | a mix -> its (lo, hi) spans, sorted and merged, never
+    expanded (a span may be billions long); UsageError for an empty or reversed range (5-1) and
+    for nothing at all."""
+    spans: list[tuple[int, int]] = []
     for part in text.split(","):
         a, dash, b = part.partition("-")
         try:
@@ -172,8 +173,50 @@ def _parse_ranges(text: str, what: str) -> set[int]:
             raise UsageError(
                 f"{what} {text!r}: the range {part.strip()} is reversed (give A-B, A <= B)"
             )
-        out.update(range(lo, hi + 1))
-    return out
+        spans.append((lo, hi))
+    merged: list[tuple[int, int]] = []
+    for lo, hi in sorted(spans):
+        if merged and lo <= merged[-1][1] + 1:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], hi))
+        else:
+            merged.append((lo, hi))
+    return merged
+
+
+def _count(spans: list[tuple[int, int]]) -> int:
+    return sum(hi - lo + 1 for lo, hi in spans)
+
+
+def _parse_ranges(
+    text: str, what: str, cap: int | None = None, unit: str = "values", hint: str = ""
+) -> set[int]:
+    """The integers of '0,3,5' | '0-3' | a mix (`_parse_spans`); with `cap`, UsageError when
+    there are more than `cap` of them (`unit`, then `hint`), checked before anything is
+    expanded."""
+    spans = _parse_spans(text, what)
+    n = _count(spans)
+    if cap is not None and n > cap:
+        raise UsageError(f"{what} {text}: {n} {unit}; at most {cap}{hint}")
+    return {i for lo, hi in spans for i in range(lo, hi + 1)}
+
+
+def _family(spec: str) -> str:
+    """--env's family: NAME or MODULE:NAME (`envs.load_family`, which imports MODULE)."""
+    from mpcpearl_jax.envs import load_family
+
+    try:
+        return load_family(spec)
+    except ValueError as e:
+        raise UsageError(f"--env {e}") from None
+
+
+def check_eval_seed(seed: int) -> None:
+    """UsageError unless `seed` makes a PRNG key (an integer that fits 64 bits)."""
+    try:
+        jax.random.PRNGKey(seed)
+    except (OverflowError, ValueError, TypeError) as e:
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise UsageError(f"--eval-seed {seed}: not a PRNG seed ({first})") from None
 
 
 def probe_out(out: Path, overwrite: bool = False) -> None:
@@ -208,14 +251,16 @@ def parse_indices(text: str, n: int, what: str) -> list[int]:
         return list(range(n))
     if text in ("none", ""):
         return []
-    out = _parse_ranges(text, what)
-    bad = sorted(i for i in out if not 0 <= i < n)
-    if bad:
-        shown = bad if len(bad) <= 5 else f"{bad[:3]} and {len(bad) - 3} more"
+    spans = _parse_spans(text, what)
+    beyond = [(max(lo, n), hi) for lo, hi in spans if hi >= n]  # checked before expanding
+    if beyond:
+        count = _count(beyond)
+        first = [i for lo, hi in beyond for i in range(lo, min(hi, lo + 5) + 1)][:5]
+        shown = first if count <= 5 else f"{first[:3]} and {count - 3} more"
         raise UsageError(
             f"{what}: task(s) {shown} out of range; the split has {n} tasks (0-{n - 1})"
         )
-    return sorted(out)
+    return sorted(i for lo, hi in spans for i in range(lo, hi + 1))
 
 
 def _mpc_overrides(items: list[str], base: dict) -> dict:
@@ -383,14 +428,27 @@ def setup(args: argparse.Namespace) -> Setup:
             raise UsageError(str(e).replace("shield.", "--shield-", 1)) from e
     if args.episodes is not None and args.episodes < 0:
         raise UsageError(f"--episodes {args.episodes}: must be >= 0")
-    env_name = cfg.env if cfg else (args.env or "restaurant")
-    if cfg and args.env and args.env != cfg.env:
+    if args.online and args.episodes is not None:
+        raise UsageError(
+            "--episodes counts the adaptation episodes before the scored one; --online adapts "
+            "within the one scored episode: give one of them"
+        )
+    check_eval_seed(args.eval_seed)
+    family = _family(args.env) if args.env else None  # MODULE:NAME registers NAME
+    env_name = cfg.env if cfg else (family or "restaurant")
+    if cfg and family and family != cfg.env:
         raise UsageError(f"--env {args.env}: the run {args.run} was trained on {cfg.env}")
     data = str(args.data) if args.data else (cfg.data if cfg else None)
     if data is not None and not Path(data).is_file():
         hint = "" if args.data else " (the run's data file; pass --data PATH)"
         raise UsageError(f"data file {data} does not exist{hint}")
     overrides = dict(cfg.env_overrides) if cfg else {}
+    if cfg and env_name not in env_names():
+        raise UsageError(
+            f"{args.run}: trained on the task family {env_name!r}, not registered here: pass "
+            f"--env MODULE:{env_name}, MODULE the module that registers it "
+            "(docs/custom_tasks.md)"
+        )
     try:
         env = make_env(env_name, **overrides)
     except ValueError as e:
@@ -603,12 +661,9 @@ def main_task_seeds(args: argparse.Namespace) -> int:
         return 2
     records, s, out = [], None, args.out
     try:
-        seeds = sorted(_parse_ranges(args.task_seeds.strip(), "--task-seeds"))
-        if len(seeds) > MAX_TASK_SEEDS:
-            raise UsageError(
-                f"--task-seeds {args.task_seeds}: {len(seeds)} task sets; at most "
-                f"{MAX_TASK_SEEDS} in one command (the project's protocol uses 8: 1-8)"
-            )
+        hint = " in one command (the project's protocol uses 8: 1-8)"
+        text = args.task_seeds.strip()
+        seeds = sorted(_parse_ranges(text, "--task-seeds", MAX_TASK_SEEDS, "task sets", hint))
         span = (
             f"{seeds[0]}-{seeds[-1]}"
             if seeds == list(range(seeds[0], seeds[-1] + 1))
@@ -654,7 +709,11 @@ def main_task_seeds(args: argparse.Namespace) -> int:
         "failures": fails,
         "records": records,
     }
-    write_json(out / "results.json", summary)
+    try:
+        write_json(out / "results.json", summary)
+    except OSError as e:
+        print(f"error: {error_line(e)}", file=sys.stderr)
+        return 2
     print(f"wrote {out / 'results.json'}")
     return 0
 
@@ -684,8 +743,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{record['protocol']}; {record['wall_s']:.1f} s", flush=True)
     print(tables(record))
     print(failure_line(record["failures"]))
-    write_json(s.out / "results.json", record)
-    written = write_figures(s, result, args.animate)
+    try:
+        write_json(s.out / "results.json", record)
+        written = write_figures(s, result, args.animate)
+    except OSError as e:  # a full disk, or --out changed under the evaluation
+        print(f"error: {error_line(e)}", file=sys.stderr)
+        return 2
     print(f"wrote {s.out / 'results.json'}" + "".join(f", {p.name}" for p in written))
     return 0
 

@@ -16,6 +16,8 @@ import json
 import sys
 from pathlib import Path
 
+from experiments.common import error_line
+
 
 def make_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -60,6 +62,9 @@ def main(argv: list[str] | None = None) -> int:
             check_sidecar(meta, sidecar_path(out))
     except (CheckpointError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # writing the export or its sidecar (a full disk, permissions)
+        print(f"error: {error_line(e)}", file=sys.stderr)
         return 2
     size = out.stat().st_size / 1024
     print(

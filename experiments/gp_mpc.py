@@ -12,15 +12,16 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
-from experiments.common import add_task_source_options
+from experiments.common import add_task_source_options, error_line
 from mpcpearl_jax.config import ExperimentConfig, apply_overrides, task_source
-from mpcpearl_jax.envs import make_env, mpc_defaults, tasks_for
+from mpcpearl_jax.envs import load_family, make_env, mpc_defaults, tasks_for
 from mpcpearl_jax.evaluation import metrics
 from mpcpearl_jax.evaluation.report import PAPER, metrics_table
 from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
@@ -45,12 +46,14 @@ def main(argv: list[str] | None = None) -> int:
     add_task_source_options(ap)
     args = ap.parse_args(argv)
 
-    env = make_env(args.env)
     try:
+        args.env = _family(args.env)  # MODULE:NAME registers NAME
+        env = make_env(args.env)
         # the family's MPC defaults, then --set (ConfigError naming the field)
         cfg = apply_overrides(MPCConfig(**mpc_defaults(args.env)), args.set)
         source = task_source(args.env, args.scenarios, data=args.data)
         tasks = tasks_for(ExperimentConfig(env=args.env, **source), args.split, seed=args.seed)
+        probe_out(args.out)  # before the rollout, not after it
     except (ValueError, TypeError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -73,7 +76,6 @@ def main(argv: list[str] | None = None) -> int:
     print(f"status: {stats['status']}  reasons: {stats['reasons']}")
     print(f"solve ms: median {np.median(solve_ms):.2f}, p95 {np.percentile(solve_ms, 95):.2f}")
 
-    args.out.mkdir(parents=True, exist_ok=True)
     record = {
         "env": args.env,
         "split": args.split,
@@ -92,10 +94,34 @@ def main(argv: list[str] | None = None) -> int:
         "per_task": {k: traj[k].sum(axis=1).tolist() for k in ("collision", "in_goal")},
     }
     path = args.out / f"{args.env}_{args.split}.json"
-    path.write_text(json.dumps(record, indent=2))
-    print(f"wrote {path}")
-    _plot(args, env, tasks, traj)
+    try:
+        path.write_text(json.dumps(record, indent=2))
+        print(f"wrote {path}")
+        _plot(args, env, tasks, traj)
+    except OSError as e:
+        print(f"error: {error_line(e)}", file=sys.stderr)
+        return 2
     return 0
+
+
+def _family(spec: str) -> str:
+    """--env's family: NAME or MODULE:NAME (`envs.load_family`), its error naming the flag."""
+    try:
+        return load_family(spec)
+    except ValueError as e:
+        raise ValueError(f"--env {e}") from None
+
+
+def probe_out(out: Path) -> None:
+    """Create --out and prove it writable (a probe file written and removed); OSError in one
+    line naming it otherwise."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-probe-"):
+            pass
+    except OSError as e:
+        why = e.strerror or type(e).__name__
+        raise OSError(f"--out {out}: not writable ({why}); choose another --out") from None
 
 
 def _plot(args, env, tasks, traj) -> None:

@@ -12,6 +12,7 @@ import contextlib
 import hashlib
 import io
 import json
+import tempfile
 import zipfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -238,6 +239,23 @@ def check_target(out: Path) -> None:
             )
         if path.is_dir() or (path.exists() and not _is_export(path)):
             raise ExportError(f"{path}: exists and is not a policy export; choose another --out")
+    check_folder(out.parent)
+
+
+def check_folder(folder: Path) -> None:
+    """Create the export's folder and prove it writable (a probe file written and removed),
+    before the export is built; ExportError naming the folder and the cause otherwise (a
+    read-only folder, a file where a folder should be)."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
+            pass
+    except OSError as e:
+        why = e.strerror or type(e).__name__
+        if isinstance(e, (FileExistsError, NotADirectoryError)):
+            why = "a file is where a folder should be"
+        msg = f"{folder}: cannot write the export there ({why}); choose another --out"
+        raise ExportError(msg) from None
 
 
 def export_policy(

@@ -218,6 +218,13 @@ def check_sidecar(meta: dict, where: Path) -> None:
             raise ExportError(f"{where}: field {field} must be {what}, got {value!r}")
     if "policy_sha256" in meta and not _SHA[0](meta["policy_sha256"]):
         raise ExportError(f"{where}: field policy_sha256 must be {_SHA[1]}")
+    env = meta.get("env_config")
+    horizon = env.get("horizon") if isinstance(env, dict) else None
+    if _POSITIVE_INT[0](horizon) and meta["t_update"] > horizon:  # z re-inferred within an episode
+        raise ExportError(
+            f"{where}: field t_update must be at most the episode length env_config.horizon "
+            f"({horizon} steps), got {meta['t_update']!r}"
+        )
 
 
 def check_not_stale(meta: dict, path: Path) -> None:

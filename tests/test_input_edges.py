@@ -1,0 +1,152 @@
+"""Bad or edge inputs that used to break a command (a traceback, memory exhausted, an option
+silently ignored), each now one line naming the option, field or file (exit 2), or honoured:
+ranges bounded before they are expanded (Q2, Q3), unwritable export targets (Q4, Q5), an unknown
+family for the GP-MPC command (Q6), an evaluation seed out of range (Q7), a custom family's run
+evaluated with --env MODULE:NAME (Q8), --online with --episodes (Q9) and an export sidecar whose
+t_update exceeds the episode (Q11). Q1 and Q10 (stop signals) are in test_stop_signals.py."""
+
+from __future__ import annotations
+
+import builtins
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from faults_helpers import _make_unwritable
+
+import experiments.evaluate as evaluate
+from experiments import export, gp_mpc
+
+ROOT = Path(__file__).resolve().parents[1]
+MAIN_RUN = ROOT / "results/restaurant/main-default"
+HEADLINE = ROOT / "results/restaurant/mpc-pearl-eps0.2"
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err, err
+    return err
+
+
+@pytest.fixture
+def bounded_range(monkeypatch):
+    """`range` in experiments.evaluate refuses to be expanded past a million values (a range
+    expanded before its bound is checked fails here instead of filling the memory)."""
+
+    def guarded(*args):
+        r = builtins.range(*args)
+        assert len(r) <= 10**6, f"a range of {len(r)} values was expanded"
+        return r
+
+    monkeypatch.setattr(evaluate, "range", guarded, raising=False)
+
+
+def test_q2_a_huge_tasks_range_is_refused_before_it_is_expanded(bounded_range, capsys, tmp_path):
+    with pytest.raises(evaluate.UsageError, match=r"\[24, 25, 26\] and 2999999977 more out of"):
+        evaluate.parse_indices("0-3000000000", 24, "--tasks")
+    out = str(tmp_path / "e")
+    assert evaluate.main([str(MAIN_RUN), "--tasks", "0-3000000000", "--out", out]) == 2
+    assert "--tasks: task(s) [24, 25, 26] and 2999999977 more out of range" in _one_line(capsys)
+    assert evaluate.parse_indices("3,0-2,1-1", 24, "--tasks") == [0, 1, 2, 3]
+
+
+def test_q3_a_huge_task_seeds_range_is_refused_before_it_is_expanded(
+    bounded_range, capsys, tmp_path
+):
+    argv = [str(MAIN_RUN), "--task-seeds", "0-3000000000", "--out", str(tmp_path / "e")]
+    assert evaluate.main(argv) == 2
+    err = _one_line(capsys)
+    assert f"3000000001 task sets; at most {evaluate.MAX_TASK_SEEDS}" in err
+    # overlapping spans count once
+    assert evaluate._parse_ranges("1-8,3-5,8", "--task-seeds", 8) == set(range(1, 9))
+
+
+def test_q4_an_export_into_a_read_only_folder_is_one_line(tmp_path, capsys):
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    undo = _make_unwritable(folder)
+    try:
+        assert export.main([str(HEADLINE), "--out", str(folder / "p.export")]) == 2
+    finally:
+        undo()
+    err = _one_line(capsys)
+    assert f"{folder}: cannot write the export there" in err and "--out" in err
+    assert list(folder.iterdir()) == []
+
+
+def test_q5_an_export_under_a_file_is_one_line(tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    assert export.main([str(HEADLINE), "--out", str(afile / "p.export")]) == 2
+    err = _one_line(capsys)
+    assert f"{afile}: cannot write the export there (a file is where a folder should be)" in err
+    assert afile.read_text() == "x"
+
+
+def test_q6_gp_mpc_with_an_unknown_family_is_one_line(tmp_path, capsys):
+    assert gp_mpc.main(["--env", "nosuch", "--out", str(tmp_path / "g")]) == 2
+    err = _one_line(capsys)
+    assert err.startswith("error: --env nosuch: no such task family")
+    assert not (tmp_path / "g").exists()
+
+
+def test_q6_gp_mpc_with_an_unwritable_out_stops_before_the_rollout(tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    assert gp_mpc.main(["--max-tasks", "1", "--out", str(afile / "g")]) == 2
+    assert f"--out {afile / 'g'}: not writable" in _one_line(capsys)
+
+
+def test_q7_an_eval_seed_out_of_range_is_one_line(tmp_path, capsys):
+    argv = [str(MAIN_RUN), "--eval-seed", "99999999999999999999", "--out", str(tmp_path / "e")]
+    assert evaluate.main(argv) == 2
+    assert "--eval-seed 99999999999999999999: not a PRNG seed" in _one_line(capsys)
+    assert not (tmp_path / "e").exists()
+
+
+def test_q9_online_with_episodes_is_one_line_not_ignored(tmp_path, capsys):
+    argv = [str(MAIN_RUN), "--online", "--episodes", "2", "--out", str(tmp_path / "e")]
+    assert evaluate.main(argv) == 2
+    err = _one_line(capsys)
+    assert "--episodes" in err and "--online" in err
+
+
+def _corridor_run(tmp_path: Path) -> Path:
+    """A corridor run's folder with its config.json only (no policy)."""
+    import examples.corridor  # noqa: F401  (registers the family)
+    from mpcpearl_jax.config import resolve
+    from mpcpearl_jax.training.checkpoint import save_config
+
+    run = tmp_path / "corridor-run"
+    run.mkdir()
+    save_config(run, resolve("smoke", "corridor"))
+    return run
+
+
+def test_q8_a_custom_family_run_takes_env_module_name(tmp_path, capsys):
+    """--env MODULE:NAME names the family the run was trained on: accepted (here the missing
+    policy is the next error); another family is refused naming both."""
+    run = _corridor_run(tmp_path)
+    out = str(tmp_path / "e")
+    assert evaluate.main([str(run), "--env", "examples.corridor:corridor", "--out", out]) == 2
+    err = _one_line(capsys)
+    assert "policy.msgpack" in err and "trained on" not in err
+    assert evaluate.main([str(run), "--env", "restaurant", "--out", out]) == 2
+    assert f"--env restaurant: the run {run} was trained on corridor" in _one_line(capsys)
+    assert evaluate.main([str(run), "--env", "examples.corridor:nosuch", "--out", out]) == 2
+    assert "registered no family 'nosuch'" in _one_line(capsys)
+
+
+def test_q11_a_sidecar_t_update_beyond_the_episode_is_refused(tmp_path):
+    from mpcpearl_jax.deploy.exported import ExportError, load_exported, sidecar_path
+
+    out = tmp_path / "policy.export"  # copied away from its run: no config.json beside it
+    shutil.copy(HEADLINE / "policy.export", out)
+    meta = json.loads((HEADLINE / "policy.export.json").read_text())
+    horizon = meta["env_config"]["horizon"]
+    sidecar_path(out).write_text(json.dumps({**meta, "t_update": 1000}))
+    with pytest.raises(ExportError, match=rf"t_update must be at most .*\({horizon} steps\)"):
+        load_exported(out)
+    sidecar_path(out).write_text(json.dumps({**meta, "t_update": horizon}))
+    assert load_exported(out).t_update == horizon
