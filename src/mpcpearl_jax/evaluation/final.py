@@ -49,7 +49,8 @@ def final_evaluation(
         return results
     write_json(run_dir / "results.json", results)
     print(results_table(results))
-    plot_learning_curves([(label, read_log(run_dir / LOG_FILE))], run_dir / "learning_curves.png")
+    rows = read_log(run_dir / LOG_FILE)  # the saved policy is the last iteration's: marked
+    plot_learning_curves([(label, rows)], run_dir / "learning_curves.png", saved_last=True)
     _trajectory_figure(trainer, raw, run_dir)
     _episode_gif(trainer, raw, run_dir, label)
     return results

@@ -149,13 +149,13 @@ def comparison_table(results: Sequence[tuple[str, dict]], paper: dict) -> str:
 
 
 def plot_learning_curves(
-    runs: Sequence[tuple[str, list[dict]]], path: Path, saved: str | None = None
+    runs: Sequence[tuple[str, list[dict]]], path: Path, saved_last: bool = False
 ) -> Path | None:
     """Train return, test return, SR and CFR against iteration for each (label, metrics rows)
-    (a legend when there are several); None when there is nothing to plot. `saved` ("last" or
-    "kept"), for one run: mark which policy the run saved and evaluated (policy.msgpack,
-    results.json): the last iteration's (a dashed line there), or the kept one (extension
-    `keep_best`), so that a lower last point reads as what it is."""
+    (a legend when there are several); None when there is nothing to plot. `saved_last`, for
+    one run: mark the policy the run saved and evaluated (policy.msgpack, results.json), the
+    last iteration's (a dashed line there), so that a last point below an earlier one reads as
+    what it is, not as a regression of the saved result."""
     if not any(rows for _, rows in runs):
         return None
     import matplotlib
@@ -178,14 +178,11 @@ def plot_learning_curves(
     if len(runs) > 1:
         axes[1].legend()
     last = max((r["iteration"] for _, rows in runs for r in rows), default=0)
-    if saved == "last":
+    note = ""
+    if saved_last:
         for ax in axes[1:]:
             ax.axvline(last, color="k", ls="--", lw=0.8)
         note = f"dashed line: the saved policy, the last iteration's ({last}), not the best point"
-    elif saved == "kept":
-        note = "saved policy: the kept one (best score on training tasks), not the last point"
-    else:
-        note = ""
     if note:
         fig.suptitle(note, fontsize=9)
     fig.tight_layout(rect=(0, 0, 1, 0.94) if note else None)

@@ -537,7 +537,7 @@ class ProgressBar:
         total: int,
         done: int,
         label: str,
-        clock: Callable[[], float] = time.perf_counter,
+        clock: Callable[[], float] = time.time,  # tqdm's own clock
         **tqdm_kw: Any,
     ):
         from tqdm import tqdm
