@@ -58,6 +58,9 @@ def _alive(pid: int) -> bool:
         return False
 
 
+# two trainings (the stopped run and its resume) with MPC infusion: ~40 s each on a quiet 2-core
+# CPU; the fast set keeps the pool-worker test below, which runs the same pool setup
+@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc (Linux)")
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_stop_signal_to_the_whole_process_group_saves_and_resumes(tmp_path, sig):

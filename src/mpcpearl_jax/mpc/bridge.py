@@ -416,9 +416,9 @@ class MPCBridge:
             plan_t[:] = -10
 
     def close(self) -> None:
-        """Shut the worker pool down (if any; solves not yet started are cancelled)."""
+        """Shut the worker pool down (if any)."""
         if self._pool is not None:
-            self._pool.shutdown(cancel_futures=True)
+            self._pool.shutdown()
             self._pool = None
 
 
