@@ -36,7 +36,7 @@ def test_compiling_first_then_an_eta_from_the_later_iterations_and_named_fields(
     assert COMPILING in out.getvalue() and "compiling (first iteration" in out.getvalue()
     clock.t += 77.0
     bar.row(_row(1))
-    assert "first iteration, compiling: 01:17" in bar.bar.desc
+    assert "first iteration, with compiling: 01:17" in bar.bar.desc
     for it in range(2, 5):
         clock.t += 5.0
         bar.row(_row(it, test_SR=0.5, test_CFR=0.75) if it == 4 else _row(it))

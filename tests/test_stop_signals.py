@@ -105,24 +105,24 @@ def test_a_stop_signal_to_the_whole_process_group_saves_and_resumes(tmp_path, si
 
 _POOL_PARENT = """
 import os, signal, sys, time
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
-from mpcpearl_jax.mpc.bridge import _stop_signals_blocked
-from mpcpearl_jax.mpc.solver import pool_worker_init
+from multiprocessing import resource_tracker
+from mpcpearl_jax.mpc.bridge import _stop_signals_blocked, make_pool
 
 if __name__ == "__main__":
     got = []
     signal.signal(signal.SIGINT, lambda s, f: got.append(s))
     signal.signal(signal.SIGHUP, lambda s, f: got.append(s))
-    pool = ProcessPoolExecutor(2, mp_context=get_context("spawn"),
-                               initializer=pool_worker_init, initargs=(os.getpid(),))
+    pool = make_pool(2)
     with _stop_signals_blocked():
         first = list(pool.map(time.sleep, [0.5, 0.5]))
     groups = set(pool.map(os.getpgid, [0, 0]))
+    tracker = resource_tracker._resource_tracker._pid
     print("ready", flush=True)
     while len(got) < 2:
         time.sleep(0.01)
-    print(os.getpgid(0) in groups, sorted(pool.map(abs, [-1, -2, -3, -4])), got, flush=True)
+    time.sleep(0.5)
+    alive = os.waitpid(tracker, os.WNOHANG) == (0, 0)
+    print(os.getpgid(0) in groups, alive, sorted(pool.map(abs, [-1, -2, -3, -4])), got, flush=True)
     pool.shutdown()
 """
 
@@ -131,7 +131,8 @@ if __name__ == "__main__":
 def test_mpc_pool_workers_survive_ctrl_c_and_hangup_to_the_process_group(tmp_path):
     """Ctrl-C and a closed terminal (SIGINT, SIGHUP to the whole process group) reach the training
     process only: the pool's workers (`pool_worker_init`) are in a group of their own and ignore
-    both, so the pool still works and the training process can save and shut it down."""
+    both, and multiprocessing's resource tracker survives them (`make_pool`), so the pool still
+    works and the training process can save and shut it down without a traceback."""
     script = tmp_path / "parent.py"
     script.write_text(_POOL_PARENT)
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
@@ -153,7 +154,9 @@ def test_mpc_pool_workers_survive_ctrl_c_and_hangup_to_the_process_group(tmp_pat
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0, err
-    assert out.strip() == f"False [1, 2, 3, 4] {[int(signal.SIGINT), int(signal.SIGHUP)]}", err
+    # the workers in their own group, multiprocessing's resource tracker alive, the pool working
+    assert out.strip() == f"False True [1, 2, 3, 4] {[int(signal.SIGINT), int(signal.SIGHUP)]}", err
+    assert "Traceback" not in err, err
 
 
 class _Trainer:

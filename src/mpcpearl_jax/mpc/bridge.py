@@ -64,6 +64,24 @@ STATUS_NAMES = {
 _SHARD_CALLBACK: Any = None
 
 
+def make_pool(n_workers: int) -> ProcessPoolExecutor:
+    """The MPC's worker pool (spawned processes, `pool_worker_init`). multiprocessing's resource
+    tracker, a helper process the pool's queues start, is started here with the stop signals
+    blocked: it ignores SIGINT and SIGTERM itself, and a blocked SIGHUP never reaches it, so a
+    closed terminal cannot kill it under the training (which then prints tracebacks)."""
+    from multiprocessing import resource_tracker
+
+    with _stop_signals_blocked():  # ensure_running unblocks SIGINT and SIGTERM when it is done
+        resource_tracker.ensure_running()
+    with _stop_signals_blocked():
+        return ProcessPoolExecutor(
+            n_workers,
+            mp_context=get_context("spawn"),
+            initializer=pool_worker_init,
+            initargs=(os.getpid(),),
+        )
+
+
 @contextlib.contextmanager
 def _stop_signals_blocked():
     """Block the stop signals in this thread while the pool may start workers: a worker
@@ -359,12 +377,7 @@ class MPCBridge:
         params = solver_params(self.cfg, self.env.config, num_static)
         if self.cfg.n_workers > 1 and len(probs) > 1:
             if self._pool is None:
-                self._pool = ProcessPoolExecutor(
-                    self.cfg.n_workers,
-                    mp_context=get_context("spawn"),
-                    initializer=pool_worker_init,
-                    initargs=(os.getpid(),),
-                )
+                self._pool = make_pool(self.cfg.n_workers)
             with _stop_signals_blocked():  # workers start here, blocked until pool_worker_init
                 results = self._pool.map(solve_in_worker, [params] * len(probs), probs, inits)
             return list(results)

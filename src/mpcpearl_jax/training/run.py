@@ -558,7 +558,7 @@ class ProgressBar:
         if self.first:  # the first iteration compiled: the rate (and ETA) start after it
             self.first = False
             took = self.bar.format_interval(self.clock() - self.t0)
-            self.bar.set_description(f"{self.label} (first iteration, compiling: {took})")
+            self.bar.set_description(f"{self.label} (first iteration, with compiling: {took})")
             self._restart(row["iteration"])
         else:
             self.bar.update(row["iteration"] - self.bar.n)
