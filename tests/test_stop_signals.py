@@ -188,7 +188,8 @@ def test_a_stop_inside_an_iteration_finishes_it_when_abandoning_would_lose_work(
     kw = dict(
         until=lambda p: p.iterations >= 10,
         save=lambda it, s: saves.append(it),
-        on_row=lambda row: None,
+        on_row=lambda row, state, p: None,
+        log=lambda row: None,
         checkpoint_after=lambda p, _: p.iterations % interval == 0,
         stop=lambda: flag["stop"],
     )

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from mpcpearl_jax.evaluation.metrics import METRIC_NAMES, format_metric
+from mpcpearl_jax.evaluation.metrics import METRIC_NAMES, METRICS, format_metric
 
 # method §8: the paper's numbers (restaurant: 24 unseen tasks after two adaptation episodes).
 PAPER = {
@@ -77,37 +77,27 @@ def paper_columns(paper: dict) -> list[tuple[str, dict]]:
     return [(f"paper {k}", v) for k, v in paper.items()]
 
 
-# each metric spelled out once (`metrics.episode_metrics` computes them; method §8), with the way
-# that is better: what the results table prints under itself, and the README says
-METRIC_LEGEND = (
-    (
-        "SR",
-        "success rate: share of episodes that reach the goal without a collision (higher is "
-        "better)",
-    ),
-    (
-        "TT",
-        "time to goal: steps of the episode spent outside the goal radius, the whole episode "
-        "when the goal is never reached (lower is better)",
-    ),
-    ("CFR", "collision-free rate: share of episodes without a collision (higher is better)"),
-    (
-        "SPL",
-        "success weighted by path length: success x straight-line distance / distance "
-        "driven (higher is better)",
-    ),
-    (
-        "MGD",
-        "mean goal distance: squared distance to the goal (m^2) averaged over the "
-        "episode's steps (lower is better)",
-    ),
-)
+# each metric spelled out for a reader (`metrics.METRICS` computes them and says which way is
+# better; method §8): what the results table prints under itself, and the README says
+METRIC_LEGEND = {
+    "SR": "success rate: share of episodes that reach the goal without a collision",
+    "TT": "time to goal: steps of the episode spent outside the goal radius, the whole episode "
+    "when the goal is never reached",
+    "CFR": "collision-free rate: share of episodes without a collision",
+    "SPL": "success weighted by path length: success x straight-line distance / distance driven",
+    "MGD": "mean goal distance: squared distance to the goal (m^2) averaged over the episode's "
+    "steps",
+}
 
 
 def metric_legend(online: bool = True, ood: bool = False, adapt_episodes: int = 2) -> str:
     """The lines under a results table: each metric, and what the columns' suffixes mean."""
-    width = max(len(m) for m, _ in METRIC_LEGEND)
-    lines = [f"{m:<{width}}  {text}" for m, text in METRIC_LEGEND]
+    width = max(len(m) for m in METRIC_NAMES)
+    lines = [
+        f"{m:<{width}}  {METRIC_LEGEND[m]} "
+        f"({'higher' if METRICS[m].higher_is_better else 'lower'} is better)"
+        for m in METRIC_NAMES
+    ]
     cols = [f"a bare column: the test tasks, each after {adapt_episodes} adaptation episodes"]
     if online:
         cols.append("(online): adapting within the one scored episode, no earlier episode")
