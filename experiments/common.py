@@ -344,10 +344,11 @@ def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
 
 # the recipe of the five-seed comparison (docs/usage.md, "Training longer")
 LONGER = (
-    "to train longer (docs/usage.md, 'Training longer'): python -m experiments.learning "
-    "--preset cpu-explore --set pearl.auto_entropy=true --eps 0.2 --minutes 24"
+    "to train longer, the recommended recipe for 24 minutes (docs/usage.md#training-longer): "
+    "python -m experiments.learning --preset cpu-explore --set pearl.auto_entropy=true --eps 0.2 "
+    "--minutes 24"
 )
-LONGER_ANY = "to train longer: --iterations N, or another preset (docs/usage.md, 'Training longer')"
+LONGER_ANY = "to train longer: --iterations N, or another preset (docs/usage.md#training-longer)"
 
 
 def trained_line(cfg: ExperimentConfig, seconds: float, start: int = 0) -> str:
