@@ -412,3 +412,15 @@ def test_config_option_refuses_what_it_cannot_repeat(tmp_path, capsys):
         assert not out.exists()
     with pytest.raises(SystemExit):  # a preset or a run's config, not both
         parser("restaurant").parse_args(["--preset", "smoke", "--config", str(side)])
+
+
+def test_mpc_solver_choice_is_checked_and_old_configs_load():
+    from mpcpearl_jax.mpc.config import MPCConfig
+
+    assert MPCConfig().solver == "osqp"
+    assert MPCConfig(solver="device").solver == "device"
+    with pytest.raises(ConfigError, match=r"MPCConfig.solver: must be one of \('osqp', 'device'\)"):
+        MPCConfig(solver="cuda")
+    old = preset("default").to_dict()  # a config.json written before the option
+    del old["mpc"]["solver"], old["mpc"]["device_qp_iters"]
+    assert ExperimentConfig.from_dict(old).mpc.solver == "osqp"

@@ -60,6 +60,8 @@ def make_collector(
     """
     horizon = env.config.horizon
     use_mpc = bridge is not None
+    # the device solver (`mpc.solver = "device"`): the bridge's per-row memory rides in the scan
+    on_device = use_mpc and getattr(bridge, "on_device", False)
     if use_mpc and mesh is not None:
         bridge = bridge.on_mesh(mesh)  # type: ignore[union-attr]
 
@@ -92,7 +94,7 @@ def make_collector(
         guide_until = None if handover is None else handover.reshape(s * r)
 
         def body(carry, xs):
-            obs, state = carry
+            obs, state, memory = carry
             k, t = xs
             k_pi, k_eps, k_mpc = jax.random.split(k, 3)
             a_pi = policy_actions(policy_params, obs.reshape(s, r, -1), z, k_pi).reshape(s * r, -1)
@@ -104,7 +106,10 @@ def make_collector(
                     fire = jnp.zeros_like(fire)
                 if guide_until is not None:  # extension: the MPC's roll-in before the hand-over
                     fire = fire | (t < guide_until)
-                a_mpc, used, _ = bridge(k_mpc, fire, state, flat, a_pi, stamp)
+                if on_device:
+                    memory, a_mpc, used, _ = bridge.step(memory, k_mpc, fire, state, flat, a_pi)
+                else:
+                    a_mpc, used, _ = bridge(k_mpc, fire, state, flat, a_pi, stamp)
                 action = jnp.where(fire[:, None], a_mpc, a_pi)
                 used = used & fire
             else:
@@ -121,11 +126,14 @@ def make_collector(
                 info.event,
                 used,
             )
-            return (nobs, nstate), out
+            return (nobs, nstate, memory), out
 
-        _, (tr, pos, col, goal, ev, used) = jax.lax.scan(
-            body, (obs0, state0), (jax.random.split(key, horizon), jnp.arange(horizon))
+        memory0 = bridge.init_memory(s * r) if on_device else None
+        (_, _, memory), (tr, pos, col, goal, ev, used) = jax.lax.scan(
+            body, (obs0, state0, memory0), (jax.random.split(key, horizon), jnp.arange(horizon))
         )
+        if on_device:  # the counters reach the host once per batch of episodes
+            jax.debug.callback(bridge.record_counts, memory.counts)
         pos = jnp.concatenate([state0.pose[None, :, :2], pos], axis=0)
         to_rows = lambda x: jnp.swapaxes(x, 0, 1).reshape((s, r, *x.shape[:1], *x.shape[2:]))
         return Episodes(

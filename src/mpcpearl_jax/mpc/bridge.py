@@ -36,7 +36,9 @@ from jax import Array
 from mpcpearl_jax.envs.dynamics import to_normalized
 from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import EnvState, TaskParams
+from mpcpearl_jax.mpc import device_bridge as db
 from mpcpearl_jax.mpc.config import MPCConfig
+from mpcpearl_jax.mpc.device_solver import REASONS, make_batch_solver
 from mpcpearl_jax.mpc.gp import predict_row
 from mpcpearl_jax.mpc.solver import (
     STOP_SIGNALS,
@@ -163,6 +165,7 @@ class MPCBridge:
         # devices of one process may run in parallel threads, so the host side takes a lock
         self._shards: dict[int, tuple[np.ndarray, np.ndarray, tuple[int, ...] | None]] = {}
         self._lock = threading.Lock()
+        self._device_solvers: dict[int, Any] = {}
         self.reset_stats()
 
     # ---------------------------------------------------------------- JAX side
@@ -181,7 +184,7 @@ class MPCBridge:
         """The bridge for a flat batch whose leading axis is split over the one-axis `mesh`
         (`mpcpearl_jax.distributed`): the same signature and per-row results, with one guard and
         one host callback per shard, in the process that holds it. Returns self without a mesh."""
-        if mesh is None:
+        if mesh is None or self.on_device:  # the device path is plain JAX: sharded as its inputs
             return self
         from jax.sharding import PartitionSpec as P
 
@@ -302,6 +305,77 @@ class MPCBridge:
         row = lambda k, pose, t, hp, hm: predict_row(k, pose, t, hp, hm, self.cfg)  # noqa: E731
         return jax.vmap(row)(keys, states.pose, states.t, params.human_pos, params.human_mask)
 
+    # ---------------------------------------------------------------- device side
+    @property
+    def on_device(self) -> bool:
+        """Whether the SQP runs on the device (`mpc.solver = "device"`): callers then carry a
+        `DeviceMemory` through `step` instead of calling the bridge."""
+        return self.cfg.solver == "device"
+
+    def init_memory(self, batch: int) -> db.DeviceMemory:
+        """The device path's per-row memory at the start of a batch of episodes (no plans)."""
+        return db.init_memory(batch, self.cfg.horizon)
+
+    def step(
+        self,
+        memory: db.DeviceMemory,
+        key: Array,
+        fire: Array,
+        states: EnvState,
+        params: TaskParams,
+        policy_actions: Array,
+    ) -> tuple[db.DeviceMemory, Array, Array, Array]:
+        """The bridge on the device (`on_device`): `(memory, actions, used_mpc, status)` with the
+        same meaning, fallbacks and status codes as `__call__`, the GP prediction and the SQP
+        (`device_solver`) inside the jitted step. Hand the final memory's counts to
+        `record_counts` (e.g. by one `jax.debug.callback` after the scan)."""
+        batch = fire.shape[0]
+        solve = self._device_solver(params.static_lo.shape[1])
+        every = jnp.arange(batch)
+
+        def run(_):
+            samples, valid = self.predict_fired(key, fire, states, params)
+            rows = lambda idx: db.solve_rows(solve, memory, idx, states, params, samples, valid)  # noqa: E731
+            cap = min(batch, max(16, -(-batch // 4)))
+            if cap == batch:
+                return rows(every)
+
+            def some(_):
+                idx = jnp.nonzero(fire, size=cap, fill_value=batch)[0]
+                return db.scatter(batch, idx, rows(idx))
+
+            return jax.lax.cond(jnp.sum(fire) <= cap, some, lambda _: rows(every), None)
+
+        shapes = jax.eval_shape(run, None)
+        skip = lambda _: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)  # noqa: E731
+        res = jax.lax.cond(jnp.any(fire), run, skip, None)
+        plans, plan_t, status, u0 = db.merge(memory, fire, states.t, res)
+        memory = db.DeviceMemory(plans, plan_t, memory.counts + db.count(fire, status, res))
+        has_mpc = (status == SOLVED) | (status == FALLBACK_PLAN)
+        mpc_actions = to_normalized(u0, self.env.config.v_max)
+        actions = jnp.where(has_mpc[:, None], mpc_actions, policy_actions.astype(jnp.float32))
+        return memory, actions, status == SOLVED, status
+
+    def _device_solver(self, num_static: int):
+        solve = self._device_solvers.get(num_static)
+        if solve is None:
+            params = solver_params(self.cfg, self.env.config, num_static)
+            solve = make_batch_solver(params, self.cfg.device_qp_iters)
+            self._device_solvers[num_static] = solve
+        return solve
+
+    def record_counts(self, counts) -> None:
+        """Add a device path's counters (`DeviceMemory.counts`) to `stats()` (host side)."""
+        c = dict(zip(db.COUNT_NAMES, (int(x) for x in np.asarray(counts)), strict=True))
+        with self._lock:
+            s = self._stats
+            s["calls"] += c["calls"]
+            s["rows_solved"] += c["rows"]
+            s["status"].update({STATUS_NAMES[i]: c[f"status{i}"] for i in range(1, 4)})
+            s["reasons"].update({r: c[r] for r in REASONS if c[r]})
+            s["qp_iters_total"] += c["qp_iters"]
+            s["n_qp_total"] += c["n_qp"]
+
     # ---------------------------------------------------------------- host side
     def _host(self, *args):
         # operands read before taking the lock: a callback waiting for its operands while holding
@@ -420,6 +494,9 @@ class MPCBridge:
             "qp_iters": [],
             "n_qp": [],
             "host_call_s": [],
+            # the device path's totals (it keeps no per-row lists)
+            "qp_iters_total": 0,
+            "n_qp_total": 0,
         }
 
     def reset_memory(self) -> None:

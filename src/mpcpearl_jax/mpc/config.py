@@ -9,6 +9,9 @@ from typing import Any
 from mpcpearl_jax import validate as v
 
 GP_MODES = ("fit", "fixed")
+# "osqp": the SQP on OSQP on the host, through a callback (the reference); "device": the same SQP
+# in JAX (`mpcpearl_jax.mpc.device_solver`), inside the jitted step
+SOLVERS = ("osqp", "device")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,7 +37,7 @@ class MPCConfig:
     v_max: float | None = 5.0
     steer_max: float = 1.5  # |delta| cap of the MPC (< pi/2, where tan(delta) diverges)
     terminal_weight: float = 20.0  # Q_f = terminal_weight * Q
-    # SQP (host side, OSQP)
+    # SQP (host side on OSQP, or on the device: `solver`)
     sqp_iters: int = 2  # at most this many QPs per call
     sqp_step_tol: float = 0.05  # stop early when the accepted input step is below this (inf-norm)
     trust_v: float = 2.0  # trust region on the speed, m/s (method §6 suggests ~1; 2 did better)
@@ -65,7 +68,9 @@ class MPCConfig:
     gp_noise_std: float = 0.01  # m per step
     gp_static_tol: float = 1e-4  # a person who moved less than this in the last step is static
     # execution
-    n_workers: int = 1  # >1: solve fired rows in a process pool
+    n_workers: int = 1  # >1: solve fired rows in a process pool (solver "osqp")
+    solver: str = "osqp"  # SOLVERS: OSQP on the host, or the same SQP in JAX on the device
+    device_qp_iters: int = 30  # interior-point iterations per QP of the "device" solver
 
     def __post_init__(self) -> None:
         v.ints(
@@ -78,6 +83,7 @@ class MPCConfig:
             "n_gp",
             "qp_tail_samples",
             "n_workers",
+            "device_qp_iters",
         )
         v.ints(
             self,
@@ -120,6 +126,7 @@ class MPCConfig:
         v.nonnegative(self, "r_safe", none_ok=True)
         v.positive(self, "v_max", none_ok=True)
         v.one_of(self, "gp_mode", GP_MODES)
+        v.one_of(self, "solver", SOLVERS)
         v.check(
             self.num_samples * (1.0 - self.alpha) >= 1.0,
             self,

@@ -34,8 +34,12 @@ def make_gp_mpc_rollout(
         fire = jnp.ones(batch, bool)
         brake = jnp.broadcast_to(BRAKE, (batch, 2))
 
-        def body(state, k):
-            action, used, status = bridge(k, fire, state, params, brake)
+        def body(carry, k):
+            state, memory = carry
+            if bridge.on_device:
+                memory, action, used, status = bridge.step(memory, k, fire, state, params, brake)
+            else:
+                action, used, status = bridge(k, fire, state, params, brake)
             _, nstate, r, _, info = jax.vmap(env.step)(
                 jax.random.split(k, batch), state, action, params
             )
@@ -49,9 +53,12 @@ def make_gp_mpc_rollout(
                 used_mpc=used,
                 status=status,
             )
-            return nstate, out
+            return (nstate, memory), out
 
-        _, traj = jax.lax.scan(body, state0, jax.random.split(key, steps))
+        memory0 = bridge.init_memory(batch) if bridge.on_device else None
+        (_, memory), traj = jax.lax.scan(body, (state0, memory0), jax.random.split(key, steps))
+        if bridge.on_device:  # the counters reach the host once per rollout
+            jax.debug.callback(bridge.record_counts, memory.counts)
         traj = jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), traj)
         traj["position"] = jnp.concatenate([state0.pose[:, None, :2], traj["position"]], axis=1)
         traj["heading"] = jnp.concatenate([state0.pose[:, None, 2], traj["heading"]], axis=1)

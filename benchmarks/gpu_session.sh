@@ -1,0 +1,81 @@
+#!/usr/bin/env bash
+# One accelerator session: the MPC solvers side by side, under 9 minutes on one GPU.
+#
+#   bash benchmarks/gpu_session.sh OUT_DIR            # the budgets below
+#   GPU_SESSION_TINY=1 bash benchmarks/gpu_session.sh OUT_DIR   # seconds-long check (e.g. a CPU)
+#
+# Writes under OUT_DIR:
+#   (a) mpc_solvers.json: per-call latency of the OSQP and device solvers, batch 1 and 16;
+#   (b) gp_mpc-osqp/, gp_mpc-device/: GP-MPC on the authors' 25 test scenarios with each solver
+#       (skipped when SCENARIOS, default ../shared/data/mpc-pearl-scenarios, is absent);
+#   (c) recipe-osqp/, recipe-device/: the recommended recipe with 8 seeds (metrics.jsonl logs
+#       collect_s and update_s per iteration), OSQP with 8 host workers against the device solver;
+#   (d) paper-device/: the paper preset, one seed, with the device solver;
+#   and summary.txt (the per-iteration means of each run), log.txt (everything printed).
+# Environment: PYTHON (default python), SCENARIOS, RECIPE_MIN (2.5), PAPER_MIN (1.5).
+set -euo pipefail
+
+OUT=${1:?usage: gpu_session.sh OUT_DIR}
+mkdir -p "$OUT"
+PY=${PYTHON:-python}
+SCEN=${SCENARIOS:-../shared/data/mpc-pearl-scenarios}
+RECIPE_MIN=${RECIPE_MIN:-2.5}
+PAPER_MIN=${PAPER_MIN:-1.5}
+BENCH=(--batches 1 16)
+GPMPC=()
+if [[ "${GPU_SESSION_TINY:-0}" == 1 ]]; then
+  RECIPE_MIN=0.05 PAPER_MIN=0.05
+  BENCH=(--tiny --batches 1 2 --calls 2)
+  GPMPC=(--max-tasks 2)
+fi
+exec > >(tee -a "$OUT/log.txt") 2>&1
+export PYTHONPATH="$PWD/src:$PWD${PYTHONPATH:+:$PYTHONPATH}"
+stamp() { echo "== $(date -u +%H:%M:%S) $*"; }
+
+stamp "(a) solver latency"
+$PY -m benchmarks.mpc_solvers "${BENCH[@]}" --out "$OUT"
+
+if [[ -d "$SCEN" ]]; then
+  for solver in osqp device; do
+    stamp "(b) GP-MPC, authors' test scenarios, solver $solver"
+    $PY -m experiments.gp_mpc --scenarios "$SCEN" --split test --set solver=$solver \
+      "${GPMPC[@]}" --out "$OUT/gp_mpc-$solver"
+  done
+else
+  stamp "(b) skipped: no scenarios at $SCEN"
+fi
+
+RECIPE=(--preset cpu-explore --set pearl.auto_entropy=true --eps 0.2 --seeds 8
+  --eval-minutes "$RECIPE_MIN" --policy-only --no-progress --overwrite)
+stamp "(c) recipe, 8 seeds, OSQP with 8 workers"
+$PY -m experiments.learning "${RECIPE[@]}" --minutes "$RECIPE_MIN" \
+  --set mpc.solver=osqp --set mpc.n_workers=8 --out "$OUT/recipe-osqp"
+stamp "(c) recipe, 8 seeds, device solver"
+$PY -m experiments.learning "${RECIPE[@]}" --minutes "$RECIPE_MIN" \
+  --set mpc.solver=device --out "$OUT/recipe-device"
+stamp "(d) paper preset, one seed, device solver"
+$PY -m experiments.learning --preset paper --eps 0.2 --minutes "$PAPER_MIN" \
+  --eval-minutes "$PAPER_MIN" --policy-only --no-progress --overwrite \
+  --set mpc.solver=device --out "$OUT/paper-device"
+
+stamp "summary"
+$PY - "$OUT" <<'EOF' | tee "$OUT/summary.txt"
+import json, statistics, sys
+from pathlib import Path
+
+out = Path(sys.argv[1])
+for run in ("recipe-osqp", "recipe-device", "paper-device"):
+    path = out / run / "metrics.jsonl"
+    if not path.exists():
+        print(f"{run}: no metrics.jsonl")
+        continue
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows = [r for r in rows if "collect_s" in r][1:] or rows  # the first holds the compilation
+    mean = lambda k: statistics.mean(r.get(k, float("nan")) for r in rows)  # noqa: E731
+    it = mean("collect_s") + mean("update_s")
+    print(
+        f"{run}: {len(rows)} iterations, collect {mean('collect_s'):.3f} s, update "
+        f"{mean('update_s'):.3f} s, collection share {mean('collect_s') / it:.0%}"
+    )
+EOF
+stamp "done"
