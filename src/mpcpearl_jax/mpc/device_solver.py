@@ -357,13 +357,13 @@ def grid_first_moves(p: SolverParams, prob: RowProblem, u: Array) -> tuple[Array
     return viol[i], jnp.where(jnp.isfinite(viol[i]), plans[i], u)
 
 
-def recover(p: SolverParams, qp_iters: int, prob: RowProblem, first: tuple) -> tuple:
-    """The unsafe-plan recovery (extension `unsafe_recovery`): one more SQP from the least
-    violating first move; its plan if solved, else the first of (first plan, second plan) whose
-    first stage is as safe as that move (reason least_violation), else the first (unsafe)."""
-    u, xs, cur, reason, its, nq = first
-    best, best_u = grid_first_moves(p, prob, u)
-    u2, xs2, cur2, reason2, its2, nq2 = sqp(p, qp_iters, prob, best_u)
+def recover(p: SolverParams, prob: RowProblem, first: tuple, second: tuple, best: Array):
+    """The unsafe-plan recovery (extension `unsafe_recovery`) from the first SQP's result and the
+    second's (run from the least violating first move, violation `best`): the second plan if
+    solved, else the first of (first plan, second plan) whose first stage is as safe as that move
+    (reason least_violation), else the first plan (unsafe); as the host solver's `solve`."""
+    u, xs, cur, _, its, nq = first
+    u2, xs2, cur2, reason2, its2, nq2 = second
 
     def fits(v, x):
         return jnp.all(jnp.isfinite(v)) & (first_violation(p, prob, x) <= best + p.unsafe_tol)
@@ -371,35 +371,58 @@ def recover(p: SolverParams, qp_iters: int, prob: RowProblem, first: tuple) -> t
     use2 = (reason2 == SOLVED) | (~fits(u, xs) & fits(u2, xs2))
     least = (reason2 != SOLVED) & (fits(u, xs) | fits(u2, xs2))
     out_reason = jnp.where(reason2 == SOLVED, SOLVED, jnp.where(least, LEAST_VIOLATION, UNSAFE))
-    out_reason = out_reason.astype(jnp.int32)
     pick = lambda a, b: jnp.where(use2, b, a)  # noqa: E731
-    return (pick(u, u2), pick(xs, xs2), pick(cur, cur2), out_reason, its + its2, nq + nq2)
+    reason = out_reason.astype(jnp.int32)
+    return (pick(u, u2), pick(xs, xs2), pick(cur, cur2), reason, its + its2, nq + nq2)
+
+
+def _two_passes(p: SolverParams, run, probs: RowProblem, u0: Array):
+    """The first SQP from u0 and, where some row is unsafe, the second from the least violating
+    first moves, as one `lax.scan` over the two passes (the SQP is compiled once) ->
+    (first, second, best first-move violation)."""
+    grid = jax.vmap(lambda pr, u: grid_first_moves(p, pr, u))
+    zeros = jax.tree_util.tree_map(
+        lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(run, probs, u0)
+    )
+
+    def body(carry, i):
+        first, start = carry
+        need = (i == 0) | jnp.any(first[3] == UNSAFE)
+        out = jax.lax.cond(need, lambda s: run(probs, s), lambda s: zeros, start)
+        best, best_u = grid(probs, out[0])
+        first = jax.tree_util.tree_map(lambda a, b: jnp.where(i == 0, b, a), first, out)
+        return (first, jnp.where(i == 0, best_u, start)), (out, best)
+
+    _, (outs, bests) = jax.lax.scan(body, (zeros, u0), jnp.arange(2))
+    take = lambda j: jax.tree_util.tree_map(lambda a: a[j], outs)  # noqa: E731
+    return take(0), take(1), bests[0]
 
 
 def make_batch_solver(p: SolverParams, qp_iters: int) -> Callable[..., DeviceResult]:
     """`solve(probs, u_init, has_init) -> DeviceResult`, batched over a leading axis B of
     RowProblem (float32 arrays), u_init [B, K, 2] and has_init [B] bool (False: cold start).
     Jittable; the recovery pass (if `unsafe_recovery`) runs only when some row is unsafe."""
-
-    def first_pass(prob, u0, has):
-        u = clip_inputs(p, jnp.where(has, u0, cold_start(p, prob)))
-        return sqp(p, qp_iters, prob, u)
+    run = jax.vmap(lambda prob, u: sqp(p, qp_iters, prob, u))
+    start = jax.vmap(lambda pr, u, h: clip_inputs(p, jnp.where(h, u, cold_start(p, pr))))
 
     def solve(probs: RowProblem, u_init: Array, has_init: Array) -> DeviceResult:
-        out = jax.vmap(first_pass)(probs, u_init, has_init)
-        if p.unsafe_recovery:
-            unsafe = out[3] == UNSAFE
-            redo = jax.vmap(lambda pr, o: recover(p, qp_iters, pr, o))
-            again = jax.lax.cond(jnp.any(unsafe), lambda o: redo(probs, o), lambda o: o, out)
+        u0 = start(probs, u_init, has_init)
+        if not p.unsafe_recovery:
+            out = run(probs, u0)
+        else:
+            first, second, best = _two_passes(p, run, probs, u0)
+            again = jax.vmap(lambda pr, a, b, c: recover(p, pr, a, b, c))(
+                probs, first, second, best
+            )
+            unsafe = first[3] == UNSAFE
             out = jax.tree_util.tree_map(
                 lambda a, b: jnp.where(unsafe.reshape((-1,) + (1,) * (a.ndim - 1)), b, a),
-                out,
+                first,
                 again,
             )
         u, xs, cur, reason, its, nq = out
-        ok = ((reason == SOLVED) | (reason == LEAST_VIOLATION)) & jnp.all(
-            jnp.isfinite(u), axis=(1, 2)
-        )
+        finite = jnp.all(jnp.isfinite(u), axis=(1, 2))
+        ok = ((reason == SOLVED) | (reason == LEAST_VIOLATION)) & finite
         return DeviceResult(u, xs, ok, reason.astype(jnp.int32), its, nq, cur)
 
     return solve
