@@ -99,7 +99,13 @@ def main(argv: list[str] | None = None) -> None:
     )
     harness.write_record(
         "mpc_solvers",
-        {"batches": args.batches, "calls": calls, "device_qp_iters": qp_iters, **threads},
+        {
+            "size": harness.size_of(args),
+            "batches": args.batches,
+            "calls": calls,
+            "device_qp_iters": qp_iters,
+            **threads,
+        },
         {"rows": rows_out},
         args.out,
     )
