@@ -29,11 +29,10 @@ DEFAULT_OUT = ROOT / "tests" / "data" / "mpc_problems.npz"
 
 def record(seconds: float, count: int, eps: float) -> tuple[list, list, dict]:
     """(problems, warm-start plans or None, solver params as a dict) from a training run."""
-    from mpcpearl_jax.trainer import Trainer
-
     from mpcpearl_jax.config import resolve
     from mpcpearl_jax.mpc.bridge import MPCBridge
     from mpcpearl_jax.mpc.solver import solver_params
+    from mpcpearl_jax.training.trainer import Trainer
 
     cfg = resolve("cpu-explore", env="restaurant")
     cfg = cfg.replace(
