@@ -1,6 +1,6 @@
 """Per-call latency of the MPC's SQP: the host solver on OSQP against the device solver (JAX),
 for a batch of 1 and of 16 rows, on the gate's problems recorded from training
-(`tests/data/mpc_problems.npz`, `experiments.diagnostics.record_mpc_problems`).
+(`tests/data/mpc_problems.npz`, `benchmarks.record_mpc_problems`).
 
 OSQP solves a call's rows one after the other on the host (the bridge with one worker); the
 device solver solves them in one jitted, vmapped call (compilation excluded, reported apart).
@@ -21,7 +21,7 @@ DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "mpc_problems.np
 
 
 def _problems(path):
-    from experiments.diagnostics.record_mpc_problems import regenerate, solver_params_of
+    from benchmarks.record_mpc_problems import regenerate, solver_params_of
 
     with np.load(path) as f:
         data = {k: f[k] for k in f.files}

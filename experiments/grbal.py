@@ -9,7 +9,7 @@ Meta-trains the learned dynamics model (one inner SGD step on M past transitions
 K next), collecting with MPPI on the adapted model, then evaluates on the test tasks (after two
 adaptation episodes, and online) and the OOD tasks with the method §8 metrics. Writes
 metrics.jsonl, checkpoints, learning_curves.png, trajectory figures and results.json into --out
-(the files of the other methods: `python -m experiments.compare` reads them).
+(the files of the other methods: `python -m lab.compare` reads them).
 Any field of `GrbalConfig` can be changed with --set grbal.FIELD=VALUE, a NavConfig field with
 --set env.FIELD=VALUE (JSON values).
 """

@@ -1,6 +1,6 @@
 """A queue of training runs, trained one at a time and resumable across sessions.
 
-    python -m experiments.campaign CAMPAIGN.json [--only NAME ...] [--dry-run]
+    python -m lab.campaign CAMPAIGN.json [--only NAME ...] [--dry-run]
 
 A campaign file lists runs of the learning-curve harness (`experiments.learning`) and what to do
 with each when it has finished:

@@ -1,6 +1,6 @@
 """Compare finished (or checkpointed) runs: learning curves side by side and one results table.
 
-    python -m experiments.compare RUN_DIR [RUN_DIR ...] --out results/restaurant-cpu \
+    python -m lab.compare RUN_DIR [RUN_DIR ...] --out results/restaurant-cpu \
         [--gp-mpc runs/gp_mpc/restaurant_test.json]
 
 Reads each run's metrics.jsonl and results.json (written by experiments.restaurant,
@@ -54,7 +54,7 @@ def _load(run: Path) -> tuple[dict, list[dict], dict | None]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m experiments.compare", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m lab.compare", description=__doc__)
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--gp-mpc", type=Path, help="JSON written by experiments.gp_mpc")

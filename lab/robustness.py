@@ -1,9 +1,9 @@
 """The robustness records: runs (and GP-MPC) on the 192 validation tasks with the crowd re-timed.
 
-    python -m experiments.robustness results/restaurant/mpc-pearl-eps0.2 [RUN ...]
-    python -m experiments.robustness --all               # every committed restaurant policy
-    python -m experiments.robustness --gp-mpc            # the GP-MPC baseline
-    python -m experiments.robustness RUN --perturb delay=9 --perturb speed=0.85
+    python -m lab.robustness results/restaurant/mpc-pearl-eps0.2 [RUN ...]
+    python -m lab.robustness --all               # every committed restaurant policy
+    python -m lab.robustness --gp-mpc            # the GP-MPC baseline
+    python -m lab.robustness RUN --perturb delay=9 --perturb speed=0.85
 
 For every run and every perturbation (default: none and the robustness table's delay 3, 6, 12,
 speed 0.7, 1.3; `envs.perturb`, docs/method.md §8a) this is
@@ -12,7 +12,7 @@ speed 0.7, 1.3; `envs.perturb`, docs/method.md §8a) this is
 
 (GP-MPC: `--controller gp-mpc --env restaurant`, records under results/gp_mpc/perturbed/), all
 in one process so that each run's evaluator is compiled once. A record that exists is kept
-(`--overwrite` redoes it). `python -m experiments.table` turns the records into the table.
+(`--overwrite` redoes it). `python -m lab.table` turns the records into the table.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """A seed screen: training recipes (arms) over the same seeds, trained one run at a time, and a
 report of how they compare, from the run folders alone.
 
-    python -m experiments.screen SCREEN.json [--arms A ...] [--seeds S ...] [--dry-run]
+    python -m lab.screen SCREEN.json [--arms A ...] [--seeds S ...] [--dry-run]
                                              [--report-only]
 
 A screen file names its arms and seeds once; every arm is trained with every seed:
@@ -24,7 +24,7 @@ folders, `<results>/<arm>-s<S>`, and never trained or rebuilt. An arm with `argv
 seed S becomes the campaign entry `<name>-<arm>-s<S>` with argv = the arm's argv, then
 `common_argv`, then `--seed S`, results folder `<results>/<arm>-s<S>` and the screen's `evaluate`
 list, and the entries are trained seed by seed, each arm in turn (an interrupted screen leaves its
-arms on equal seeds), as `experiments.campaign` trains its queue (one at a time in
+arms on equal seeds), as `lab.campaign` trains its queue (one at a time in
 `runs/campaign/<entry>`, resumed after Ctrl-C by the same command, copied without checkpoints, then
 evaluated). `--arms` and `--seeds` train only the arms and seeds named; `--dry-run` prints the
 entries and the processes left and runs nothing; `--report-only` trains nothing. The first
@@ -55,9 +55,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from experiments import campaign
-from experiments.tables import statistics
-from experiments.tables.statistics import cumulative_wall_s
+from lab import campaign
+from lab.tables import statistics
+from lab.tables.statistics import cumulative_wall_s
 
 KEYS = ("name", "results", "seeds", "trainer", "common_argv", "evaluate", "baseline", "arms")
 ARM_KEYS = ("argv", "runs", "retired")
@@ -555,7 +555,7 @@ def _summary_lines(report: dict) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m experiments.screen",
+        prog="python -m lab.screen",
         description=__doc__.splitlines()[0],
     )
     p.add_argument("screen", type=Path)

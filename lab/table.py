@@ -1,9 +1,9 @@
 """The results tables of README.md, results/README.md and docs/research-log.md, generated from
 the committed records.
 
-    python -m experiments.table              # rewrite the tables between their marker comments
-    python -m experiments.table --check      # exit 1 with a diff if the committed text differs
-    python -m experiments.table --paired results/restaurant/pearl results/restaurant/mpc-sac
+    python -m lab.table              # rewrite the tables between their marker comments
+    python -m lab.table --check      # exit 1 with a diff if the committed text differs
+    python -m lab.table --paired results/restaurant/pearl results/restaurant/mpc-sac
 
 Every number comes from a record under results/: a run folder's `results.json` (test tasks after
 two adaptation episodes, online, OOD), `curve.json` (budget, gradient steps, the last validation
@@ -11,7 +11,7 @@ point; `metrics.jsonl` and `config.json` where a run has no curve), its
 `eval/policy-val-seeds1-8/results.json` (192 validation tasks, pooled) and
 `eval/policy-scenarios-{test,ood}/results.json` (the paper's 25 test and 25 OOD scenarios); the
 GP-MPC's from `results/gp_mpc/`; the speed figures from `benchmarks/results/`; the paper's from
-`mpcpearl_jax.evaluation.report.PAPER`. A table lists its rows in `experiments/tables/catalogue.py`
+`mpcpearl_jax.evaluation.report.PAPER`. A table lists its rows in `lab/tables/catalogue.py`
 (or `summary.py`): a label and one run folder, or several folders of one configuration (one per
 seed), shown as mean +- standard error over the seeds and the worst seed.
 A missing record is reported by name (exit 1), never filled in.
@@ -31,7 +31,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from experiments.tables.render import (
+from lab.tables.render import (
     render_main_seed_summary,
     render_main_seeds,
     render_restaurant,
@@ -41,9 +41,9 @@ from experiments.tables.render import (
     render_seeds,
     render_sidewalk_seeds,
 )
-from experiments.tables.screen import render_screen_learner
-from experiments.tables.statistics import MISSING, VAL8, Records, paired_difference
-from experiments.tables.summary import (
+from lab.tables.screen import render_screen_learner
+from lab.tables.statistics import MISSING, VAL8, Records, paired_difference
+from lab.tables.summary import (
     render_paper,
     render_robustness_summary,
     render_speed,
@@ -195,7 +195,7 @@ def _paired_record(arg: str) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m experiments.table",
+        prog="python -m lab.table",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -238,9 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         print(f"{len(missing)} record(s) missing: their cells read {MISSING}", file=sys.stderr)
     if args.check and changed:
-        print(
-            "the tables differ from the records: run python -m experiments.table", file=sys.stderr
-        )
+        print("the tables differ from the records: run python -m lab.table", file=sys.stderr)
     return 1 if missing or bad_refs or unsourced or (args.check and changed) else 0
 
 

@@ -77,10 +77,10 @@ def test_all_lists_every_script() -> None:
 
 @pytest.mark.slow  # a diagnostic outside the README's commands (~30-50 s)
 def test_imitation_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
-    """`experiments.diagnostics.imitation` (a diagnostic, not part of the speed suite) on the
+    """`lab.diagnostics.imitation` (a diagnostic, not part of the speed suite) on the
     committed
     headline run: errors on the MPC's states, the BC curve and its closed-loop metrics."""
-    from experiments.diagnostics import imitation
+    from lab.diagnostics import imitation
 
     res = imitation.main(["--tiny", "--out", str(tmp_path)])
     record = json.loads((tmp_path / "imitation.json").read_text())
@@ -97,11 +97,11 @@ def test_imitation_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
 
 @pytest.mark.slow  # a diagnostic outside the README's commands (~30-50 s)
 def test_dagger_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
-    """`experiments.diagnostics.dagger` (a diagnostic) with the egocentric, sorted observation:
+    """`lab.diagnostics.dagger` (a diagnostic) with the egocentric, sorted observation:
     labelled
     states accumulate over the rounds (round 0 is the MPC alone, every later round executes the
     clone on most steps), and the record names the observation options it used."""
-    from experiments.diagnostics import dagger
+    from lab.diagnostics import dagger
 
     res = dagger.main(["--tiny", "--relative", "--sorted", "--out", str(tmp_path)])
     record = json.loads((tmp_path / "dagger-relative-sorted.json").read_text())
@@ -117,9 +117,9 @@ def test_dagger_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
 
 @pytest.mark.slow  # a diagnostic outside the README's commands (~20 s)
 def test_shield_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
-    """`experiments.diagnostics.shield` (a diagnostic) on the committed headline run: one row per
+    """`lab.diagnostics.shield` (a diagnostic) on the committed headline run: one row per
     (controller, shield setting), the unshielded rows with no replaced step, rates in range."""
-    from experiments.diagnostics import shield
+    from lab.diagnostics import shield
 
     run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "mpc-pearl-eps0.2"
     res = shield.main(["--tiny", "--runs", str(run), "--out", str(tmp_path)])
@@ -145,7 +145,7 @@ def test_shield_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
 
 
 def test_crowd_cause_interventions_change_only_what_they_name() -> None:
-    """`experiments.diagnostics.crowd_cause`'s observation interventions: the clock reads max(t -
+    """`lab.diagnostics.crowd_cause`'s observation interventions: the clock reads max(t -
     K, 0) and
     nothing else moves; blind hides every person (as the env shows an absent one) and keeps the
     pose, static and goal parts; no intervention is the env's own observation."""
@@ -153,7 +153,7 @@ def test_crowd_cause_interventions_change_only_what_they_name() -> None:
     import jax.numpy as jnp
     import numpy as np
 
-    from experiments.diagnostics.crowd_cause import intervened_env
+    from lab.diagnostics.crowd_cause import intervened_env
     from mpcpearl_jax import make_env, make_tasks
     from mpcpearl_jax.envs.types import EnvState
 
@@ -176,10 +176,10 @@ def test_crowd_cause_interventions_change_only_what_they_name() -> None:
 
 @pytest.mark.slow
 def test_crowd_cause_runs_tiny(tmp_path: Path, clean_environ) -> None:
-    """`experiments.diagnostics.crowd_cause` on the committed headline run: every condition once
+    """`lab.diagnostics.crowd_cause` on the committed headline run: every condition once
     per delay,
     the as-trained rows equal to experiments.evaluate's numbers on the same tasks."""
-    from experiments.diagnostics import crowd_cause
+    from lab.diagnostics import crowd_cause
 
     run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "mpc-pearl-eps0.2"
     res = crowd_cause.main(["--tiny", "--runs", str(run), "--out", str(tmp_path), "--delay", "6"])

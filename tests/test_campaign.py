@@ -1,4 +1,4 @@
-"""experiments.campaign: a queue of learning runs, one at a time, continued across sessions."""
+"""lab.campaign: a queue of learning runs, one at a time, continued across sessions."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from experiments import campaign
+from lab import campaign
 
 
 @pytest.fixture(autouse=True)
@@ -182,7 +182,7 @@ def test_ctrl_c_lets_the_run_under_way_save_before_the_campaign_stops(
     # disposition set before run_child, without a preexec_fn fork beside JAX's threads)
     ignoring = "signal.signal(signal.SIGINT, signal.SIG_IGN); " if started_ignoring else ""
     parent = (
-        f"import signal, sys; {ignoring}from experiments import campaign; "
+        f"import signal, sys; {ignoring}from lab import campaign; "
         f"sys.exit(campaign.run_child([sys.executable, '-c', {child!r}]))"
     )
     root = Path(__file__).resolve().parents[1]
@@ -333,7 +333,7 @@ def test_a_stopped_campaign_lets_its_run_save_and_leaves_no_orphan(tmp_path, sig
         pytest.skip("the parent-death signal is Linux's")
     saved, ready, child = _guarded_child(tmp_path)
     parent = (
-        "import sys; from experiments import campaign; "
+        "import sys; from lab import campaign; "
         f"sys.exit(campaign.run_child([sys.executable, '-c', {child!r}]))"
     )
     root = Path(__file__).resolve().parents[1]

@@ -52,9 +52,9 @@ def test_gp_mpc_cli(tmp_path):
 
 
 def test_compare_names_the_runs_with_labels(tmp_path, capsys):
-    """`experiments.compare --labels`: one name per run in the figure and summary; a wrong count
+    """`lab.compare --labels`: one name per run in the figure and summary; a wrong count
     is a one-line error."""
-    from experiments import compare
+    from lab import compare
 
     runs = ["results/restaurant/mpc-pearl-eps0.2", "results/restaurant/mpc-pearl-eps0.2-paper"]
     out = tmp_path / "cmp"

@@ -66,7 +66,7 @@ def test_checkpoint_errors_are_one_line(tmp_path, capsys, ref0):
 
 
 def test_compare_on_a_folder_that_is_not_a_run(tmp_path, capsys):
-    from experiments import compare
+    from lab import compare
 
     (tmp_path / "empty").mkdir()
     assert compare.main([str(tmp_path / "empty"), "--out", str(tmp_path / "cmp")]) == 2

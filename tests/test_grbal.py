@@ -236,7 +236,7 @@ def test_grbal_cli_restaurant_resume_and_compare(tmp_path):
     assert (out / "trajectory_test0.png").is_file() and (out / "learning_curves.png").is_file()
     assert (out / "policy.msgpack").is_file()
 
-    from experiments import compare
+    from lab import compare
 
     assert compare.main([str(out), "--out", str(tmp_path / "cmp")]) == 0
     table = (tmp_path / "cmp" / "table.md").read_text()

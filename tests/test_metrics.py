@@ -59,7 +59,7 @@ def test_one_table_names_orders_directs_and_formats_the_metrics():
     """`metrics.METRICS`: the paper's five metrics in its order, each the mean of one
     `EpisodeMetrics` field, lower better for TT and MGD only; the evaluator's summary, the
     per-task scoring and the tables read it."""
-    from experiments.tables import render, statistics
+    from lab.tables import render, statistics
     from mpcpearl_jax.evaluation.report import metrics_table
 
     assert metrics.METRIC_NAMES == ("SR", "TT", "CFR", "SPL", "MGD")

@@ -2,7 +2,7 @@
 
 The gate's data, `tests/data/mpc_problems.npz`, holds SQP problems recorded from fired rows of a
 real `cpu-explore` training on the restaurant tasks (eps 0.2) with their warm-start plans, and
-OSQP's first input and reason on each (`experiments.diagnostics.record_mpc_problems`). The gate
+OSQP's first input and reason on each (`benchmarks.record_mpc_problems`). The gate
 requires the device solver's first input within 0.02 normalized action units of OSQP's on >= 99 %
 of the problems, and the same decision (solved / least violation / fallback) on >= 98 %.
 
@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments.diagnostics.record_mpc_problems import regenerate, solver_params_of
+from benchmarks.record_mpc_problems import regenerate, solver_params_of
 from mpcpearl_jax.envs.dynamics import to_normalized
 from mpcpearl_jax.mpc import device_solver as ds
 from mpcpearl_jax.mpc.solver import RowProblem

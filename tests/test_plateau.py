@@ -1,4 +1,4 @@
-"""`experiments.diagnostics.plateau` on a tiny synthetic run folder: parsing of metrics.jsonl,
+"""`lab.diagnostics.plateau` on a tiny synthetic run folder: parsing of metrics.jsonl,
 lift-off, the episode counts by start, the validation outcomes and the statistics."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from experiments.diagnostics import plateau
+from lab.diagnostics import plateau
 
 
 def _row(it: int, success: float, explore_rows: float = 0.5, explore_success: float = 0.0):

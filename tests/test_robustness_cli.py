@@ -1,11 +1,12 @@
-"""experiments.robustness: which evaluations it runs (experiments.evaluate's arguments), which
+"""lab.robustness: which evaluations it runs (experiments.evaluate's arguments), which
 records it keeps, and its errors."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from experiments import evaluate, robustness
+from experiments import evaluate
+from lab import robustness
 
 ROOT = Path(__file__).resolve().parents[1]
 HEADLINE = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"

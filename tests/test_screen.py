@@ -1,6 +1,6 @@
-"""experiments.screen: a screen file's arms over its seeds, trained through the campaign, and its
+"""lab.screen: a screen file's arms over its seeds, trained through the campaign, and its
 report (lift-off, seed statistics, IQM and probability of improvement) from the run folders;
-experiments.tables.screen: its table."""
+lab.tables.screen: its table."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from scipy.stats import trim_mean
 
-from experiments import campaign, screen
-from experiments.tables.screen import render_screen
-from experiments.tables.statistics import Records
+from lab import campaign, screen
+from lab.tables.screen import render_screen
+from lab.tables.statistics import Records
 
 VAL = "eval/policy-val-seeds1-8"
 EVALUATE = [
@@ -248,7 +248,7 @@ def _screen_folders(root: Path) -> Path:
         make_run(root / f"res/screen/new-s{seed}", succ, val, 0.5)
     make_run(root / "res/screen/new-s3", [0] * 4, 0.3, evaluated=False)
     arms = {"base": {"runs": {str(s): f"runs/b{s}" for s in base}}, "new": {"argv": ["--x"]}}
-    return write_screen(root / "experiments/screens/t.json", arms, seeds=range(4))
+    return write_screen(root / "lab/screens/t.json", arms, seeds=range(4))
 
 
 def test_the_report_is_made_from_the_finished_run_folders(tmp_path):
@@ -433,7 +433,7 @@ def test_reused_runs_must_hold_the_config_their_arm_builds(tmp_path, monkeypatch
 def test_the_table_is_made_from_the_records_and_marks_unfinished_arms(tmp_path):
     _screen_folders(tmp_path)
     rec = Records(tmp_path / "results")
-    text = render_screen(rec, "experiments/screens/t.json")
+    text = render_screen(rec, "lab/screens/t.json")
     rows = [line for line in text.splitlines() if line.startswith("| `")]
     base, new = rows[0].split(" | "), rows[1].split(" | ")
     assert base[:6] == ["| `base`", "4", "3/4", "30", "0.30 +- 0.13", "0.00"]
@@ -443,7 +443,7 @@ def test_the_table_is_made_from_the_records_and_marks_unfinished_arms(tmp_path):
     assert rows[2].startswith("| `base` | ") and rows[2].endswith("| (baseline) |")  # SPL table
     assert not rec.missing
     make_run(tmp_path / "res/screen/new-s3", [0] * 4, 0.3)  # a record changes: so does the table
-    assert render_screen(rec, "experiments/screens/t.json") != text
+    assert render_screen(rec, "lab/screens/t.json") != text
 
 
 def test_a_run_folder_with_broken_records_is_an_error_naming_it(tmp_path, monkeypatch, capsys):

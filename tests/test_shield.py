@@ -144,10 +144,10 @@ def test_bad_shield_settings_name_the_field(kwargs, field):
 
 def test_goal_seeking_control_collides_alone_and_not_behind_the_shield():
     """End to end through the environment: the straight-at-the-goal control of
-    experiments.diagnostics.shield hits a table on every one of these tasks; behind the shield the
+    lab.diagnostics.shield hits a table on every one of these tasks; behind the shield the
     same
     control reaches the goal without a contact, and the shield acts on a minority of steps."""
-    from experiments.diagnostics.shield import goal_seeking_evaluator
+    from lab.diagnostics.shield import goal_seeking_evaluator
 
     env = make_env("restaurant", sensing_radius=3.0)
     tasks = jax.tree_util.tree_map(lambda x: x[:6], make_tasks("restaurant", "val", 1))

@@ -30,7 +30,7 @@ def test_one_run_driver():
     training command, the learning-curve command and GrBAL go through the session."""
     callers = {
         str(p.relative_to(ROOT)): _calls(p, "train_loop")
-        for tree in ("src", "experiments", "benchmarks")
+        for tree in ("src", "experiments", "lab", "benchmarks")
         for p in (ROOT / tree).rglob("*.py")
     }
     callers = {p: lines for p, lines in callers.items() if lines}
@@ -62,24 +62,46 @@ def test_the_config_is_validated_once_where_it_is_resolved():
     assert resolve.lineno <= callers["src/mpcpearl_jax/config.py"][0] <= resolve.end_lineno
 
 
+def _imported(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import statement in `path`, function-level ones included."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.append((node.lineno, node.module))
+        elif isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names]
+    return found
+
+
+def _offenders(trees, packages: tuple[str, ...]) -> list[str]:
+    return [
+        f"{path.relative_to(ROOT)}:{line} {m}"
+        for tree in trees
+        for path in tree.rglob("*.py")
+        for line, m in _imported(path)
+        if m.split(".")[0] in packages
+    ]
+
+
 def test_nothing_imports_a_command_line_module():
-    """Library modules and benchmarks never import from experiments/ (command lines parse
-    arguments, call the library and print)."""
-    offenders = []
-    for tree in (SRC, ROOT / "benchmarks"):
-        for path in tree.rglob("*.py"):
-            for node in ast.walk(ast.parse(path.read_text())):
-                mods = []
-                if isinstance(node, ast.ImportFrom) and node.module:
-                    mods = [node.module]
-                elif isinstance(node, ast.Import):
-                    mods = [a.name for a in node.names]
-                offenders += [
-                    f"{path.relative_to(ROOT)}:{node.lineno} {m}"
-                    for m in mods
-                    if m == "experiments" or m.startswith("experiments.")
-                ]
+    """Library modules and benchmarks never import from experiments/ or lab/ (command lines
+    parse arguments, call the library and print; the lab's screens, campaigns, tables and
+    diagnostics sit on top of both)."""
+    offenders = _offenders((SRC, ROOT / "benchmarks"), ("experiments", "lab"))
     assert not offenders, offenders
+
+
+def test_the_user_commands_do_not_import_the_lab():
+    """experiments/ holds the commands a user runs; none of them needs lab/."""
+    offenders = _offenders((ROOT / "experiments",), ("lab",))
+    assert not offenders, offenders
+
+
+def test_offenders_finds_an_import_of_the_lab(tmp_path, monkeypatch):
+    """The import checks above see top-level and function-level imports."""
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    (tmp_path / "m.py").write_text("import os\ndef f():\n    from lab.tables import render\n")
+    assert _offenders((tmp_path,), ("lab",)) == ["m.py:3 lab.tables"]
 
 
 class _Closable:

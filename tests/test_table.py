@@ -1,4 +1,4 @@
-"""experiments.table and experiments.tables: the READMEs' results tables are the committed
+"""lab.table and lab.tables: the READMEs' results tables are the committed
 records, rebuilt; seed groups, paired differences, missing records and the results/ paths the
 READMEs name."""
 
@@ -8,11 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from experiments import table
-from experiments.tables import catalogue, render
-from experiments.tables import statistics as stats
-from experiments.tables.catalogue import Entry
-from experiments.tables.statistics import Records, Stat
+from lab import table
+from lab.tables import catalogue, render
+from lab.tables import statistics as stats
+from lab.tables.catalogue import Entry
+from lab.tables.statistics import Records, Stat
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -21,11 +21,11 @@ def test_committed_tables_are_the_records():
     files, missing = table.generate(ROOT / "results")
     assert not missing, "records missing:\n" + "\n".join(missing)
     for path, (committed, generated) in files.items():
-        assert committed == generated, f"{path}: run python -m experiments.table"
+        assert committed == generated, f"{path}: run python -m lab.table"
 
 
 def test_table_check_passes_on_the_committed_results(capsys):
-    """`python -m experiments.table --check` exits 0: tables current, no record or path missing."""
+    """`python -m lab.table --check` exits 0: tables current, no record or path missing."""
     assert table.main([str(ROOT / "results"), "--check"]) == 0, capsys.readouterr()
 
 
@@ -177,7 +177,7 @@ def test_paired_difference_is_over_the_same_tasks():
 def test_referenced_paths_reads_code_brackets_and_links_but_not_outputs():
     text = (
         "see `results/restaurant/pearl` and [`ablation/x`, `restaurant/y`] or [a](earlier/z.png);"
-        " `python -m experiments.diagnostics.imitation --out results/new/folder`"
+        " `python -m lab.diagnostics.imitation --out results/new/folder`"
         " `runs/<run>` `docs/a.md`\n"
         "```bash\npython -m x results/in/code\n```\n"
     )
@@ -392,7 +392,7 @@ def test_summary_tables_set_the_paper_beside_the_recipe_with_budgets():
     """README's summary: the paper's row with its training (method §9), the recipe over its five
     seeds with the worst seed and its budget from the records, GP-MPC; the speed table reads both
     machines' benchmark records."""
-    from experiments.tables import summary
+    from lab.tables import summary
 
     rec = Records(ROOT / "results")
     text = summary.render_summary(rec)

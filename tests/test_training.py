@@ -265,7 +265,7 @@ def test_restaurant_cli_smoke(tmp_path):
     assert (out / "learning_curves.png").stat().st_size > 1000
     assert len((out / "metrics.jsonl").read_text().splitlines()) == 2
     # and the comparison command on the finished run
-    from experiments import compare
+    from lab import compare
 
     assert compare.main([str(out), "--out", str(tmp_path / "cmp")]) == 0
     assert (tmp_path / "cmp" / "curves.png").stat().st_size > 1000

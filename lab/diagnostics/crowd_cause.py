@@ -22,7 +22,7 @@ distance over the first `--delay` steps between its positions with the delayed a
 unperturbed crowd, averaged over tasks (0 = the robot drives the same path whether or not people
 still stand at their start), and the share of episodes with a contact in those steps.
 
-    python -m experiments.diagnostics.crowd_cause [--tiny] [--delay 12] [--runs DIR ...] [--out DIR]
+    python -m lab.diagnostics.crowd_cause [--tiny] [--delay 12] [--runs DIR ...] [--out DIR]
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import harness
-from experiments.diagnostics.shield import _relative, episode_outcomes, pool
+from lab.diagnostics.shield import _relative, episode_outcomes, pool
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository
 DEFAULT_RUNS = [

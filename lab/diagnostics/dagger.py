@@ -1,6 +1,6 @@
 """Can a policy learn the MPC by imitation on its own states (DAgger), and with which inputs?
 
-A diagnostic beside `experiments.diagnostics.imitation`, which found that cloning the MPC's own
+A diagnostic beside `lab.diagnostics.imitation`, which found that cloning the MPC's own
 episodes does
 not transfer (the clone leaves the MPC's states and collides). Here the clone is trained by
 DAgger (Ross et al., 2011): in round r every training task (its table layout, with a crowd
@@ -18,7 +18,7 @@ The observation is the run's (its `env` overrides), plus the egocentric entries 
 `--relative` (`env.observe_relative`) and people listed nearest first with `--sorted`
 (`env.observe_sorted`): the comparison of inputs under the same data-collection scheme.
 
-    python -m experiments.diagnostics.dagger [--tiny] [--relative] [--sorted] [--rounds N] [--out
+    python -m lab.diagnostics.dagger [--tiny] [--relative] [--sorted] [--rounds N] [--out
     DIR]
 """
 
@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import harness
-from experiments.diagnostics.imitation import DEFAULT_RUN, bc_mlp, closed_loop, run_name
+from lab.diagnostics.imitation import DEFAULT_RUN, bc_mlp, closed_loop, run_name
 
 SIZES: dict[str, dict[str, Any]] = {
     "tiny": dict(train_tasks=2, rounds=2, fit_steps=5, round_seeds=(1,), final_seeds=(1,)),

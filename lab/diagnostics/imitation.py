@@ -18,7 +18,7 @@ The BC MLP at the step count with the lowest validation error is then run closed
 on the `val` split of each of `--task-seeds` (method §8 metrics), the same 192 tasks on which
 `python -m experiments.evaluate RUN --split val --task-seeds 1-8` scores the run's policy.
 
-    python -m experiments.diagnostics.imitation [--tiny | --full] [--out DIR] [--threads N] [--run
+    python -m lab.diagnostics.imitation [--tiny | --full] [--out DIR] [--threads N] [--run
     DIR]
 """
 

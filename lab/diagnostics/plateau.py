@@ -2,15 +2,15 @@
 main command's ten `default` seeds, the recommended recipe's five seeds and the learner screen's
 arms, read without training anything.
 
-    python -m experiments.diagnostics.plateau            # figures + summary.json
-    python -m experiments.diagnostics.plateau --out DIR  # elsewhere
+    python -m lab.diagnostics.plateau            # figures + summary.json
+    python -m lab.diagnostics.plateau --out DIR  # elsewhere
 
 Per run it reads `config.json`, `metrics.jsonl` (one row per iteration: the posterior-phase
 episodes' `train_success` from the task's start, `train_explore_success` from exploring starts,
 `train_guide_success` from guided roll-ins, the MPC's share of steps, the critic's `q_mean`, the
 policy's `log_pi`, the temperature `alpha`, the MPC solver's outcomes) and the final policy's
 `eval/policy-val-seeds1-8/results.json` (how each of the 192 validation episodes ended). Lift-off
-is the first iteration with `train_success > 0` (as in `experiments.screen`). It writes
+is the first iteration with `train_success > 0` (as in `lab.screen`). It writes
 `summary.json` (every number per seed, group statistics, rank correlations of lift-off with the
 first iterations' statistics) and four figures to `results/restaurant/plateau/`.
 """
@@ -830,7 +830,7 @@ def print_summary(report: dict[str, Any]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m experiments.diagnostics.plateau", description=__doc__.splitlines()[0]
+        prog="python -m lab.diagnostics.plateau", description=__doc__.splitlines()[0]
     )
     p.add_argument("--root", type=Path, default=Path("."), help="the repository root")
     p.add_argument("--out", type=Path, default=OUT, help=f"output folder (default {OUT})")

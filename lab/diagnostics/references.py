@@ -1,10 +1,10 @@
 """Which committed files under results/ anything names, and which figures and policy files
-nothing does: `python -m experiments.diagnostics.references [--unused]`.
+nothing does: `python -m lab.diagnostics.references [--unused]`.
 
 A results/ path counts as named when it appears in a page (any .md outside results' run
-folders), a table (`experiments/tables/`: the catalogue's and the renderers' run folders), a
-command or a test (`experiments/**/*.py`, `experiments/campaigns/*.json`,
-`experiments/screens/*.json`, `tests/`, `benchmarks/`, `src/`). Paths are written from the
+folders), a table (`lab/tables/`: the catalogue's and the renderers' run folders), a
+command or a test (`experiments/**/*.py`, `lab/campaigns/*.json`,
+`lab/screens/*.json`, `tests/`, `benchmarks/`, `src/`). Paths are written from the
 repository root (`results/restaurant/pearl`), from results/ (`restaurant/pearl`, in the pages
 and tables) or from results/restaurant/ (`ablation/x`); a named folder names everything in it for
 the policy files, a figure only counts as shown where its own file is named (or linked from a
@@ -98,8 +98,8 @@ def resolve(token: str, files: set[str], base: Path | None = None) -> list[str]:
 
 
 def catalogue_runs() -> set[str]:
-    """Run folders the generated tables read (experiments/tables)."""
-    from experiments.tables import catalogue, summary
+    """Run folders the generated tables read (lab/tables)."""
+    from lab.tables import catalogue, summary
 
     runs: set[str] = set()
 
@@ -169,9 +169,7 @@ def unused(files: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="python -m experiments.diagnostics.references", description=__doc__
-    )
+    ap = argparse.ArgumentParser(prog="python -m lab.diagnostics.references", description=__doc__)
     ap.add_argument(
         "--unused", action="store_true", help="list the figures and policy files nothing names"
     )

@@ -18,7 +18,7 @@ out of time without a contact, and the share of steps whose action the shield re
 over the task seeds with the standard error over tasks. Settings are chosen on this split; the
 test split is for reporting (`experiments.evaluate RUN --shield ...`).
 
-    python -m experiments.diagnostics.shield [--tiny | --full] [--out DIR] [--threads N] [--runs
+    python -m lab.diagnostics.shield [--tiny | --full] [--out DIR] [--threads N] [--runs
     DIR ...]
 """
 
@@ -241,8 +241,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "env_from": _relative(args.env_from),
         "margins": list(sz["margins"]),
         "lookaheads": list(sz["lookaheads"]),
-        "goal_seeking": "direction of motion at the goal, full speed "
-        "(experiments.diagnostics.shield doc)",
+        "goal_seeking": "direction of motion at the goal, full speed (lab.diagnostics.shield doc)",
     }
     harness.write_record("shield", config, record_rows, args.out)
     return {"config": config, "rows": record_rows}

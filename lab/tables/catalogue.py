@@ -208,7 +208,7 @@ PERTURBATIONS = (
     ("-speed0.7", "speed 0.7"),
     ("-speed1.3", "speed 1.3"),
 )
-# the perturbations settings are chosen on (never the table's): `experiments.robustness
+# the perturbations settings are chosen on (never the table's): `lab.robustness
 # --perturb delay=9 --perturb delay=15 --perturb speed=0.85 --perturb speed=1.15`
 VALIDATION_PERTURBATIONS = (
     ("", "none"),
@@ -242,8 +242,8 @@ ROBUSTNESS_CHOICE = (
 # ---------------------------------------------------------------- five seeds per method
 
 
-# the five-seed comparison (`python -m experiments.campaign
-# experiments/campaigns/restaurant-seeds.json`): method -> its seed folders (seeds 0, 1, ... in
+# the five-seed comparison (`python -m lab.campaign
+# lab/campaigns/restaurant-seeds.json`): method -> its seed folders (seeds 0, 1, ... in
 # order), each trained alone for 24 minutes with `--preset cpu-auto`; a folder is listed once its
 # campaign run and evaluations have finished. These methods are trained by the learning harness,
 # so they also have the learning-curve table.
@@ -270,7 +270,7 @@ CURVE_SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
         ),
     ),
 )
-# `experiments/campaigns/grbal-seeds.json`: `--preset cpu`, 24 minutes alone per seed; GrBAL's
+# `lab/campaigns/grbal-seeds.json`: `--preset cpu`, 24 minutes alone per seed; GrBAL's
 # trainer writes no curve.json, so it is in the seed table only
 SEED_GROUPS = (
     *CURVE_SEED_GROUPS,
@@ -325,7 +325,7 @@ CURVE_VALUES = (
 # recipes tried for the README's main command (`python -m experiments.restaurant`, the `default`
 # preset, 75 iterations), each on the seeds listed: label, ((seed, folder under
 # results/restaurant), ...).
-# Commands: experiments/campaigns/main-*.json (`python -m experiments.campaign FILE`).
+# Commands: lab/campaigns/main-*.json (`python -m lab.campaign FILE`).
 # the recipes run on all ten seeds 0-9: (seed, folder under results/restaurant)
 MAIN_DEFAULT = ((0, "main-default"), *((s, f"main-seeds/default-s{s}") for s in range(1, 10)))
 MAIN_RS1 = tuple((s, f"main-seeds/rs1-alpha02-s{s}") for s in range(10))
@@ -405,7 +405,7 @@ MAIN_PASS = 0.3  # the main command's threshold on test and validation SR
 # ---------------------------------------------------------------- the sidewalk's seeds
 
 
-# the sidewalk's seeds (`python -m experiments.campaign experiments/campaigns/sidewalk-seeds.json`,
+# the sidewalk's seeds (`python -m lab.campaign lab/campaigns/sidewalk-seeds.json`,
 # `--preset cpu-auto` with the data windows kept, 30 minutes alone per seed): method -> its seed
 # folders (seeds 0, 1, ... in order), listed once the run has finished
 SIDEWALK_SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (

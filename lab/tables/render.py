@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from experiments.tables.catalogue import (
+from lab.tables.catalogue import (
     CURVE_MINUTES,
     CURVE_SEED_GROUPS,
     CURVE_VALUES,
@@ -27,7 +27,7 @@ from experiments.tables.catalogue import (
     VALIDATION_PERTURBATIONS,
     Entry,
 )
-from experiments.tables.statistics import (
+from lab.tables.statistics import (
     MIN_VERDICT_SEEDS,
     MISSING,
     NO_RECORD,
@@ -160,7 +160,7 @@ def _perturbed_record(run: str, suffix: str) -> str:
 
 def robustness_rows(rec: Records) -> list[tuple[str, str]]:
     """The robustness table's rows: ROBUSTNESS, then every other single-run entry of the main
-    table and GP-MPC once evaluated under the perturbations (`experiments.robustness`, whose
+    table and GP-MPC once evaluated under the perturbations (`lab.robustness`, whose
     last record, speed 1.3, marks it): from then on each of its cells must have a record."""
     rows, seen = list(ROBUSTNESS), {run for _, run in ROBUSTNESS}
     for label, run in [(e.label, e.runs[0]) for e in RESTAURANT if len(e.runs) == 1] + [
@@ -190,7 +190,7 @@ def render_perturbed(
 
 def render_robustness(rec: Records, rows: Sequence[tuple[str, str]] | None = None) -> str:
     """SR / CFR of each run on the 192 validation tasks with the people's timing perturbed
-    (`experiments.robustness`, i.e. `experiments.evaluate RUN --split val --task-seeds 1-8
+    (`lab.robustness`, i.e. `experiments.evaluate RUN --split val --task-seeds 1-8
     --perturb ...`)."""
     lines = render_perturbed(rec, robustness_rows(rec) if rows is None else rows, PERTURBATIONS)
     lines += [
@@ -199,7 +199,7 @@ def render_robustness(rec: Records, rows: Sequence[tuple[str, str]] | None = Non
         "perturbed on an unchanged path: delay K holds everyone at the start K more steps, speed "
         "S follows the paths S times as fast (docs/method.md §8a). Records: "
         "`RUN/eval/policy-val[-PERTURBATION]-seeds1-8/results.json`, GP-MPC's "
-        "`gp_mpc/perturbed/`; produced by `python -m experiments.robustness --all --gp-mpc`.",
+        "`gp_mpc/perturbed/`; produced by `python -m lab.robustness --all --gp-mpc`.",
     ]
     return "\n".join(lines)
 

@@ -1,4 +1,4 @@
-"""The table of a seed screen (`experiments.screen`): one row per arm, made from the screen's run
+"""The table of a seed screen (`lab.screen`): one row per arm, made from the screen's run
 folders (its report `<results>/<name>.json` only saves recomputing a bootstrap whose inputs have
 not changed). An arm with unfinished seeds shows the finished ones and says how many of how
 many; nothing is filled in."""
@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from experiments.screen import PASS, load_screen, read_report, screen_report
-from experiments.tables.statistics import Records
+from lab.screen import PASS, load_screen, read_report, screen_report
+from lab.tables.statistics import Records
 
 NONE = "-"
 
@@ -87,4 +87,4 @@ def render_screen(rec: Records, screen_file: str) -> str:
 
 
 def render_screen_learner(rec: Records) -> str:
-    return render_screen(rec, str(Path("experiments") / "screens" / "learner.json"))
+    return render_screen(rec, str(Path("lab") / "screens" / "learner.json"))

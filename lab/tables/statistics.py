@@ -13,7 +13,7 @@ from typing import Any
 
 from scipy.stats import t as student_t
 
-from experiments.tables.catalogue import Entry
+from lab.tables.catalogue import Entry
 from mpcpearl_jax.evaluation import metrics
 from mpcpearl_jax.evaluation.report import PAPER
 

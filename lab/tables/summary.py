@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from experiments.tables.catalogue import (
+from lab.tables.catalogue import (
     CAMPAIGN_MPC_PEARL,
     GP_MPC,
     MAIN_PASS,
@@ -18,13 +18,13 @@ from experiments.tables.catalogue import (
     SEED_GROUPS,
     Entry,
 )
-from experiments.tables.render import (
+from lab.tables.render import (
     _minutes,
     fmt_count,
     fmt_metric,
     render_perturbed,
 )
-from experiments.tables.statistics import MISSING, NO_RECORD, Records, entry_values
+from lab.tables.statistics import MISSING, NO_RECORD, Records, entry_values
 from mpcpearl_jax.evaluation.report import PAPER_TRAINING, paper_training
 
 # ---------------------------------------------------------------- budgets

@@ -1,6 +1,6 @@
 """Reporting, in one place: the paper's numbers, run labels, results tables and learning curves.
 
-Used by `run` (a run's final table and curves), `grbal.run`, `experiments.compare` (several runs
+Used by `run` (a run's final table and curves), `grbal.run`, `lab.compare` (several runs
 side by side) and `experiments.gp_mpc` (the GP-MPC baseline next to the paper's column).
 """
 

@@ -120,7 +120,7 @@ class GrbalExperimentConfig(SerializableConfig):
     task_options: dict = dataclasses.field(default_factory=dict)
     data: str | None = None  # trajectory file (sidewalk)
     online_eval: bool = False  # online adaptation as the headline evaluation (sidewalk)
-    method: str = "grbal"  # tells run readers (experiments.compare) what made the run
+    method: str = "grbal"  # tells run readers (lab.compare) what made the run
 
     def __post_init__(self) -> None:
         v.ints(self, "seeds")

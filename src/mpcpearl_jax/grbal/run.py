@@ -1,5 +1,5 @@
 """Run GrBAL: train with checkpoints and a metrics log, evaluate, write figures and the results
-table (the same files as `mpcpearl_jax.training.run`, so `experiments.compare` reads both).
+table (the same files as `mpcpearl_jax.training.run`, so `lab.compare` reads both).
 
 Used by `python -m experiments.grbal`.
 """

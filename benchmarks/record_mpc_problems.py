@@ -9,7 +9,7 @@ regenerated from them with a stored per-problem key (`regenerate`, `gp.sample_pr
 host solver on OSQP then solves every regenerated problem, and its first input, reason and
 decision are stored too: the reference of `tests/test_mpc_device_solver.py`.
 
-    python -m experiments.diagnostics.record_mpc_problems [--seconds 90] [--count 1200]
+    python -m benchmarks.record_mpc_problems [--seconds 90] [--count 1200]
         [--out tests/data/mpc_problems.npz]
 """
 
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "tests" / "data" / "mpc_problems.npz"
 
 
