@@ -38,11 +38,16 @@ SIZES: dict[str, dict[str, Any]] = {
 
 def build_config(sz: dict[str, Any], devices: int):
     from mpcpearl_jax.config import preset
+    from mpcpearl_jax.mpc.config import MPCConfig
 
-    base = preset("cpu-paper")  # the CPU schedule and networks, the paper's algorithm
-    pearl = base.pearl.replace(hidden=sz["hidden"], encoder_hidden=sz["hidden"])
+    # the CPU schedule and networks with the paper's algorithm (the former `cpu-paper` preset):
+    # `cpu-explore` without its extensions and observation options
+    base = preset("cpu-explore").replace(mpc=MPCConfig(), env_overrides={})
+    pearl = base.pearl.replace(hidden=sz["hidden"], encoder_hidden=sz["hidden"], layer_norm=False)
     train = dataclasses.replace(
         base.train,
+        redraw_behaviours=False,
+        explore_start_share=0.0,
         eps=0.0,
         updates_per_iteration=sz["updates"],
         tasks_per_iteration=sz["tasks_per_iteration"],

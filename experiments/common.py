@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -11,6 +12,7 @@ from pathlib import Path
 from mpcpearl_jax.config import PRESETS, ExperimentConfig, read_config, resolve
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.evaluation.report import run_label
+from mpcpearl_jax.training.budget import default_label
 from mpcpearl_jax.training.stopping import stop_exit_code, stoppable
 
 
@@ -72,6 +74,88 @@ class _RunConfigAction(argparse.Action):
         namespace.preset = path.parent.name if path.name == "config.json" else path.name
 
 
+def field_comments(cls: type) -> dict[str, tuple[str, str]]:
+    """{field: (heading, comment)} from the source of the dataclass `cls`: a field's comment is
+    the one on its own line, else the comment lines right above it; a `# ---- ...` line (through
+    the first line that ends with ')') is a heading, given with the field it precedes."""
+    import ast
+    import inspect
+    import io
+    import textwrap
+    import tokenize
+
+    src = textwrap.dedent(inspect.getsource(cls))
+    comments: dict[int, tuple[str, bool]] = {}  # line -> (text, whole line)
+    for tok in tokenize.generate_tokens(io.StringIO(src).readline):
+        if tok.type == tokenize.COMMENT:
+            comments[tok.start[0]] = (tok.string[1:].strip(), tok.line.lstrip().startswith("#"))
+    out: dict[str, tuple[str, str]] = {}
+    for node in ast.parse(src).body[0].body:  # type: ignore[attr-defined]
+        if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
+            continue
+        above, line = [], node.lineno - 1
+        while line in comments and comments[line][1]:
+            above.insert(0, comments[line][0])
+            line -= 1
+        heading: list[str] = []
+        if above and above[0].startswith("----"):
+            end = next((i for i, t in enumerate(above) if t.endswith(")")), 0)
+            heading, above = above[: end + 1], above[end + 1 :]
+            heading[0] = heading[0].lstrip("- ")
+        own = comments.get(node.end_lineno or node.lineno)
+        text = own[0] if own and not own[1] else " ".join(above)
+        out[node.target.id] = (" ".join(heading), text)
+    return out
+
+
+def config_help(cls: type = ExperimentConfig, width: int = 100) -> str:
+    """Every field --set can change in a run config `cls`, section by section, with its default
+    (the dataclass's) and the comment its source gives it (`field_comments`)."""
+    import dataclasses
+    import textwrap
+
+    from mpcpearl_jax.config import override_sections
+
+    lines = [
+        "Every config field, changed with --set SECTION.FIELD=VALUE (JSON values). The defaults "
+        "are the dataclasses' (the paper's settings); a preset and the task family change some: "
+        "--print-config shows a run's resolved config.",
+    ]
+    sections = override_sections(cls)
+    for section, sub in sections.items():
+        doc = (sub.__doc__ or "").strip().splitlines()[0]
+        lines += ["", f"{section or 'top level'} ({sub.__name__}: {doc})"]
+        notes = field_comments(sub)
+        for f in dataclasses.fields(sub):
+            if f.name in sections or f.name == "env_overrides" or not f.init:
+                continue
+            default = f.default
+            if default is dataclasses.MISSING:
+                default = f.default_factory()  # type: ignore[misc]
+            heading, text = notes.get(f.name, ("", ""))
+            if heading:
+                lines += textwrap.wrap(f"-- {heading}", width, initial_indent="  ")
+            name = f"{section}.{f.name}" if section else f.name
+            lines += textwrap.wrap(
+                f"{name} = {default!r}" + (f": {text}" if text else ""),
+                width,
+                initial_indent="  ",
+                subsequent_indent="      ",
+            )
+    return "\n".join(lines)
+
+
+class _HelpConfigAction(argparse.Action):
+    """--help-config: print `config_help()` and exit."""
+
+    def __init__(self, option_strings, dest, **kwargs) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        print(config_help())
+        parser.exit()
+
+
 def add_config_options(
     p: argparse.ArgumentParser, env: str, default_preset: str = "default"
 ) -> None:
@@ -122,13 +206,29 @@ def add_config_options(
     p.add_argument(
         "--debug", action="store_true", help="show the traceback of an error, not one line"
     )
+    p.add_argument(
+        "--print-config",
+        action="store_true",
+        help="print the resolved config (JSON, as config.json records it) and exit",
+    )
+    p.add_argument(
+        "--help-config",
+        action=_HelpConfigAction,
+        help="list every config field --set can change, with its default and meaning, and exit",
+    )
     add_task_source_options(p, env, hold_out_val=True)
 
 
-def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser:
+def parser(
+    env: str, default_preset: str = "default", command: str | None = None
+) -> argparse.ArgumentParser:
+    """The training command's parser for family `env` (its task-source options); `command`
+    names the program (default `env`'s own)."""
     p = argparse.ArgumentParser(
-        prog=f"python -m experiments.{env}",
-        description=f"Train and evaluate MPC-PEARL (and its baselines) on the {env} tasks.",
+        prog=f"python -m experiments.{command or env}",
+        description=f"Train and evaluate MPC-PEARL (and its baselines) on the {env} tasks: "
+        "--iterations N (the preset's by default), or --minutes M of training with a learning "
+        "curve.",
     )
     add_config_options(p, env, default_preset)
     p.add_argument(
@@ -140,7 +240,34 @@ def parser(env: str, default_preset: str = "default") -> argparse.ArgumentParser
         "(docs/custom_tasks.md)",
     )
     p.add_argument("--iterations", type=int, help="meta-training iterations")
-    p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-eps<eps>)")
+    budget = p.add_argument_group(
+        "a time budget and its learning curve (instead of --iterations; writes curve.json, "
+        "curve.png and a time-to-target table)"
+    )
+    budget.add_argument(
+        "--minutes",
+        type=float,
+        help="train for M minutes (from the start of the first iteration, compilation "
+        "included, evaluation excluded)",
+    )
+    budget.add_argument(
+        "--eval-minutes",
+        type=float,
+        help="minutes of training between the curve's evaluations (default: --minutes / 8; at "
+        "most --minutes / 2); there is always one at minute 0 and one at the end",
+    )
+    budget.add_argument(
+        "--policy-only",
+        action="store_true",
+        help="save policy.msgpack only, not the orbax checkpoint of the whole training state "
+        "(replay buffers: hundreds of MB for the larger presets; needed only for --resume)",
+    )
+    p.add_argument(
+        "--label",
+        help="the run's name (default <env>-<preset>-<algo>-eps<eps>): the folder under runs/ "
+        "when --out is not given, and the name on the curve",
+    )
+    p.add_argument("--out", type=Path, help="run directory (default runs/<label>)")
     add_run_mode_options(p)
     p.add_argument(
         "--no-progress",
@@ -217,12 +344,70 @@ def error_line(e: BaseException) -> str:
     return text[0] if text else type(e).__name__
 
 
+def parse_args(
+    env: str, argv: list[str] | None = None, *, command: str | None = None, from_config=False
+) -> argparse.Namespace:
+    """The training command's arguments. `--env restaurant` or `--env sidewalk` picks that
+    family's task-source options (--scenarios, --data) whatever the command; with `from_config`,
+    so does the family a `--config` file records when no --env is given."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--env")
+    pre.add_argument("--config", type=Path)
+    known = pre.parse_known_args(argv)[0]
+    family = known.env or (_recorded_env(known.config) if from_config else None)
+    options = family if family in ("restaurant", "sidewalk") else env
+    args = parser(options, command=command or env).parse_args(argv)
+    if known.env is None and options != env:
+        args.env = options
+    args.argv = argv
+    return args
+
+
+def _recorded_env(config: Path | None) -> str | None:
+    """The family a --config file records (None when unreadable: building the config names the
+    problem)."""
+    import json
+
+    try:
+        return json.loads(Path(config).read_text()).get("env") if config else None
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def _budget_error(args: argparse.Namespace) -> str | None:
+    """The one-line error of a wrong combination of the budget options, or None."""
+    if args.minutes is None:
+        given = (("--eval-minutes", args.eval_minutes), ("--policy-only", args.policy_only))
+        for flag, value in given:
+            if value:
+                return f"{flag} applies to a time budget: give --minutes too"
+        return None
+    if not (args.minutes > 0 and math.isfinite(args.minutes)):
+        return f"--minutes must be positive, got {args.minutes}"
+    if args.eval_minutes is not None and not args.eval_minutes > 0:
+        return f"--eval-minutes must be positive, got {args.eval_minutes}"
+    if args.iterations is not None:
+        return "--minutes and --iterations: give one (a budget of time, or of iterations)"
+    if args.resume and args.policy_only:
+        return "--resume continues a run: not with --policy-only (no checkpoint)"
+    return None
+
+
 @stoppable
-def main(env: str, argv: list[str] | None = None, **extra) -> int:
+def main(
+    env: str,
+    argv: list[str] | None = None,
+    *,
+    command: str | None = None,
+    from_config: bool = False,
+    clock=time.perf_counter,
+    **extra,
+) -> int:
     """Exit codes: 0 done, 2 a command-line error (config, data, checkpoint, permissions: one
-    line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (128 + the
-    signal for SIGTERM, SIGHUP; saved and resumable)."""
-    args = parser(env).parse_args(argv)
+    line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (resumable).
+    `clock` times a --minutes budget (tests give a fake one)."""
+    args = parse_args(env, argv, command=command, from_config=from_config)
     from mpcpearl_jax.errors import CheckpointError, RunDirError
     from mpcpearl_jax.training.run import open_session
 
@@ -232,28 +417,59 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         print(f"error: {error_line(e)}", file=sys.stderr, flush=True)
         return code
 
+    if _budget_error(args):
+        return fail(ValueError(_budget_error(args)))
     if args.tensorboard:
         from mpcpearl_jax.training.livelog import LiveLogError, missing
 
         if missing():
             return fail(LiveLogError(missing()))
+    if args.print_config:
+        try:
+            cfg = build_config(args, _family(args.env), **extra)
+        except (ValueError, TypeError, OSError) as e:
+            return fail(e)
+        print(cfg.to_json(), flush=True)
+        return 0
     from mpcpearl_jax.distributed import CoordinatorTimeout, initialize
 
+    budget = args.minutes is not None
+    t_wall0 = time.perf_counter()
     try:  # everything up to training: each check names the field, file or folder
         # before any JAX work
         initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
         family = _family(args.env)
         cfg = build_config(args, family, **extra)
-        out = args.out or Path("runs") / f"{family}-{args.preset}-{args.algo}-eps{cfg.train.eps:g}"
-        print(
-            f"[{family}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "
-            f"iterations={cfg.train.iterations} out={out}",
-            flush=True,
-        )
-        if args.preset == "default" and args.config is None:
-            print(DEFAULT_NOTE, flush=True)
+        label = args.label or default_label(family, args.preset, args.algo, cfg.train.eps)
+        out = args.out or Path("runs") / label
+        if budget:
+            from mpcpearl_jax.training.budget import eval_every_minutes, load_at_start
+
+            load_start = load_at_start()
+            every = eval_every_minutes(args.minutes, args.eval_minutes)
+            print(
+                f"[{family}] {run_label(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
+                f"budget={args.minutes:g} min, eval every {every:.3g} min "
+                f"({'online' if cfg.online_eval else 'adaptation'} protocol), out={out}"
+                + (" (resumed)" if args.resume else ""),
+                flush=True,
+            )
+        else:
+            print(
+                f"[{family}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "
+                f"iterations={cfg.train.iterations} out={out}",
+                flush=True,
+            )
+            if args.preset == "default" and args.config is None:
+                print(DEFAULT_NOTE, flush=True)
+        t_wall0 = time.perf_counter()
         sess = open_session(
-            cfg, out, resume=args.resume, tensorboard=args.tensorboard, overwrite=args.overwrite
+            cfg,
+            out,
+            resume=args.resume,
+            until_budget=budget,
+            tensorboard=args.tensorboard,
+            overwrite=args.overwrite,
         )
     except CoordinatorTimeout as e:  # the runtime's start-up thread would abort the process
         print(f"error: {e}", file=sys.stderr, flush=True)
@@ -269,7 +485,39 @@ def main(env: str, argv: list[str] | None = None, **extra) -> int:
         print("interrupted before training started", file=sys.stderr, flush=True)
         return stop_exit_code()
     with sess:  # the run folder stays locked until its last file is written
+        if budget:
+            return _train_on_budget(args, sess, label, load_start, t_wall0, clock, fail)
         return _train_and_evaluate(args, sess, fail)
+
+
+def _train_on_budget(args, sess, label, load_start, t_wall0, clock, fail) -> int:
+    """--minutes: `training.budget.train_on_budget`, its errors as one line."""
+    from mpcpearl_jax.errors import CheckpointError, RunDirError
+    from mpcpearl_jax.training.budget import train_on_budget
+
+    try:
+        return train_on_budget(
+            sess,
+            minutes=args.minutes,
+            eval_minutes=args.eval_minutes,
+            label=label,
+            preset=args.preset,
+            argv=args.argv,
+            resumed=args.resume,
+            policy_only=args.policy_only,
+            load_start=load_start,
+            t_wall0=t_wall0,
+            clock=clock,
+        )
+    except (ValueError, CheckpointError, RunDirError, OSError) as e:
+        return fail(e)
+    except KeyboardInterrupt:  # a second Ctrl-C: stopped at once, the last checkpoint stands
+        print("interrupted; continue with --resume", file=sys.stderr, flush=True)
+        return stop_exit_code()
+    except RuntimeError as e:
+        if not out_of_memory(e):
+            raise
+        return fail(MemoryError(out_of_memory(e)))
 
 
 DEFAULT_NOTE = (
@@ -344,9 +592,8 @@ def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
 
 # the recipe of the five-seed comparison (docs/usage.md, "Training longer")
 LONGER = (
-    "to train longer, the recommended recipe for 24 minutes (docs/usage.md#training-longer): "
-    "python -m experiments.learning --preset cpu-explore --set pearl.auto_entropy=true --eps 0.2 "
-    "--minutes 24"
+    "to train longer (docs/usage.md, 'Training longer'): python -m experiments.restaurant "
+    "--preset recipe --eps 0.2 --minutes 24"
 )
 LONGER_ANY = "to train longer: --iterations N, or another preset (docs/usage.md#training-longer)"
 

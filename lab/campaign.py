@@ -2,8 +2,9 @@
 
     python -m lab.campaign CAMPAIGN.json [--only NAME ...] [--dry-run]
 
-A campaign file lists runs of the learning-curve harness (`experiments.learning`) and what to do
-with each when it has finished:
+A campaign file lists training runs on a time budget (`python -m experiments.restaurant
+--minutes M`, with its learning curve; `--env sidewalk` for the sidewalk) and what to do with
+each when it has finished:
 
     {"runs": [{"name": "mpc-pearl-s0",
                "argv": ["--preset", "cpu-explore", "--eps", "0.2", "--seed", "0",
@@ -15,11 +16,11 @@ with each when it has finished:
 
 A run may name `"trainer": "grbal"` to train with `python -m experiments.grbal` (the GrBAL
 baseline; `--minutes` is its budget) or `"trainer": "restaurant"` to train with the main command
-`python -m experiments.restaurant` (a budget in iterations) instead of the learning-curve
-harness.
+`python -m experiments.restaurant` with a budget in iterations (its record: results.json)
+instead of a time budget (its record: curve.json).
 
-For each run in order: a run whose results folder holds its finished record (the harness's
-curve.json; results.json for the other two) is done and skipped; a run whose training ended
+For each run in order: a run whose results folder holds its finished record (curve.json
+for a time budget; results.json for the other two) is done and skipped; a run whose training ended
 (exit 0; the campaign then writes `campaign.json` into its work folder `runs/campaign/<name>`) is
 copied into its results folder without checkpoints and then evaluated; a run with checkpoints is
 resumed (`--resume`; GrBAL's time budget then starts again in the resumed process); any other is
@@ -39,10 +40,10 @@ Ctrl-C (it saves and exits), and the campaign ends once it has; a campaign kille
 its campaign. One campaign file is processed by one campaign at a time (a lock in
 runs/campaign/); every entry is checked (keys, names, results paths) before anything runs.
 
-Before a training with a wall-clock budget (the harness and GrBAL) starts, the campaign waits
-until the 1-minute load average is below the harness's warning level (at most SETTLE_MAX_S), so
-that the previous run's evaluations, which keep it up for a minute after they end, neither eat
-into the new run's budget nor mark its record as trained beside another job.
+Before a training with a wall-clock budget (--minutes, and GrBAL) starts, the campaign waits
+until the 1-minute load average is below the warning level of a time budget (at most
+SETTLE_MAX_S), so that the previous run's evaluations, which keep it up for a minute after
+they end, neither eat into the new run's budget nor mark its record as trained beside another job.
 """
 
 from __future__ import annotations
@@ -63,13 +64,13 @@ WORK = Path("runs") / "campaign"
 NOT_COPIED = ("checkpoints", ".lock")
 TRAINED = "campaign.json"  # written into the work folder once its training exited 0
 KEYS = ("name", "argv", "results", "evaluate", "trainer")  # what an entry may hold
-SETTLE_LOAD = 1.5  # = experiments.learning.LOAD_WARN
+SETTLE_LOAD = 1.5  # = mpcpearl_jax.training.budget.LOAD_WARN
 SETTLE_MAX_S = 120.0
 
 
 # trainer -> (module, the file that marks a finished run, whether its budget is wall-clock time)
 TRAINERS = {
-    "learning": ("experiments.learning", "curve.json", True),
+    "learning": ("experiments.restaurant", "curve.json", True),  # --minutes: a learning curve
     "grbal": ("experiments.grbal", "results.json", True),
     "restaurant": ("experiments.restaurant", "results.json", False),
 }
@@ -231,11 +232,10 @@ def built_config(run: CampaignRun):
     argv = list(run.argv)
     try:
         if run.trainer == "learning":
-            from experiments import learning
-            from experiments.common import build_config
+            from experiments.common import _family, build_config, parse_args
 
-            args = learning.parse_args(argv)
-            return build_config(args, args.env)
+            args = parse_args("restaurant", argv)
+            return build_config(args, _family(args.env))
         if run.trainer == "grbal":
             from experiments import grbal
 

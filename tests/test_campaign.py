@@ -200,9 +200,9 @@ def test_ctrl_c_lets_the_run_under_way_save_before_the_campaign_stops(
 
 
 def test_settle_waits_for_the_load_average_and_gives_up_at_its_limit(monkeypatch):
-    from experiments import learning
+    from mpcpearl_jax.training.budget import LOAD_WARN
 
-    assert campaign.SETTLE_LOAD == learning.LOAD_WARN
+    assert campaign.SETTLE_LOAD == LOAD_WARN
     loads = iter([2.0, 1.8, 1.6, 1.2])
     slept = []
     monkeypatch.setattr(campaign.os, "getloadavg", lambda: (next(loads), 0.0, 0.0))

@@ -1,6 +1,6 @@
 """Configs and presets (config.py): field checks name the field, `validate` owns the checks across
-fields, the paper presets switch every extension off, `cpu-explore` builds its committed runs,
-and runs of removed options still load and evaluate."""
+fields, the paper presets switch every extension off, `cpu-explore` and `recipe` build their
+committed runs, and runs of removed options still load and evaluate."""
 
 import dataclasses
 import re
@@ -31,9 +31,22 @@ def test_invalid_extension_settings_name_the_field(make, field):
         make()
 
 
+# the runs of the removed `cpu-paper` preset (the paper's algorithm on the CPU schedule)
+CPU_PAPER_RUN = Path(__file__).resolve().parents[1] / "results/restaurant/mpc-pearl-eps0.2-paper"
+
+
+def _cpu_paper() -> ExperimentConfig:
+    """The removed `cpu-paper` preset, as its committed run recorded it (the iterations it
+    finished aside)."""
+    from mpcpearl_jax.config import read_config
+
+    cfg = read_config(CPU_PAPER_RUN / "config.json")
+    return cfg.replace(train=dataclasses.replace(cfg.train, iterations=3000))
+
+
 @pytest.mark.parametrize("name", ["paper", "cpu-paper", "smoke"])
 def test_paper_presets_have_every_extension_off(name):
-    cfg = preset(name)
+    cfg = _cpu_paper() if name == "cpu-paper" else preset(name)
     if name == "paper":
         assert cfg.train == TrainConfig() and cfg.pearl == PearlConfig()
     assert not cfg.pearl.layer_norm
@@ -54,13 +67,20 @@ def test_paper_presets_have_every_extension_off(name):
 
 
 def test_five_presets_and_cpu_explore_is_cpu_paper_with_the_documented_extensions():
-    """The presets are `paper`, `smoke`, `cpu-paper`, `cpu-explore` and `default`; `cpu-explore`
-    differs from `cpu-paper` exactly in the options docs/usage.md names, and `default` from
-    `cpu-explore` in its sizes, automatic entropy tuning and iterations."""
+    """The presets are `paper`, `smoke`, `cpu-explore`, `recipe` and `default`; `cpu-explore`
+    differs from the removed `cpu-paper` (as its committed run recorded it) exactly in the
+    options docs/usage.md names, `recipe` from `cpu-explore` in automatic entropy tuning, and
+    `default` from `cpu-explore` in its sizes, automatic entropy tuning and iterations. The
+    removed preset's name says how to build it."""
     from mpcpearl_jax.config import PRESETS
 
-    assert sorted(PRESETS) == ["cpu-explore", "cpu-paper", "default", "paper", "smoke"]
-    explore, paper = preset("cpu-explore"), preset("cpu-paper")
+    assert sorted(PRESETS) == ["cpu-explore", "default", "paper", "recipe", "smoke"]
+    with pytest.raises(ConfigError, match=r"'cpu-paper' was removed .*--config results/"):
+        preset("cpu-paper")
+    explore, paper = preset("cpu-explore"), _cpu_paper()
+    assert paper.env_overrides == {} and paper.seed == 0 and paper.train.eps == 0.2
+    recipe = preset("recipe")
+    assert recipe == explore.replace(pearl=explore.pearl.replace(auto_entropy=True))
     assert explore.pearl == paper.pearl.replace(layer_norm=True)
     changed = {k: v for k, v in explore.train.__dict__.items() if paper.train.__dict__[k] != v}
     assert changed == {"redraw_behaviours": True, "explore_start_share": 0.5}
@@ -81,31 +101,39 @@ def test_five_presets_and_cpu_explore_is_cpu_paper_with_the_documented_extension
 
 
 @pytest.mark.parametrize(
-    "sets, eps, algo, folder",
+    "name, sets, eps, algo, folder",
     [
-        ((), "0.2", "pearl", "mpc-pearl-eps0.2"),
-        ((), "0", "pearl", "pearl"),
-        ((), "0.2", "sac", "mpc-sac"),
-        # the five-seed comparison's recipe (the former `cpu-auto` preset)
-        (("pearl.auto_entropy=true",), "0.2", "pearl", "ablation/auto-entropy-24min"),
-        (("pearl.auto_entropy=true",), "0", "pearl", "ablation/pearl-auto-entropy-24min"),
-        (("pearl.auto_entropy=true",), "0.2", "sac", "ablation/mpc-sac-auto-entropy-24min"),
+        ("cpu-explore", (), "0.2", "pearl", "mpc-pearl-eps0.2"),
+        ("cpu-explore", (), "0", "pearl", "pearl"),
+        ("cpu-explore", (), "0.2", "sac", "mpc-sac"),
+        # the five-seed comparison's recipe (the former `cpu-auto` preset), as the committed
+        # campaign files spell it and as the preset named for it
+        (
+            "cpu-explore",
+            ("pearl.auto_entropy=true",),
+            "0.2",
+            "pearl",
+            "ablation/auto-entropy-24min",
+        ),
+        ("recipe", (), "0.2", "pearl", "ablation/auto-entropy-24min"),
+        ("recipe", (), "0", "pearl", "ablation/pearl-auto-entropy-24min"),
+        ("recipe", (), "0.2", "sac", "ablation/mpc-sac-auto-entropy-24min"),
     ],
 )
-def test_cpu_explore_builds_the_committed_restaurant_runs(
-    tmp_path, capsys, sets, eps, algo, folder
+def test_cpu_explore_and_recipe_build_the_committed_restaurant_runs(
+    tmp_path, capsys, name, sets, eps, algo, folder
 ):
-    """`--preset cpu-explore --eps E [--set ...]` builds exactly the committed run's config.json
+    """`--preset cpu-explore|recipe --eps E [--set ...]` builds exactly the committed run's
+    config.json
     (the run wrote the iterations it finished; options since removed are dropped at their
     inactive values), so one short command reproduces it; the sidewalk, which cannot re-draw its
     crowds, is refused before anything is written."""
     import json
 
-    from experiments import learning
-    from experiments.common import build_config
+    from experiments.common import build_config, main, parse_args
 
-    argv = ["--preset", "cpu-explore", "--eps", eps, "--algo", algo, "--minutes", "60"]
-    args = learning.parse_args([*argv, *(x for item in sets for x in ("--set", item))])
+    argv = ["--preset", name, "--eps", eps, "--algo", algo, "--minutes", "60"]
+    args = parse_args("restaurant", [*argv, *(x for item in sets for x in ("--set", item))])
     cfg = build_config(args, "restaurant")
     head = Path(__file__).parents[1] / "results/restaurant" / folder / "config.json"
     raw = json.loads(head.read_text())
@@ -114,9 +142,9 @@ def test_cpu_explore_builds_the_committed_restaurant_runs(
     assert removed_options_on(raw) == []
     ref = ExperimentConfig.from_dict(raw)
     assert cfg == ref.replace(train=dataclasses.replace(ref.train, iterations=cfg.train.iterations))
-    argv = ["--env", "sidewalk", "--preset", "cpu-explore", "--eps", "0.2", "--minutes", "1"]
+    argv = ["--env", "sidewalk", "--preset", name, "--eps", "0.2", "--minutes", "1"]
     out = tmp_path / "run"
-    assert learning.main([*argv, "--out", str(out)]) == 2
+    assert main("restaurant", [*argv, "--out", str(out)]) == 2
     assert "train.redraw_behaviours" in capsys.readouterr().err and not out.exists()
 
 
@@ -373,12 +401,14 @@ CONFIG_RUNS = [
 
 @pytest.mark.parametrize("run", CONFIG_RUNS)
 def test_config_option_builds_the_recorded_run(run):
-    """--config RUN/config.json (training commands and the learning harness): exactly the run's
-    config, the other options on top (--seed changes the seed only)."""
+    """--config RUN/config.json (the training commands, and `experiments.learning`, which takes
+    the family from the file): exactly the run's config, the other options on top (--seed
+    changes the seed only)."""
     import json
 
-    from experiments import learning
-    from experiments.common import build_config, parser
+    from experiments.common import build_config, parse_args, parser
+
+    old = {"command": "learning", "from_config": True}  # experiments/learning.py
 
     path = Path(__file__).resolve().parents[1] / "results" / run / "config.json"
     ref = ExperimentConfig.from_dict(json.loads(path.read_text()))
@@ -388,8 +418,8 @@ def test_config_option_builds_the_recorded_run(run):
         args = parser(env).parse_args(["--config", str(path), *extra])
         assert args.preset == path.parent.name  # the run's name where a preset's would go
         assert build_config(args, env).to_dict() == want.to_dict()
-        args = learning.parse_args(["--config", str(path), "--minutes", "1", *extra])
-        assert args.env == env  # the harness takes the family from the file
+        args = parse_args("restaurant", ["--config", str(path), "--minutes", "1", *extra], **old)
+        assert args.env == env  # the old name's command takes the family from the file
         assert build_config(args, args.env).to_dict() == want.to_dict()
 
 

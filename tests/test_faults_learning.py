@@ -1,6 +1,6 @@
-"""Fault injection on learning-curve runs (`experiments.learning`): stopped by Ctrl-C and
-resumed exactly; the long variant (the command line, Ctrl-C then kill -9 then --resume) is marked
-slow."""
+"""Fault injection on runs with a time budget (`experiments.restaurant --minutes`): stopped by
+Ctrl-C and resumed exactly; the long variant (the command line, Ctrl-C then kill -9 then
+--resume) is marked slow."""
 
 from __future__ import annotations
 
@@ -28,9 +28,9 @@ from mpcpearl_jax.training.run import LOG_FILE, read_log
 
 
 class _Tick:
-    """A fake clock for `experiments.learning.main`: every call is one second later, so that each
-    iteration takes one training second; once metrics.jsonl in `sigint_log` holds `sigint_rows`
-    rows, the next call sends this process a SIGINT (a real Ctrl-C, handled by the harness)."""
+    """A fake clock for the training command on a time budget: every call is one second later,
+    so that each iteration takes one training second; once metrics.jsonl in `sigint_log` holds
+    `sigint_rows` rows, the next call sends this process a SIGINT (a real Ctrl-C)."""
 
     def __init__(self, sigint_log: Path | None = None, sigint_rows: int = 0):
         self.t, self.log, self.rows, self.sent = 0.0, sigint_log, sigint_rows, False
@@ -51,19 +51,19 @@ def _points(run: Path) -> list[dict]:
 
 @pytest.mark.slow  # the time-budget run's Ctrl-C resume (~50 s)
 def test_learning_run_stops_on_ctrl_c_and_resumes_exactly(tmp_path, monkeypatch, capsys):
-    """experiments.learning stopped by Ctrl-C in its fifth iteration (a fake clock: one second per
+    """A time-budget run stopped by Ctrl-C in its fifth iteration (a fake clock: one second per
     iteration, 6 s of budget, an evaluation every 3 s) saves iteration 4 and exits 130 with one
     line; --resume ends identical to a run never stopped: checkpoint, policy, metrics and the
     curve points (the budget counts the 4 s already trained)."""
-    from experiments import learning
+    from experiments.common import main
 
     monkeypatch.setattr(
         "mpcpearl_jax.evaluation.final.final_evaluation", lambda *a, **k: {}
     )  # not needed
     ref, run = tmp_path / "ref", tmp_path / "run"
-    assert learning.main(learning_args(ref, 0.1, 0.05), clock=_Tick()) == 0
+    assert main("restaurant", learning_args(ref, 0.1, 0.05), clock=_Tick()) == 0
     capsys.readouterr()
-    assert learning.main(learning_args(run, 0.1, 0.05), clock=_Tick(run, 4)) == 130
+    assert main("restaurant", learning_args(run, 0.1, 0.05), clock=_Tick(run, 4)) == 130
     err = [x for x in capsys.readouterr().err.splitlines() if not x.startswith("warning: 1-min")]
     assert [x for x in err if x.strip()][-1] == "interrupted at iteration 4; continue with --resume"
     assert "Traceback" not in "\n".join(err)
@@ -71,7 +71,7 @@ def test_learning_run_stops_on_ctrl_c_and_resumes_exactly(tmp_path, monkeypatch,
     rec = json.loads((run / "curve.json").read_text())
     assert rec["stopped"] == "interrupted" and [p["iteration"] for p in rec["points"]] == [0, 3]
     assert json.loads((run / "config.json").read_text())["train"]["iterations"] == 4
-    assert learning.main(learning_args(run, 0.1, 0.05, "--resume"), clock=_Tick()) == 0
+    assert main("restaurant", learning_args(run, 0.1, 0.05, "--resume"), clock=_Tick()) == 0
     assert_same_run(ref, run)
     assert _points(ref) == _points(run) and [p["iteration"] for p in _points(run)] == [0, 3, 6]
     assert json.loads((run / "curve.json").read_text())["resumed_at_iteration"] == 4
@@ -83,10 +83,10 @@ def test_learning_run_ctrl_c_then_kill9_then_resume(tmp_path, monkeypatch):
     config.json and curve saved; a --resume killed with SIGKILL loses at most the iteration under
     way (a checkpoint every iteration here); the next --resume continues the curve and the log
     where the last checkpoint left them."""
-    from experiments import learning
+    from experiments.common import main
 
     run, log = tmp_path / "run", tmp_path / "log.txt"
-    cmd = [sys.executable, "-m", "experiments.learning", *learning_args(run, 10, 5)]
+    cmd = [sys.executable, "-m", "experiments.restaurant", *learning_args(run, 10, 5)]
     with open(log, "a") as f:
         proc = subprocess.Popen(cmd, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT, env=_env())
     t_sig = _sigint_when(proc, rows_at_least(run, 2))
@@ -106,7 +106,7 @@ def test_learning_run_ctrl_c_then_kill9_then_resume(tmp_path, monkeypatch):
     before = read_log(run / "curve-points.jsonl")
     monkeypatch.setattr("mpcpearl_jax.evaluation.final.final_evaluation", lambda *a, **k: {})
     # a budget already spent: no further iteration, the last point evaluated, the curve written
-    assert learning.main(learning_args(run, 0.01, 0.005, "--resume")) == 0
+    assert main("restaurant", learning_args(run, 0.01, 0.005, "--resume")) == 0
     rows = read_log(run / LOG_FILE)
     done = rows[-1]["iteration"]
     assert [r["iteration"] for r in rows] == list(range(1, done + 1)) and done >= n + 1

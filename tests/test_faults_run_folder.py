@@ -55,10 +55,11 @@ def _hold_lock(folder: Path) -> subprocess.Popen:
 
 
 def test_one_writer_per_run_folder(tmp_path, ref0, capsys):
-    """While another process holds a run folder, a new run, a --resume, the learning harness and
+    """While another process holds a run folder, a new run, a --resume, a time-budget run and
     GrBAL each stop with one line naming the holder's PID and write nothing; once the holder is
     killed (SIGKILL), its lock file no longer blocks anyone."""
-    from experiments import grbal, learning
+    from experiments import grbal
+    from experiments.common import main
     from mpcpearl_jax.training.runlock import LOCK_FILE, RunLock
 
     new, old = tmp_path / "new", tmp_path / "old"
@@ -74,7 +75,7 @@ def test_one_writer_per_run_folder(tmp_path, ref0, capsys):
         assert line == f"error: {new}: {pid_new}"
         line = _one_line_error(capsys, small_args(0.0, old, 8, "--resume"))
         assert line == f"error: {old}: {pid_old}"
-        assert learning.main(learning_args(new, 1, 0.5)) == 2
+        assert main("restaurant", learning_args(new, 1, 0.5)) == 2
         assert capsys.readouterr().err.strip().splitlines()[-1] == f"error: {new}: {pid_new}"
         assert grbal.main(["--preset", "smoke", "--out", str(new)]) == 2
         assert capsys.readouterr().err.strip().splitlines()[-1] == f"error: {new}: {pid_new}"

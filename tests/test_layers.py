@@ -24,7 +24,7 @@ LAYERS = [
     ["evaluation"],
     ["training", "grbal.trainer"],
     ["training.run", "grbal.run", "grbal"],
-    ["evaluation.final"],
+    ["evaluation.final", "training.budget"],
     ["deploy"],
 ]
 RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}

@@ -1,4 +1,5 @@
-"""`python -m experiments.learning`: time-to-threshold, the eval schedule (fake trainer and clock),
+"""Training on a time budget (`python -m experiments.restaurant --minutes M`,
+`mpcpearl_jax.training.budget`): time-to-threshold, the eval schedule (fake trainer and clock),
 option errors, and one real smoke run end to end."""
 
 from __future__ import annotations
@@ -8,8 +9,13 @@ import math
 
 import pytest
 
-from experiments import learning
+from experiments import common
+from mpcpearl_jax.training import budget as learning
 from mpcpearl_jax.training.run import Session
+
+
+def main(argv, **kw):
+    return common.main("restaurant", argv, **kw)
 
 
 def _point(minutes, it, test_sr, val_sr):
@@ -140,23 +146,61 @@ def test_train_for_stops_on_divergence(tmp_path):
 
 
 def test_option_errors_are_one_line(tmp_path, capsys):
-    busy = tmp_path / "busy"
-    busy.mkdir()
-    (busy / "notes.txt").write_text("keep me")
-    assert learning.main(["--preset", "smoke", "--minutes", "1", "--out", str(busy)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "not empty" in err and "--overwrite" in err and len(err.splitlines()) == 1
-    assert (busy / "notes.txt").read_text() == "keep me"
     a_file = tmp_path / "file"
     a_file.write_text("")
-    assert learning.main(["--preset", "smoke", "--minutes", "1", "--out", str(a_file)]) == 2
-    assert "not a folder" in capsys.readouterr().err
+    assert main(["--preset", "smoke", "--minutes", "1", "--out", str(a_file)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert str(a_file) in err and len(err.splitlines()) == 1
     argv = ["--preset", "smoke", "--minutes", "1", "--out", str(tmp_path / "x")]
-    assert learning.main(argv + ["--set", "train.nope=1"]) == 2
+    assert main(argv + ["--set", "train.nope=1"]) == 2
     assert "nope" in capsys.readouterr().err
-    assert learning.main(argv[:3] + ["0"] + argv[4:]) == 2
-    assert "--minutes" in capsys.readouterr().err
+    for bad, flag in (
+        (argv[:3] + ["0"] + argv[4:], "--minutes must be positive"),
+        (argv + ["--eval-minutes", "-1"], "--eval-minutes must be positive"),
+        (argv + ["--iterations", "3"], "--minutes and --iterations"),
+        (argv + ["--resume", "--policy-only"], "--policy-only"),
+        (["--preset", "smoke", "--eval-minutes", "1"], "give --minutes too"),
+        (["--preset", "smoke", "--policy-only"], "give --minutes too"),
+    ):
+        assert main(bad) == 2, bad
+        err = capsys.readouterr().err.strip()
+        assert flag in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "x").exists()
+
+
+def test_print_config_prints_the_resolved_config_and_trains_nothing(tmp_path, capsys):
+    from mpcpearl_jax.config import ExperimentConfig, preset
+
+    out = tmp_path / "never"
+    assert main(["--preset", "recipe", "--eps", "0.1", "--print-config", "--out", str(out)]) == 0
+    cfg = ExperimentConfig.from_json(capsys.readouterr().out)
+    assert cfg.train.eps == 0.1 and cfg.pearl == preset("recipe").pearl and not out.exists()
+    assert main(["--print-config", "--set", "pearl.nope=1"]) == 2
+    assert "nope" in capsys.readouterr().err
+
+
+def test_help_config_lists_every_field_with_its_source_comment(capsys):
+    """--help-config is generated from the config dataclasses' source: every --set field, its
+    default, and the comment the source gives it."""
+    import dataclasses
+
+    from mpcpearl_jax.config import TrainConfig, override_sections
+
+    with pytest.raises(SystemExit) as stop:
+        common.parser("restaurant").parse_args(["--help-config"])
+    assert stop.value.code == 0
+    text = capsys.readouterr().out
+    for section, cls in override_sections(common.ExperimentConfig).items():
+        for f in dataclasses.fields(cls):
+            if f.name not in ("pearl", "train", "mpc", "env_overrides"):
+                assert f"{section}.{f.name} = " in text or f"  {f.name} = " in text, f.name
+    assert "train.eps = 0.2: MPC probability on an event (0 = PEARL)" in text
+    notes = common.field_comments(TrainConfig)
+    assert notes["iterations"] == ("", "")
+    assert notes["redraw_behaviours"][1].startswith("behaviours re-drawn: each time")
+    heading, text = notes["mpc_buffer_fraction"]
+    assert heading.startswith("extensions beyond the paper") and heading.endswith("each one)")
+    assert text.startswith("MPC transitions kept apart")
 
 
 def test_experiments_cli_is_unchanged():
@@ -187,7 +231,7 @@ def test_smoke_run_writes_curve_policy_and_results(tmp_path, fast_compile, capsy
 
     out = tmp_path / "curve"
     argv = ["--preset", "smoke", "--eps", "0", "--minutes", "0.3", "--eval-minutes", "0.1"]
-    assert learning.main(argv + ["--out", str(out)]) == 0
+    assert main(argv + ["--out", str(out)]) == 0
     stdout = capsys.readouterr().out
     assert "time to target" in stdout and "| metric |" in stdout
     rec = json.loads((out / "curve.json").read_text())
@@ -225,7 +269,10 @@ def test_smoke_run_writes_curve_policy_and_results(tmp_path, fast_compile, capsy
 
 
 def test_the_old_command_name_runs_the_same_program():
-    """`python -m experiments.learning` (the name recorded with older results) is this harness."""
+    """`python -m experiments.learning` (the name recorded with older results) is the training
+    command, taking its family from --env or from --config's run."""
     import experiments.learning
 
-    assert experiments.learning.main is learning.main
+    assert experiments.learning.main is common.main
+    args = common.parse_args("restaurant", ["--env", "sidewalk", "--data", "f.txt"])
+    assert args.env == "sidewalk" and args.data.name == "f.txt"

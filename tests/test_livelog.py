@@ -50,7 +50,7 @@ def test_a_missing_writer_is_a_clear_error(monkeypatch):
 
 
 class _Trainer:
-    """Enough of a Trainer for experiments.learning.train_for: 1 s per iteration."""
+    """Enough of a Trainer for training.budget.train_for: 1 s per iteration."""
 
     def __init__(self, clock):
         from mpcpearl_jax.config import preset
@@ -68,7 +68,7 @@ class _Trainer:
 
 @needs_tensorboardx
 def test_learning_benchmark_mirrors_its_rows(tmp_path):
-    from experiments import learning
+    from mpcpearl_jax.training import budget
     from mpcpearl_jax.training.run import Session
 
     class Clock:
@@ -81,7 +81,7 @@ def test_learning_benchmark_mirrors_its_rows(tmp_path):
     log = tmp_path / "metrics.jsonl"
     with livelog.TensorBoardLog(tmp_path / "tb") as tb:
         trainer = _Trainer(clock)
-        learning.train_for(
+        budget.train_for(
             Session(trainer.cfg, tmp_path, trainer, 0, tb=tb),
             budget_s=4.0,
             every_s=2.0,

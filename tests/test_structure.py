@@ -27,7 +27,7 @@ def _calls(path: Path, name: str) -> list[int]:
 
 def test_one_run_driver():
     """The training loop has one caller, the run session (`training.run.Session.train`); the
-    training command, the learning-curve command and GrBAL go through the session."""
+    training command (on iterations or on a time budget) and GrBAL go through the session."""
     callers = {
         str(p.relative_to(ROOT)): _calls(p, "train_loop")
         for tree in ("src", "experiments", "lab", "benchmarks")
@@ -35,7 +35,7 @@ def test_one_run_driver():
     }
     callers = {p: lines for p, lines in callers.items() if lines}
     assert list(callers) == ["src/mpcpearl_jax/training/run.py"], callers
-    for user in ("experiments/learning.py", "src/mpcpearl_jax/grbal/run.py"):
+    for user in ("src/mpcpearl_jax/training/budget.py", "src/mpcpearl_jax/grbal/run.py"):
         text = (ROOT / user).read_text()
         assert "open_session(" in text or ".train(" in text, user
         assert "_sigint_flag" not in text and "Checkpointer(" not in text, user

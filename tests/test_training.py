@@ -273,7 +273,7 @@ def test_restaurant_cli_smoke(tmp_path):
 
 
 def test_presets_are_valid():
-    for name in ("smoke", "default", "cpu-explore", "cpu-paper", "paper"):
+    for name in ("smoke", "default", "cpu-explore", "recipe", "paper"):
         cfg = preset(name)
         assert cfg.train.iterations > 0
     assert preset("paper").pearl == PearlConfig()

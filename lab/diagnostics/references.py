@@ -3,8 +3,8 @@ nothing does: `python -m lab.diagnostics.references [--unused]`.
 
 A results/ path counts as named when it appears in a page (any .md outside results' run
 folders), a table (`lab/tables/`: the catalogue's and the renderers' run folders), a
-command or a test (`experiments/**/*.py`, `lab/campaigns/*.json`,
-`lab/screens/*.json`, `tests/`, `benchmarks/`, `src/`). Paths are written from the
+command or a test (`experiments/`, `lab/` and their campaign and
+screen files, `tests/`, `benchmarks/`, `src/`). Paths are written from the
 repository root (`results/restaurant/pearl`), from results/ (`restaurant/pearl`, in the pages
 and tables) or from results/restaurant/ (`ablation/x`); a named folder names everything in it for
 the policy files, a figure only counts as shown where its own file is named (or linked from a

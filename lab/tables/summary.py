@@ -88,9 +88,10 @@ def render_summary(rec: Records) -> str:
         "experiments.evaluate RUN --scenarios DIR`; SR, CFR, SPL: higher is better; TT: steps "
         "of the episode not spent at the goal, lower is better); this project's recipe: mean +- "
         "standard error over its five seeds (worst seed), each trained by `python -m "
-        "experiments.learning --preset cpu-explore --set pearl.auto_entropy=true --eps 0.2 "
-        "--minutes 24 --seed S` (records, the folders under `results/` these numbers are read "
-        "from: " + ", ".join(f"`{r}`" for r in RECIPE.runs) + "); the paper: its published table.",
+        "experiments.restaurant --preset recipe --eps 0.2 --minutes 24 --seed S` (records, the "
+        "folders under `results/` these numbers are read from: "
+        + ", ".join(f"`{r}`" for r in RECIPE.runs)
+        + "); the paper: its published table.",
         "",
         _main_command_line(rec),
     ]
@@ -175,9 +176,9 @@ def render_paper(rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEE
         "",
         "The paper's 25 test scenarios after two adaptation episodes, the paper's protocol. This "
         "project: mean +- standard error over seeds (worst seed), each seed trained alone on the "
-        "generated crowds for the budget shown with `--preset cpu-explore --set "
-        "pearl.auto_entropy=true` (GrBAL: `--preset cpu`), so the paper's scenarios are unseen "
-        "crowds; one run of `cpu-explore` trained on the paper's own training scenarios instead "
+        "generated crowds for the budget shown with `--preset recipe` (GrBAL: `--preset cpu`), so "
+        "the paper's scenarios are unseen crowds; one run of `cpu-explore` trained on the paper's "
+        "own training scenarios instead "
         "(`restaurant/paper-scenarios/cpu-explore-eps0.2`); GP-MPC: "
         "`gp_mpc/scenarios/restaurant_test.json`. The paper: its published table "
         "(`mpcpearl_jax.evaluation.report.PAPER`, the training from method §9).",

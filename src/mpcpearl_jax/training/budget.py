@@ -1,33 +1,27 @@
-"""Learning curve against wall-clock time: how good does the policy get in M minutes of training?
+"""Training on a wall-clock budget, with its learning curve: how good does the policy get in M
+minutes of training? (`python -m experiments.restaurant --minutes M [--eval-minutes X]`, and
+the sidewalk's command.)
 
-    python -m experiments.learning --preset P --eps E --minutes M [--algo sac] [--env ENV]
-        [--set SECTION.FIELD=VALUE ...] [--eval-minutes X] [--out DIR] [--seed N]
-        [--seeds S] [--label NAME] [--overwrite | --resume] [--policy-only]
+`train_on_budget` runs the session's trainer (`run.Session.train`) until M minutes of training
+have passed, counted from the start of the first iteration (its compilation included, and
+reported on its own). Every X minutes of training (default M / 8; at most M / 2) and once more at
+the end the policy is evaluated deterministically on the test tasks (the run's headline
+protocol: adaptation, or online for the sidewalk; for reporting only) and on a validation set
+that is not the test set (`envs.validation_tasks`). The clock stops while evaluating;
+evaluation seconds are recorded separately. There is also an evaluation of the untrained policy
+at minute 0.
 
-Builds `Trainer(cfg)` (same presets, --eps, --algo and --set as `experiments.*`) and calls
-`trainer.iteration` until M minutes of training have passed, counted from the start of the first
-iteration (its compilation included, and reported on its own). Every X minutes of training
-(default M / 8; at most M / 2) and once more at the end the policy is evaluated
-deterministically on the test tasks (the run's headline protocol: adaptation, or online for the
-sidewalk; for reporting only) and on a validation set that is not the test set, the first 24
-training tasks. The clock stops while evaluating; evaluation seconds are recorded separately.
-There is also an evaluation of the untrained policy at minute 0.
+Writes into the run folder: curve.json (config, machine, load average, eval points, time to the
+first success and to SR 0.5 / 0.75 on test and val), curve.png, curve-points.jsonl (the eval
+points so far) beside what every run writes (metrics.jsonl, config.json, the policy and training
+state; `mpcpearl_jax.load_policy(out)` works) and what `run.final_evaluation` writes
+(results.json, learning_curves.png, trajectory figures).
 
-Writes into --out (default runs/learning/<label>): curve.json (config, machine, load average,
-eval points, time to the first success and to SR 0.5 / 0.75 on test and val), curve.png,
-metrics.jsonl (one line per iteration, as `run.train` writes it), curve-points.jsonl (the eval
-points so far), config.json, the policy and training state as `run.train` saves them
-(`mpcpearl_jax.load_policy(out)` works; `experiments.<env> --resume --out DIR --iterations N`
-continues the run), and what `evaluation.final.final_evaluation` writes (results.json,
-learning_curves.png, trajectory figures).
-
-A learning run is a run (`mpcpearl_jax.training.run.open_session`: one writer per folder, the same
-checks,
-checkpoints and log): the training state is checkpointed every `train.checkpoint_interval`
-iterations and after every evaluation, so a crash (kill -9) loses at most the work since then.
-Ctrl-C (or SIGTERM, SIGHUP) saves and stops, and exits 130 (128 + the signal); `--resume` (the
-same options; --minutes may grow) continues exactly: the curve points so far are kept and the
-budget counts the training minutes already spent.
+The training state is checkpointed every `train.checkpoint_interval` iterations and after every
+evaluation, so a crash (kill -9) loses at most the work since then. Ctrl-C (or SIGTERM, SIGHUP)
+saves and stops, and exits 130 (128 + the signal); `--resume` (the same options; --minutes may
+grow) continues exactly: the curve points so far are kept and the budget counts the training
+minutes already spent.
 
 Train alone: other work on the machine slows every iteration down and so shifts the whole curve.
 The 1-minute load average at the start is recorded, with a warning above LOAD_WARN.
@@ -35,23 +29,19 @@ The 1-minute load average at the start is recorded, with a warning above LOAD_WA
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
 import statistics
 import sys
-import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from experiments.common import add_config_options, build_config
-from mpcpearl_jax.envs import env_names
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.checkpoint import write_json
-from mpcpearl_jax.training.stopping import stop_exit_code, stoppable
+from mpcpearl_jax.training.stopping import stop_exit_code
 
 METRICS = ("SR", "CFR", "TT", "SPL", "MGD", "return")
 SPLITS = ("test", "val")
@@ -63,85 +53,6 @@ TARGETS = (
     ("SR_0.75", "SR", 0.75, False),
 )
 POINTS_FILE = "curve-points.jsonl"  # one line per eval point, as metrics.jsonl (for --resume)
-
-
-# ------------------------------------------------------------------------------ CLI
-def make_parser(env: str = "restaurant") -> argparse.ArgumentParser:
-    """The parser of the learning harness for family `env` (the default of --env)."""
-    p = argparse.ArgumentParser(
-        prog="python -m experiments.learning",
-        description="Learning curve against wall-clock training time (SR / CFR / return on "
-        "the test tasks and on a validation set of training tasks).",
-    )
-    p.add_argument(
-        "--env",
-        choices=env_names(),
-        default=env,
-        help="task family (the sidewalk adds --data FILE, as in experiments.sidewalk)",
-    )
-    add_config_options(p, env)
-    p.add_argument(
-        "--minutes",
-        type=float,
-        required=True,
-        help="training budget in minutes (from the start of the first iteration, compilation "
-        "included, evaluation excluded)",
-    )
-    p.add_argument(
-        "--eval-minutes",
-        type=float,
-        help="minutes of training between evaluations (default: --minutes / 8; at most "
-        "--minutes / 2); there is always one at minute 0 and one at the end",
-    )
-    p.add_argument(
-        "--label", help="run name (default <env>-<preset>-<algo>-eps<eps>); names the --out"
-    )
-    p.add_argument("--out", type=Path, help="output folder (default runs/learning/<label>)")
-    p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="reuse a non-empty --out (this script's earlier outputs there are removed)",
-    )
-    p.add_argument(
-        "--resume",
-        action="store_true",
-        help="continue the run in --out (same options; --minutes may grow): its checkpoint, "
-        "metrics and curve points; the budget counts the training minutes already spent",
-    )
-    p.add_argument(
-        "--policy-only",
-        action="store_true",
-        help="save policy.msgpack only, not the orbax checkpoint of the whole training state "
-        "(replay buffers: hundreds of MB for the cpu/paper presets; needed only for --resume)",
-    )
-    p.add_argument(
-        "--tensorboard",
-        action="store_true",
-        help="also log the metrics rows to <out>/tensorboard (watch with tensorboard --logdir)",
-    )
-    return p
-
-
-def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--env", choices=env_names())
-    pre.add_argument("--config", type=Path)
-    known = pre.parse_known_args(argv)[0]  # the sidewalk has an extra option (--data)
-    env = known.env or _recorded_env(known.config) or "restaurant"
-    args = make_parser(env).parse_args(argv)
-    args.argv = argv
-    return args
-
-
-def _recorded_env(config: Path | None) -> str | None:
-    """The family of a --config file, the default of --env (None when unreadable: building the
-    config names the problem)."""
-    try:
-        env = json.loads(Path(config).read_text()).get("env") if config else None
-    except (OSError, ValueError, AttributeError):
-        return None
-    return env if env in env_names() else None
 
 
 # ------------------------------------------------------------------- pure helpers
@@ -202,34 +113,25 @@ def default_label(env: str, preset: str, algo: str, eps: float) -> str:
     return f"{env}-{preset}-{algo}-eps{eps:g}"
 
 
-def check_out(out: Path, overwrite: bool) -> str | None:
-    """Check that `out` can take a new run (create it and prove it writable; a non-empty folder
-    only with overwrite, whose old outputs `clear_outputs` removes once the folder is locked).
-    Returns a one-line error, or None."""
-    from mpcpearl_jax.training.runlock import LOCK_FILE
-
-    if out.exists() and not out.is_dir():
-        return f"--out {out}: exists and is not a folder"
-    if out.is_dir() and any(p.name != LOCK_FILE for p in out.iterdir()) and not overwrite:
-        return f"--out {out}: exists and is not empty (pass --overwrite, --resume or another --out)"
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-test-"):
-            pass
-    except OSError as e:
-        return f"--out {out}: not writable ({e.strerror or e})"
-    return None
-
-
-def clear_outputs(out: Path) -> None:
-    """--overwrite: remove a run's earlier outputs from `out` (and only them)."""
-    from mpcpearl_jax.training.run import clear_run_outputs
-
-    clear_run_outputs(out)
-
-
 def _loadavg() -> list[float] | None:
     return list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+
+
+def load_at_start() -> list[float] | None:
+    """The 1-, 5- and 15-minute load averages (None where the system has none)."""
+    return _loadavg()
+
+
+def warn_if_busy(load: list[float] | None) -> None:
+    """A warning on stderr when the 1-minute load average `load[0]` is above LOAD_WARN: another
+    job would slow the whole curve."""
+    if load is not None and load[0] > LOAD_WARN:
+        print(
+            f"warning: 1-minute load average {load[0]:.2f} > {LOAD_WARN}: another job is "
+            "running; timings (and so the whole curve) will be slower than on a quiet machine",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 # -------------------------------------------------------------------------- running
@@ -298,74 +200,6 @@ def summary_rows(record: dict[str, Any]) -> list[dict[str, Any]]:
                 }
             )
     return rows
-
-
-@stoppable
-def main(argv: Sequence[str] | None = None, clock=time.perf_counter) -> int:
-    """Exit codes: 0 done, 2 an error before or around training (one line naming the field, file
-    or folder), 1 training diverged, 130 Ctrl-C (saved; continue with --resume). `clock` times
-    the training (tests give a fake one)."""
-    args = parse_args(argv)
-    from mpcpearl_jax.errors import ConfigError
-
-    try:
-        cfg = build_config(args, args.env)
-    except (ConfigError, TypeError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    if not (args.minutes > 0 and math.isfinite(args.minutes)):
-        print(f"error: --minutes must be positive, got {args.minutes}", file=sys.stderr)
-        return 2
-    if args.eval_minutes is not None and not args.eval_minutes > 0:
-        print(f"error: --eval-minutes must be positive, got {args.eval_minutes}", file=sys.stderr)
-        return 2
-    if args.tensorboard:
-        from mpcpearl_jax.training.livelog import missing
-
-        if missing():
-            print(f"error: {missing()}", file=sys.stderr)
-            return 2
-    label = args.label or default_label(args.env, args.preset, args.algo, cfg.train.eps)
-    out = args.out or Path("runs") / "learning" / label
-    err = None
-    if args.resume and (args.overwrite or args.policy_only):
-        err = "--resume continues a run: not with --overwrite or --policy-only (no checkpoint)"
-    elif not args.resume:
-        err = check_out(out, args.overwrite)
-    if err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    return _locked_run(args, cfg, label, out, clock)
-
-
-def _locked_run(args: argparse.Namespace, cfg, label: str, out: Path, clock) -> int:
-    """`run` with --out locked (before --overwrite removes anything) and its errors as one
-    line."""
-    from experiments.common import error_line, out_of_memory
-    from mpcpearl_jax.errors import CheckpointError, ConfigError, RunDirError
-    from mpcpearl_jax.training.runlock import RunLock
-
-    lock = None
-    try:
-        if not args.resume:  # --resume: run.open_session checks the folder first, then locks it
-            lock = RunLock(out)
-            if args.overwrite:
-                clear_outputs(out)
-        return run(args, cfg, label, out, clock=clock)
-    except (ConfigError, CheckpointError, RunDirError, OSError) as e:
-        print(f"error: {error_line(e)}", file=sys.stderr, flush=True)
-        return 2
-    except KeyboardInterrupt:  # before training, or a second Ctrl-C: the last checkpoint stands
-        print("interrupted; continue with --resume", file=sys.stderr, flush=True)
-        return stop_exit_code()
-    except RuntimeError as e:
-        if not out_of_memory(e):
-            raise
-        print(f"error: {out_of_memory(e)}", file=sys.stderr, flush=True)
-        return 2
-    finally:
-        if lock is not None:
-            lock.release()
 
 
 def env_steps(trainer, iterations: int) -> int:
@@ -483,35 +317,6 @@ def train_for(
     return state, points, info
 
 
-def run(args: argparse.Namespace, cfg, label: str, out: Path, clock=time.perf_counter) -> int:
-    from mpcpearl_jax.training.run import open_session
-
-    budget_s = args.minutes * 60.0
-    every_s = eval_every_minutes(args.minutes, args.eval_minutes) * 60.0
-    load_start = _loadavg()
-    if load_start is not None and load_start[0] > LOAD_WARN:
-        print(
-            f"warning: 1-minute load average {load_start[0]:.2f} > {LOAD_WARN}: another job is "
-            "running; timings (and so the whole curve) will be slower than on a quiet machine",
-            file=sys.stderr,
-            flush=True,
-        )
-    print(
-        f"[learning] {run_label(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
-        f"budget={args.minutes:g} min, eval every {every_s / 60:.3g} min "
-        f"({'online' if cfg.online_eval else 'adaptation'} protocol), out={out}"
-        + (" (resumed)" if args.resume else ""),
-        flush=True,
-    )
-    t_wall0 = time.perf_counter()
-    # the checks, lock, trainer and (restored) state, config.json and metrics.jsonl of a run
-    sess = open_session(
-        cfg, out, resume=args.resume, until_budget=True, tensorboard=args.tensorboard
-    )
-    with sess:
-        return _run_session(args, sess, label, budget_s, every_s, load_start, t_wall0, clock)
-
-
 def _restored_points(sess, points_path: Path) -> list[dict[str, Any]]:
     """The eval points up to the restored checkpoint (none for a new run); curve-points.jsonl
     is cut back to them."""
@@ -523,9 +328,31 @@ def _restored_points(sess, points_path: Path) -> list[dict[str, Any]]:
     return points
 
 
-def _run_session(
-    args: argparse.Namespace, sess, label: str, budget_s, every_s, load_start, t_wall0, clock
+def train_on_budget(
+    sess,
+    *,
+    minutes: float,
+    eval_minutes: float | None = None,
+    label: str,
+    preset: str,
+    argv: Sequence[str] = (),
+    resumed: bool = False,
+    policy_only: bool = False,
+    load_start: list[float] | None = None,
+    t_wall0: float | None = None,
+    clock=time.perf_counter,
 ) -> int:
+    """Train the open run session `sess` (`run.open_session(..., until_budget=True)`) for
+    `minutes` of training with an eval point every `eval_minutes` (`eval_every_minutes`), write
+    curve.json and curve.png, run the final evaluation and print the time-to-target table.
+    `label` names the run in the record and the figures; `preset` and `argv` are recorded;
+    `policy_only` saves policy.msgpack alone (no orbax checkpoint: no resume); `load_start` and
+    `t_wall0` (`time.perf_counter()` before the session was opened) are recorded; `clock` times
+    the training (tests give a fake one).
+
+    Returns the command's exit code: 0 the budget was spent and the run evaluated, 1 training
+    diverged or no iteration finished, 130 interrupted by Ctrl-C (saved; continue with
+    --resume)."""
     import dataclasses
 
     from mpcpearl_jax.envs import validation_tasks
@@ -534,6 +361,9 @@ def _run_session(
     from mpcpearl_jax.training.machine import available_cores, machine_info, print_table
     from mpcpearl_jax.training.run import LOG_FILE, RunInterrupted, policy_params, read_log
 
+    budget_s = minutes * 60.0
+    every_s = eval_every_minutes(minutes, eval_minutes) * 60.0
+    t_wall0 = time.perf_counter() if t_wall0 is None else t_wall0
     cfg, trainer, out = sess.cfg, sess.trainer, sess.run_dir
     online = cfg.online_eval
     build_s = time.perf_counter() - t_wall0
@@ -543,7 +373,7 @@ def _run_session(
     tc = cfg.train
     log_path, points_path = out / LOG_FILE, out / POINTS_FILE
 
-    def policy_only(step: int, state) -> None:  # no orbax checkpoint (no --resume)
+    def save_policy(step: int, state) -> None:  # no orbax checkpoint (no --resume)
         save_params(out / POLICY_FILE, policy_params(state))
 
     state, points, info = train_for(
@@ -554,7 +384,7 @@ def _run_session(
         online=online,
         clock=clock,
         # as the training command: orbax checkpoint of the TrainState + policy.msgpack
-        save=policy_only if args.policy_only else sess.save,
+        save=save_policy if policy_only else sess.save,
         checkpoint_every=tc.checkpoint_interval,
         handle_sigint=True,
         points=_restored_points(sess, points_path),
@@ -574,9 +404,9 @@ def _run_session(
         "label": label,
         "algo": run_label(cfg),
         "env": cfg.env,
-        "preset": args.preset,
-        "argv": args.argv,
-        "budget_minutes": args.minutes,
+        "preset": preset,
+        "argv": list(argv),
+        "budget_minutes": minutes,
         "eval_every_minutes": every_s / 60.0,
         "eval_protocol": "online" if online else "adapt",
         "test_tasks": int(trainer.test_tasks.start.shape[0]),
@@ -587,7 +417,7 @@ def _run_session(
         "updates_per_iteration": tc.updates_per_iteration,
         "grad_steps": done * tc.updates_per_iteration,
         "env_steps": env_steps(trainer, done),
-        "resumed_at_iteration": sess.done if args.resume else None,
+        "resumed_at_iteration": sess.done if resumed else None,
         "timing": {
             "build_s": build_s,  # the trainer and its initial (or restored) state
             "first_iteration_s": first_iteration_s,
@@ -620,11 +450,11 @@ def _run_session(
     record["timing"]["iteration_s_median"] = statistics.median(steady) if steady else None
     curve_path = out / "curve.json"
     write_json(curve_path, record)
-    plot_curve(points, out / "curve.png", f"{label}: {run_label(cfg)}, {args.minutes:g} min")
+    plot_curve(points, out / "curve.png", f"{label}: {run_label(cfg)}, {minutes:g} min")
     if stopped == "interrupted":
         lost = info["iterations"] - saved
         line = str(RunInterrupted(saved, lost))
-        if args.policy_only:
+        if policy_only:
             line = f"interrupted at iteration {saved} (--policy-only: no checkpoint to resume from)"
         print(line, file=sys.stderr, flush=True)
         return stop_exit_code()
@@ -658,7 +488,3 @@ def _run_session(
     )
     print(f"curve, policy and results in {out}", flush=True)
     return 0 if stopped == "budget" else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())

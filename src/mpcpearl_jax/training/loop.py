@@ -12,7 +12,7 @@ metrics.jsonl and TensorBoard; the session's users keep only their rules and the
 - `experiments.restaurant` / `experiments.sidewalk` (`run.train_iterations`): a number of
   iterations, evaluation every `eval_interval` iterations, checkpoints every
   `checkpoint_interval`.
-- the learning-curve harness (`experiments.learning.train_for`): a budget of training seconds,
+- training on a time budget (`budget.train_for`, `--minutes`): a budget of training seconds,
   evaluation off the clock every so many training seconds, a checkpoint after every evaluation.
 - GrBAL (`grbal.run.train_iterations`): iterations and an optional wall-clock budget.
 

@@ -1,5 +1,6 @@
 """The machine a run or benchmark ran on (recorded in every curve and benchmark record) and a
-Markdown table printer shared by the learning-curve harness and the benchmark scripts."""
+Markdown table printer shared by training on a time budget (`training.budget`) and the benchmark
+scripts."""
 
 from __future__ import annotations
 

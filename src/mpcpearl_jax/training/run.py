@@ -4,8 +4,8 @@ lock, the restored state, the log cut back to it, progress rebuilt from it, Tens
 loop, `loop.train_loop`, with logging, Ctrl-C and write errors handled), `Session.close` closes
 it (checkpointer, the MPC bridge's worker pool, TensorBoard, lock). Its users keep only their
 rules: the training command (`train_iterations`, then `evaluation.final.final_evaluation`:
-results.json, figures and the results table), the learning-curve command
-(`experiments.learning`) and GrBAL (`grbal.run`, with its own `RunKind`).
+results.json, figures and the results table), training on a time budget
+(`training.budget`, `--minutes`) and GrBAL (`grbal.run`, with its own `RunKind`).
 
 Resume is exact: everything that shapes the rest of a run is in the checkpointed TrainState or
 rebuilt deterministically from the config, so a run stopped at any moment (kill -9, Ctrl-C, power
@@ -377,7 +377,7 @@ def open_session(
     trainer) and the memory its state needs, checkpoint restore (falling back past corrupt ones;
     nothing to resume from is an error where iterations were logged), the asked iterations
     against the finished count (not with until_budget: a run that stops on a time budget,
-    `experiments.learning`). A new run (not `resume`) refuses a folder that holds a run's
+    `training.budget`). A new run (not `resume`) refuses a folder that holds a run's
     records, unless `overwrite` says to replace that run (its outputs are removed once the
     folder is locked). Only then is config.json written and metrics.jsonl cut back to the
     restored iteration. Close the session (`with` or `close()`) once the run's last file is

@@ -1,11 +1,11 @@
 """One writer per run folder: an exclusive `fcntl.flock` on <run>/.lock.
 
-Every command that writes a run folder (training, `--resume`, `experiments.learning`, GrBAL) takes
+Every command that writes a run folder (training on iterations or minutes, `--resume`, GrBAL) takes
 the lock before it writes anything there and holds it until it ends. A second writer gets a
 one-line `RunDirError` naming the holder's PID. The operating system drops the lock when its
 process dies (SIGKILL, power loss), so a lock file left by a killed run never blocks a resume.
-The lock is re-entrant within one process (the learning harness takes it before `run.open_session`
-takes it again); with several processes of one distributed run, process 0 takes it.
+The lock is re-entrant within one process (a caller may take it before `run.open_session` takes
+it again); with several processes of one distributed run, process 0 takes it.
 """
 
 from __future__ import annotations
