@@ -126,8 +126,10 @@ def config_help(cls: type = ExperimentConfig, width: int = 100) -> str:
         doc = (sub.__doc__ or "").strip().splitlines()[0]
         lines += ["", f"{section or 'top level'} ({sub.__name__}: {doc})"]
         notes = field_comments(sub)
+        nested = {sections[k].__name__ for k in sections if k}  # the sections listed apart
         for f in dataclasses.fields(sub):
-            if f.name in sections or f.name == "env_overrides" or not f.init:
+            kind = getattr(f.type, "__name__", f.type)  # a name under `from __future__`
+            if kind in nested or f.name == "env_overrides" or not f.init:
                 continue
             default = f.default
             if default is dataclasses.MISSING:

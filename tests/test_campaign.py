@@ -63,7 +63,7 @@ def test_states_commands_and_copy(tmp_path, monkeypatch):
     assert run.evaluate == (("--split", "val", "--out", "res/a/eval/v"),)
     assert campaign.state_of(run) == "new"
     cmds = campaign.commands(run, "new")
-    assert cmds[0][1:4] == ["-m", "experiments.learning", "--preset"]
+    assert cmds[0][1:4] == ["-m", "experiments.restaurant", "--preset"]
     assert cmds[0][-2:] == ["--out", str(campaign.WORK / "a")]
     assert cmds[1][1:4] == ["-m", "experiments.evaluate", "res/a"]
     # a checkpoint: resumed
@@ -117,7 +117,7 @@ def test_a_failing_run_stops_the_campaign_with_its_code(tmp_path, monkeypatch, c
     monkeypatch.setattr(campaign, "run_child", call)
     assert campaign.main([str(path)]) == 130
     assert len(calls) == 1 and calls[0][0] == sys.executable
-    assert "a: experiments.learning" in capsys.readouterr().err
+    assert "a: experiments.restaurant" in capsys.readouterr().err
 
 
 def test_grbal_runs_train_with_their_own_command_and_finish_with_their_results(
@@ -222,7 +222,7 @@ def test_only_wall_clock_trainings_wait_for_the_load(tmp_path, monkeypatch, caps
     monkeypatch.setattr(campaign, "run_child", lambda cmd: calls.append(cmd[2]) or 0)
     monkeypatch.setattr(campaign, "copy_results", lambda run: None)
     assert campaign.main([str(path)]) == 0
-    assert calls == ["experiments.learning", "experiments.restaurant"] and settled == [1]
+    assert calls == ["experiments.restaurant", "experiments.restaurant"] and settled == [1]
     assert "waited 10 s for the load average (now 1.00)" in capsys.readouterr().out
 
 
