@@ -488,6 +488,9 @@ def main(
         return stop_exit_code()
     with sess:  # the run folder stays locked until its last file is written
         if budget:
+            from mpcpearl_jax.training.budget import warn_if_busy
+
+            warn_if_busy(load_start)  # measured before the trainer was built
             return _train_on_budget(args, sess, label, load_start, t_wall0, clock, fail)
         return _train_and_evaluate(args, sess, fail)
 
