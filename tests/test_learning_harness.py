@@ -197,10 +197,10 @@ def test_help_config_lists_every_field_with_its_source_comment(capsys):
     assert "train.eps = 0.2: MPC probability on an event (0 = PEARL)" in text
     notes = common.field_comments(TrainConfig)
     assert notes["iterations"] == ("", "")
-    assert notes["redraw_behaviours"][1].startswith("behaviours re-drawn: each time")
-    heading, text = notes["mpc_buffer_fraction"]
+    heading, text = notes["redraw_behaviours"]
     assert heading.startswith("extensions beyond the paper") and heading.endswith("each one)")
-    assert text.startswith("MPC transitions kept apart")
+    assert text.startswith("behaviours re-drawn: each time")  # the heading's lines excluded
+    assert notes["explore_start_share"][0] == ""  # a heading goes with the first field after it
 
 
 def test_experiments_cli_is_unchanged():
