@@ -135,6 +135,7 @@ def test_default_out_is_inside_the_run(tmp_path):
     assert rec["episodes"] == 3 and rec["protocol"] == "after 2 adaptation episode(s)"
 
 
+@pytest.mark.slow  # (~11 s); the GP-MPC command: test_cli
 def test_gp_mpc_without_a_run(tmp_path):
     assert main(["--controller", "gp-mpc", "--tasks", "0", "--out", str(tmp_path)]) == 0
     rec = _record(tmp_path)

@@ -148,6 +148,7 @@ def test_committed_exports_are_those_of_the_committed_policies(run):
     assert (run_dir / "policy.export").stat().st_size < 1_000_000
 
 
+@pytest.mark.slow  # (~12 s)
 def test_adapter_on_the_exported_policy_acts_as_on_the_loaded_one(exported):
     policy, ex = load_policy(HEADLINE), load_exported(exported)
     cfg = policy.config

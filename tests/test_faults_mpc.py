@@ -7,11 +7,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from faults_helpers import TIMING, small_cfg
 
 from mpcpearl_jax.training.trainer import Trainer
 
 
+@pytest.mark.slow  # (~20 s)
 def test_mpc_collection_does_not_depend_on_earlier_iterations():
     """eps 0.2: iterations 2-3 rerun from a copy of the state after iteration 1, by the same
     trainer (whose MPC bridge and OSQP solvers have meanwhile solved iterations 2-3), give the

@@ -147,6 +147,7 @@ def test_update_chunks_give_one_scan_and_answer_stop():
 
 
 # orbax leaves an unraisable warning behind when it fails to read the garbled checkpoint
+@pytest.mark.slow  # (~26 s)
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
 def test_corrupt_newest_checkpoint_and_torn_log_line_fall_back_and_resume_exactly(
     tmp_path, ref0, capsys

@@ -35,6 +35,7 @@ def test_bad_extension_settings_name_their_field(make, field):
 
 
 # ---------------------------------------------------------------------------- the MPC as guide
+@pytest.mark.slow  # (~20 s)
 def test_the_guide_acts_on_every_step_before_the_hand_over_and_never_after():
     """A stand-in MPC marks its steps: with events switched off (eps so small no draw fires),
     exactly the steps t < handover of each row are the MPC's."""
@@ -86,6 +87,7 @@ def test_the_roll_in_bound_shrinks_only_after_guided_success():
     tr.close()
 
 
+@pytest.mark.slow  # (~41 s)
 def test_guided_rows_are_drawn_from_the_policy_rows_and_kept_out_of_its_success_rate():
     # no event draw fires (eps tiny): the MPC solves only the few guided steps
     tr = _guided_trainer(explore_start_share=0.5, guide_steps=4, eps=1e-9)

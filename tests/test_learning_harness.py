@@ -226,6 +226,7 @@ def fast_compile():
     jax.config.update("jax_disable_most_optimizations", False)
 
 
+@pytest.mark.slow  # (~45 s); the command itself: test_restaurant_cli_smoke
 def test_smoke_run_writes_curve_policy_and_results(tmp_path, fast_compile, capsys):
     from mpcpearl_jax import load_policy
 

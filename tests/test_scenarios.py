@@ -238,6 +238,7 @@ def test_evaluate_a_committed_policy_on_scenarios(tmp_path, synthetic, capsys):
         assert err.startswith("error:") and "\n" not in err
 
 
+@pytest.mark.slow  # (~11 s)
 def test_gp_mpc_cli_on_scenarios(tmp_path, synthetic, capsys):
     from experiments import gp_mpc
 

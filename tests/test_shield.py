@@ -161,6 +161,7 @@ def test_goal_seeking_control_collides_alone_and_not_behind_the_shield():
     assert 0.0 < rate < 0.5
 
 
+@pytest.mark.slow  # (~14 s)
 def test_evaluator_with_shield_reports_the_replaced_steps_and_changes_nothing_without():
     from mpcpearl_jax.config import PearlConfig
     from mpcpearl_jax.evaluation import evaluate as eval_lib

@@ -116,6 +116,7 @@ def test_crowd_delays_shift_only_the_visited_paths_and_never_accumulate(redraw):
         TrainConfig(crowd_delay_max=2.5)
 
 
+@pytest.mark.slow  # (~21 s)
 def test_exploring_starts_change_only_the_marked_rows_and_never_the_encoder_context():
     from mpcpearl_jax.envs.types import EnvState
     from mpcpearl_jax.training.trainer import Trainer

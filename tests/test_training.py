@@ -90,6 +90,7 @@ def test_buffers_fill_and_encoder_buffer_resets(trainer):
     assert log["iteration"] == 1 and np.isfinite(log["q_loss"])
 
 
+@pytest.mark.slow  # (~70 s); exact resume in the fast set: test_faults_resume
 def test_resume_equals_uninterrupted(tmp_path):
     cfg = TINY
     _, full = train(cfg, tmp_path / "full", progress=False)
