@@ -3,18 +3,19 @@
 # under its own time limit, so that one slow step leaves the others their time).
 #
 #   bash benchmarks/gpu_session.sh OUT_DIR            # the budgets below
-#   GPU_SESSION_TINY=1 bash benchmarks/gpu_session.sh OUT_DIR   # seconds-long check (e.g. a CPU)
+#   GPU_SESSION_TINY=1 bash benchmarks/gpu_session.sh OUT_DIR   # tiny budgets: a check of each step
 #
 # Writes under OUT_DIR:
 #   (g) gate.json: the device solver on every recorded problem against OSQP (benchmarks.mpc_gate);
 #   (a) mpc_solvers.json: per-call latency of the OSQP and device solvers, batch 1 and 16;
-#   (b) gp_mpc-osqp/, gp_mpc-device/: GP-MPC on the authors' 25 test scenarios with each solver
+#   (b) gp_mpc-device/: GP-MPC on the authors' 25 test scenarios with the device solver (OSQP's
+#       too with GPMPC_SOLVERS="osqp device"; its figures are in the README's summary table)
 #       (skipped when SCENARIOS, default ../shared/data/mpc-pearl-scenarios, is absent);
 #   (c) recipe-osqp/, recipe-device/: the recommended recipe with 8 seeds (metrics.jsonl logs
 #       collect_s and update_s per iteration), OSQP with 8 host workers against the device solver;
 #   (d) paper-device/: the paper preset, one seed, with the device solver;
 #   and summary.txt (the per-iteration means of each run), log.txt (everything printed).
-# Environment: PYTHON (default python), SCENARIOS, RECIPE_MIN (1.25), PAPER_MIN (0.75).
+# Environment: PYTHON (default python), SCENARIOS, GPMPC_SOLVERS, RECIPE_MIN (1.25), PAPER_MIN (0.75).
 set -uo pipefail
 
 OUT=${1:?usage: gpu_session.sh OUT_DIR}
@@ -77,6 +78,9 @@ for run in ("recipe-osqp", "recipe-device", "paper-device"):
         continue
     rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     rows = [r for r in rows if "collect_s" in r][1:] or rows  # the first holds the compilation
+    if not rows:
+        print(f"{run}: no iteration finished")
+        continue
     mean = lambda k: statistics.mean(r.get(k, float("nan")) for r in rows)  # noqa: E731
     it = mean("collect_s") + mean("update_s")
     print(

@@ -90,7 +90,11 @@ def test_device_first_action_and_decision_match_osqp_on_a_subset(data):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="gate not met: 50 % within 0.02 on 48 problems")
+@pytest.mark.skipif(
+    jax.default_backend() == "cpu",
+    reason="about 20 min on a 2-core CPU; on a GPU (about 1 s): python -m benchmarks.mpc_gate",
+)
+@pytest.mark.xfail(strict=True, reason="gate not met: 45.7 % within 0.02 on 1,200 problems (H200)")
 def test_device_first_action_and_decision_match_osqp_on_every_recorded_problem(data):
     close, same = _gate(data, np.arange(data["x0"].shape[0]))
     print(f"first action within 0.02: {close:.2%}; same decision: {same:.2%}")
