@@ -9,6 +9,7 @@ from PIL import Image
 
 from experiments.evaluate import UsageError, main, parse_indices
 from mpcpearl_jax.evaluation import runners
+from mpcpearl_jax.mpc.config import MPCConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 RESTAURANT_RUN = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"
@@ -149,7 +150,9 @@ def test_gp_mpc_on_a_runs_tasks_and_policy_with_mpc(tmp_path):
     out = tmp_path / "g"
     argv = [str(RESTAURANT_RUN), "--controller", "gp-mpc", "--split", "val", "--tasks", "0"]
     assert main([*argv, "--animate", "--out", str(out)]) == 0
-    assert _record(out)["mpc"] == json.loads((RESTAURANT_RUN / "config.json").read_text())["mpc"]
+    # the run's MPC settings, plus the defaults of fields added after it was trained
+    recorded = json.loads((RESTAURANT_RUN / "config.json").read_text())["mpc"]
+    assert _record(out)["mpc"] == {**MPCConfig().to_dict(), **recorded}
     assert _frames(out / "episode_val0.gif") == 81
     out = tmp_path / "p"
     argv = [str(RESTAURANT_RUN), "--controller", "policy+mpc", "--eps", "1", "--tasks", "0"]
