@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -62,6 +61,7 @@ from mpcpearl_jax.evaluation.runners import (
 from mpcpearl_jax.evaluation.scoring import failure_line, failures, per_task_metrics, pooled
 from mpcpearl_jax.mpc.shield import ShieldConfig
 from mpcpearl_jax.training.checkpoint import RUN_RECORDS, write_json
+from mpcpearl_jax.validate import unwritable_folder
 
 CONTROLLERS = ("policy", "gp-mpc", "policy+mpc")
 MAX_TASK_SEEDS = 100  # task-set seeds in one command (each one is a full evaluation)
@@ -235,13 +235,9 @@ def probe_out(out: Path, overwrite: bool = False) -> None:
             f"--out {out}: holds an earlier evaluation's results.json; pass --overwrite to "
             "replace it, or choose another --out"
         )
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-probe-"):
-            pass
-    except OSError as e:
-        why = e.strerror or type(e).__name__
-        raise UsageError(f"--out {out}: not writable ({why}); choose another --out") from e
+    why = unwritable_folder(out)
+    if why is not None:
+        raise UsageError(f"--out {out}: not writable ({why}); choose another --out")
 
 
 def parse_indices(text: str, n: int, what: str) -> list[int]:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from mpcpearl_jax.envs import load_family, make_env, mpc_defaults, tasks_for
 from mpcpearl_jax.evaluation import metrics
 from mpcpearl_jax.evaluation.report import PAPER, metrics_table
 from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
+from mpcpearl_jax.validate import unwritable_folder
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,13 +118,9 @@ def _family(spec: str) -> str:
 def probe_out(out: Path) -> None:
     """Create --out and prove it writable (a probe file written and removed); OSError in one
     line naming it otherwise."""
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=out, prefix=".write-probe-"):
-            pass
-    except OSError as e:
-        why = e.strerror or type(e).__name__
-        raise OSError(f"--out {out}: not writable ({why}); choose another --out") from None
+    why = unwritable_folder(out)
+    if why is not None:
+        raise OSError(f"--out {out}: not writable ({why}); choose another --out")
 
 
 def _plot(args, env, tasks, traj) -> None:

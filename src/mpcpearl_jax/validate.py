@@ -105,3 +105,20 @@ __all__ = [
     "one_of",
     "positive",
 ]
+
+
+def unwritable_folder(folder) -> str | None:
+    """Create `folder` (and its parents) and prove it writable with a probe file that is removed
+    again; None if it is, else the cause in a few words (for a one-line error naming it)."""
+    import tempfile
+    from pathlib import Path
+
+    try:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
+            pass
+    except (FileExistsError, NotADirectoryError):
+        return "a file is where a folder should be"
+    except OSError as e:
+        return e.strerror or type(e).__name__
+    return None

@@ -12,7 +12,6 @@ import contextlib
 import hashlib
 import io
 import json
-import tempfile
 import zipfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -38,6 +37,7 @@ from mpcpearl_jax.envs.dynamics import DELTA_MAX
 from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.checkpoint import CONFIG_FILE, POLICY_FILE, RUN_RECORDS, atomic_write
+from mpcpearl_jax.validate import unwritable_folder
 
 EXPORT_FILE = "policy.export"
 DEFAULT_PLATFORMS = ("cpu", "cuda")
@@ -246,16 +246,10 @@ def check_folder(folder: Path) -> None:
     """Create the export's folder and prove it writable (a probe file written and removed),
     before the export is built; ExportError naming the folder and the cause otherwise (a
     read-only folder, a file where a folder should be)."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
-            pass
-    except OSError as e:
-        why = e.strerror or type(e).__name__
-        if isinstance(e, (FileExistsError, NotADirectoryError)):
-            why = "a file is where a folder should be"
+    why = unwritable_folder(folder)
+    if why is not None:
         msg = f"{folder}: cannot write the export there ({why}); choose another --out"
-        raise ExportError(msg) from None
+        raise ExportError(msg)
 
 
 def export_policy(
