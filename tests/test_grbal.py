@@ -220,11 +220,19 @@ def _run_cli(argv):
     assert grbal.main(argv) == 0
 
 
-def test_grbal_cli_restaurant_resume_and_compare(tmp_path):
-    out = tmp_path / "g"
+@pytest.fixture(scope="module")
+def grbal_run(tmp_path_factory):
+    """A smoke GrBAL run on the restaurant: stopped by its time budget after iteration 1, then
+    resumed to iteration 2, from the command line."""
+    out = tmp_path_factory.mktemp("grbal") / "g"
     base = ["--preset", "smoke", "--out", str(out), "--no-progress"]
     _run_cli([*base, "--iterations", "5", "--minutes", "1e-4"])  # stops after iteration 1
     _run_cli([*base, "--iterations", "2", "--resume"])
+    return out
+
+
+def test_grbal_cli_restaurant_resumes_and_reports(grbal_run):
+    out = grbal_run
     log = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in log] == [1, 2]
     assert all(np.isfinite(r["model_post_loss"]) for r in log)
@@ -236,6 +244,14 @@ def test_grbal_cli_restaurant_resume_and_compare(tmp_path):
     assert (out / "trajectory_test0.png").is_file() and (out / "learning_curves.png").is_file()
     assert (out / "policy.msgpack").is_file()
 
+
+@pytest.mark.slow  # (~45 s; the run itself: test_grbal_cli_restaurant_resumes_and_reports)
+def test_grbal_run_compares_and_evaluates_from_its_folder(grbal_run, tmp_path):
+    import shutil
+
+    out = tmp_path / "g"
+    shutil.copytree(grbal_run, out)  # the policy file is damaged below
+    res = json.loads((out / "results.json").read_text())
     from lab import compare
 
     assert compare.main([str(out), "--out", str(tmp_path / "cmp")]) == 0
