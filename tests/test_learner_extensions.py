@@ -27,6 +27,8 @@ def test_every_preset_leaves_the_learner_extensions_off():
         (lambda: TrainConfig(guide_steps=0), "guide_steps"),
         (lambda: TrainConfig(guide_decrement=-1), "guide_decrement"),
         (lambda: TrainConfig(guide_success=1.5), "guide_success"),
+        (lambda: TrainConfig(guide_window=-1), "guide_window"),
+        (lambda: TrainConfig(guide_window=32), "guide_window"),  # without a guide
     ],
 )
 def test_bad_extension_settings_name_their_field(make, field):
@@ -87,6 +89,44 @@ def test_the_roll_in_bound_shrinks_only_after_guided_success():
     tr.close()
 
 
+def test_the_evidence_window_shrinks_the_bound_only_on_a_full_window_at_the_threshold():
+    """guide_window = 6: rows pool over iterations; h moves only once >= 6 rows ended, by the
+    pooled rate, and the window empties after each decision (a tumbling window)."""
+    from types import SimpleNamespace
+
+    from mpcpearl_jax.training.trainer import Trainer, TrainState
+    from tests.test_training import TINY
+
+    tc = dataclasses.replace(TINY.train, eps=0.2, guide_share=0.5, guide_window=6)
+    trainer = SimpleNamespace(cfg=TINY.replace(train=tc))  # the rule reads only the config
+    zero = jnp.zeros((2,), jnp.float32)
+    state = TrainState(None, None, None, None, None, None, jnp.array([30, 30]), zero, zero)
+
+    def it(state, count, hits):
+        post = {
+            "guide_rows": jnp.array(count, jnp.float32) / 8,
+            "guide_success": jnp.array(hits, jnp.float32) / jnp.maximum(jnp.array(count), 1),
+            "guide_count": jnp.array(count, jnp.float32),
+            "guide_hits": jnp.array(hits, jnp.float32),
+        }
+        return Trainer._shrink_roll_in(trainer, state, post)  # type: ignore[arg-type]
+
+    # seed 0: two iterations of 2/2 successes; the per-iteration rule would have shrunk twice
+    state = it(state, [2, 2], [2, 0])
+    state = it(state, [2, 2], [2, 0])
+    assert np.asarray(state.guide_h).tolist() == [30, 30]
+    assert np.asarray(state.guide_n).tolist() == [4.0, 4.0]
+    # the window fills (6 rows): seed 0 at 4/6 >= 0.5 shrinks, seed 1 at 2/6 does not
+    state = it(state, [2, 2], [0, 2])
+    assert np.asarray(state.guide_h).tolist() == [22, 30]
+    assert np.asarray(state.guide_n).tolist() == [0.0, 0.0]
+    assert np.asarray(state.guide_hits).tolist() == [0.0, 0.0]
+    # a new window starts empty: seed 1's earlier failures no longer count
+    for _ in range(3):
+        state = it(state, [2, 2], [1, 2])
+    assert np.asarray(state.guide_h).tolist() == [14, 22]  # 3/6 is at the threshold
+
+
 @pytest.mark.slow  # (~41 s)
 def test_guided_rows_are_drawn_from_the_policy_rows_and_kept_out_of_its_success_rate():
     # no event draw fires (eps tiny): the MPC solves only the few guided steps
@@ -104,15 +144,22 @@ def test_a_checkpoint_holds_the_extension_state_and_restores_it_exactly(tmp_path
     from mpcpearl_jax.training.checkpoint import Checkpointer
     from mpcpearl_jax.training.run import policy_params
 
-    tr = _guided_trainer()
+    tr = _guided_trainer(guide_window=32)
     state = tr.init_state()
+    assert np.asarray(state.guide_n).tolist() == [0.0, 0.0]  # an empty evidence window
     state, _ = tr.update_phase(state)  # parameters that differ from a fresh state's
-    state = state.replace(guide_h=jnp.array([22, 14], jnp.int32), iteration=state.iteration + 1)
+    state = state.replace(
+        guide_h=jnp.array([22, 14], jnp.int32),
+        guide_n=jnp.array([5.0, 3.0]),
+        guide_hits=jnp.array([2.0, 1.0]),
+        iteration=state.iteration + 1,
+    )
     ck = Checkpointer(tmp_path, keep=2)
     ck.save(1, state, policy_params(state))
     back = ck.restore(template=tr.init_state())
     for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(back), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert np.asarray(back.guide_h).tolist() == [22, 14]
+    assert np.asarray(back.guide_n).tolist() == [5.0, 3.0]
     ck.close()
     tr.close()

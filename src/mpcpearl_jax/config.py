@@ -70,6 +70,11 @@ class TrainConfig:
     guide_steps: int = 80
     guide_decrement: int = 8
     guide_success: float = 0.5
+    # the guide's evidence window: 0 decides on each iteration's guided rows alone (one to four
+    # rows at the CPU schedules); W > 0 pools a seed's guided rows over iterations until at
+    # least W have ended, then shrinks h when the pooled rate is >= guide_success, and starts
+    # a new window either way (a tumbling window of at least W rows)
+    guide_window: int = 0
 
     def __post_init__(self) -> None:
         v.ints(
@@ -87,7 +92,13 @@ class TrainConfig:
             "guide_steps",
         )
         v.ints(
-            self, "posterior_episodes", "eval_interval", "crowd_delay_max", "guide_decrement", lo=0
+            self,
+            "posterior_episodes",
+            "eval_interval",
+            "crowd_delay_max",
+            "guide_decrement",
+            "guide_window",
+            lo=0,
         )
         v.interval(
             self,
@@ -127,6 +138,13 @@ class TrainConfig:
                 self,
                 "guide_share",
                 "guided roll-ins are posterior-phase episodes: set posterior_episodes > 0",
+            )
+        else:
+            v.check(
+                self.guide_window == 0,
+                self,
+                "guide_window",
+                "is the guide's evidence window: set guide_share > 0 to guide",
             )
 
     @property

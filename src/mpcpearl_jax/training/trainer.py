@@ -94,6 +94,10 @@ class TrainState(struct.PyTreeNode):
     iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
     # the guide's roll-in bound h [S] int32 (extension `guide_share`; None when it is off)
     guide_h: Array | None = None
+    # the guided rows [S] float32 ended and reached the goal in the open evidence window
+    # (extension `guide_window`; None when it is 0)
+    guide_n: Array | None = None
+    guide_hits: Array | None = None
 
 
 def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
@@ -135,6 +139,8 @@ def _episode_stats(
     if guided is not None:
         stats["guide_rows"] = jnp.mean(g_rows, axis=-1)
         stats["guide_success"] = mean_over(g_rows, success)
+        stats["guide_count"] = jnp.sum(g_rows, axis=-1)
+        stats["guide_hits"] = jnp.sum(g_rows * success, axis=-1)
     return stats
 
 
@@ -238,7 +244,11 @@ class Trainer:
         if cfg.train.guide_share > 0:
             h0 = min(cfg.train.guide_steps, self.horizon)
             guide_h = jnp.full((cfg.seeds,), h0, jnp.int32)
-        state = TrainState(learner, rl, enc, tasks, keys, iteration, guide_h)
+        guide_n = guide_hits = None
+        if cfg.train.guide_window > 0:
+            guide_n = jnp.zeros((cfg.seeds,), jnp.float32)
+            guide_hits = jnp.zeros((cfg.seeds,), jnp.float32)
+        state = TrainState(learner, rl, enc, tasks, keys, iteration, guide_h, guide_n, guide_hits)
         return constrain(state, self.mesh)
 
     # ------------------------------------------------------------- collection
@@ -463,12 +473,27 @@ class Trainer:
     def _shrink_roll_in(self, state: TrainState, post: dict) -> TrainState:
         """Extension `guide_share`: each seed's roll-in bound h shrinks by guide_decrement (not
         below 0) when this iteration's guided rows reached the goal at a rate >= guide_success
-        (seeds without a guided row keep theirs)."""
+        (seeds without a guided row keep theirs). With `guide_window` W > 0 the rows pool over
+        iterations: once a seed's window holds >= W guided rows, h shrinks if their pooled rate
+        is >= guide_success, and the window empties either way."""
         tc = self.cfg.train
         assert state.guide_h is not None
-        passed = (post["guide_rows"] > 0) & (post["guide_success"] >= tc.guide_success)
+        if tc.guide_window == 0:
+            passed = (post["guide_rows"] > 0) & (post["guide_success"] >= tc.guide_success)
+            h = jnp.where(passed, jnp.maximum(state.guide_h - tc.guide_decrement, 0), state.guide_h)
+            return state.replace(guide_h=h.astype(jnp.int32))
+        assert state.guide_n is not None and state.guide_hits is not None
+        n = state.guide_n + post["guide_count"]
+        hits = state.guide_hits + post["guide_hits"]
+        full = n >= tc.guide_window
+        passed = full & (hits >= tc.guide_success * n)
         h = jnp.where(passed, jnp.maximum(state.guide_h - tc.guide_decrement, 0), state.guide_h)
-        return state.replace(guide_h=h.astype(jnp.int32))
+        zero = jnp.zeros_like(n)
+        return state.replace(
+            guide_h=h.astype(jnp.int32),
+            guide_n=jnp.where(full, zero, n).astype(jnp.float32),
+            guide_hits=jnp.where(full, zero, hits).astype(jnp.float32),
+        )
 
     def _mpc_log(self) -> dict:
         """The MPC bridge's counters and times of this iteration, summed over processes (each
