@@ -1,14 +1,27 @@
 """Test configuration: a persistent XLA compilation cache shared by the test session and its
 worker processes, so that identical programs (e.g. trainers rebuilt from the same config) compile
-once; the number of worker processes for `-n auto`; the fault tests' reference run (`ref0`),
-trained once per worker process that needs it."""
+once; LLVM optimisation level 1 for the compiled programs; the number of worker processes for
+`-n auto`; the fault tests' reference run (`ref0`), trained once per worker process that needs
+it."""
 
 import os
 import tempfile
 from pathlib import Path
 
-import jax
-import pytest
+# Most of the suite's time is XLA compiling small programs that then run for milliseconds. The
+# CPU backend's LLVM level 1 (XLA's default is 2) compiles them faster; it changes no operation,
+# only how the machine code is optimised, so values agree to the rounding the tests already
+# allow across CPUs (tests/test_fingerprint.py holds at 1e-4 either way). The test processes
+# inherit it (set before JAX starts its backend); MPCPEARL_TEST_XLA_OPT=2 runs the suite at
+# XLA's default, "keep" leaves XLA_FLAGS as the environment has it.
+_OPT = os.environ.get("MPCPEARL_TEST_XLA_OPT", "1")
+if _OPT != "keep" and "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + f" --xla_backend_optimization_level={_OPT}"
+    ).strip()
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 _CACHE = os.environ.get("MPCPEARL_TEST_JAX_CACHE") or os.path.join(
     tempfile.gettempdir(), "mpcpearl_jax_test_xla_cache"
