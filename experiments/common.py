@@ -485,7 +485,11 @@ def main(
         return fail(MemoryError(out_of_memory(e)))
     except KeyboardInterrupt:
         print("interrupted before training started", file=sys.stderr, flush=True)
-        return stop_exit_code()
+        sys.stdout.flush()
+        # the signal can land inside JAX's compiler, which goes on compiling; tearing the
+        # runtime down under it crashed the process at exit (a segmentation fault after the line
+        # above). The session closed what it had opened: leave without the teardown
+        os._exit(stop_exit_code())
     with sess:  # the run folder stays locked until its last file is written
         if budget:
             from mpcpearl_jax.training.budget import warn_if_busy

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from faults_helpers import ROOT, _interrupted_at, rows_at_least, small_args, spawn
+from faults_helpers import ROOT, _env, _interrupted_at, rows_at_least, small_args, spawn
 
 from mpcpearl_jax.training.loop import Progress, train_loop
 from mpcpearl_jax.training.run import LOG_FILE, read_log
@@ -206,3 +206,31 @@ def test_a_stop_inside_an_iteration_finishes_it_when_abandoning_would_lose_work(
     state = train_loop(trainer, 0, p, **kw)
     assert p.stopped == "interrupted" and state == saved and saves == [saved]
     assert trainer.polled == []
+
+
+@pytest.mark.slow  # (~90 s: eight start-ups)
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="POSIX process groups")
+def test_ctrl_c_during_start_up_is_one_line_and_exit_130_wherever_it_lands(tmp_path):
+    """Ctrl-C (SIGINT to the process group) at eight moments of a training's start-up, a cold
+    compilation cache so that the first programs really compile: a signal that landed inside
+    XLA's compiler used to crash the process at exit (SIGSEGV after the line "interrupted before
+    training started"). Wherever it lands: exit 130, one line, no traceback, no crash."""
+    env = {**_env(), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "cache")}
+    args = ["--preset", "smoke", "--iterations", "50", "--no-progress"]
+    for i, delay in enumerate((3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0)):
+        log = tmp_path / f"log{i}"
+        proc = spawn(
+            [*args, "--out", str(tmp_path / f"r{i}")],
+            log,
+            cli=True,
+            env=env,
+            start_new_session=True,
+        )
+        time.sleep(delay)
+        assert proc.poll() is None, log.read_text()[-2000:]
+        os.killpg(proc.pid, signal.SIGINT)
+        rc = proc.wait(timeout=120)
+        text = log.read_text()
+        assert rc == 130, (delay, rc, text[-2000:])
+        assert "Traceback" not in text and "Fatal Python error" not in text, text[-2000:]
+        assert "interrupted" in text.splitlines()[-1], text[-2000:]
