@@ -9,7 +9,9 @@ accepted as numbers, and numbers must be finite.
 from __future__ import annotations
 
 import math
+import tempfile
 from collections.abc import Iterable
+from pathlib import Path
 from typing import Any, NoReturn
 
 from mpcpearl_jax.errors import ConfigError
@@ -91,6 +93,20 @@ def instance(obj: Any, field: str, cls: type | tuple[type, ...], what: str) -> N
     check(isinstance(v, cls), obj, field, f"must be {what}, got {type(v).__name__}")
 
 
+def unwritable_folder(folder) -> str | None:
+    """Create `folder` (and its parents) and prove it writable with a probe file that is removed
+    again; None if it is, else the cause in a few words (for a one-line error naming it)."""
+    try:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
+            pass
+    except (FileExistsError, NotADirectoryError):
+        return "a file is where a folder should be"
+    except OSError as e:
+        return e.strerror or type(e).__name__
+    return None
+
+
 __all__ = [
     "check",
     "fail",
@@ -104,21 +120,5 @@ __all__ = [
     "nonnegative",
     "one_of",
     "positive",
+    "unwritable_folder",
 ]
-
-
-def unwritable_folder(folder) -> str | None:
-    """Create `folder` (and its parents) and prove it writable with a probe file that is removed
-    again; None if it is, else the cause in a few words (for a one-line error naming it)."""
-    import tempfile
-    from pathlib import Path
-
-    try:
-        Path(folder).mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-probe-"):
-            pass
-    except (FileExistsError, NotADirectoryError):
-        return "a file is where a folder should be"
-    except OSError as e:
-        return e.strerror or type(e).__name__
-    return None

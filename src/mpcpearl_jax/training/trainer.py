@@ -478,22 +478,18 @@ class Trainer:
         is >= guide_success, and the window empties either way."""
         tc = self.cfg.train
         assert state.guide_h is not None
+        window: dict[str, Array] = {}
         if tc.guide_window == 0:
             passed = (post["guide_rows"] > 0) & (post["guide_success"] >= tc.guide_success)
-            h = jnp.where(passed, jnp.maximum(state.guide_h - tc.guide_decrement, 0), state.guide_h)
-            return state.replace(guide_h=h.astype(jnp.int32))
-        assert state.guide_n is not None and state.guide_hits is not None
-        n = state.guide_n + post["guide_count"]
-        hits = state.guide_hits + post["guide_hits"]
-        full = n >= tc.guide_window
-        passed = full & (hits >= tc.guide_success * n)
+        else:
+            assert state.guide_n is not None and state.guide_hits is not None
+            n = state.guide_n + post["guide_count"]
+            hits = state.guide_hits + post["guide_hits"]
+            full = n >= tc.guide_window
+            passed = full & (hits >= tc.guide_success * n)
+            window = {"guide_n": jnp.where(full, 0.0, n), "guide_hits": jnp.where(full, 0.0, hits)}
         h = jnp.where(passed, jnp.maximum(state.guide_h - tc.guide_decrement, 0), state.guide_h)
-        zero = jnp.zeros_like(n)
-        return state.replace(
-            guide_h=h.astype(jnp.int32),
-            guide_n=jnp.where(full, zero, n).astype(jnp.float32),
-            guide_hits=jnp.where(full, zero, hits).astype(jnp.float32),
-        )
+        return state.replace(guide_h=h.astype(jnp.int32), **window)
 
     def _mpc_log(self) -> dict:
         """The MPC bridge's counters and times of this iteration, summed over processes (each
