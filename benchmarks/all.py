@@ -25,6 +25,7 @@ from benchmarks import harness
 SCRIPTS = (
     "env_throughput",
     "pearl_step",
+    "learner_sizes",
     "policy_latency",
     "mpc_latency",
     "memory",

@@ -462,8 +462,13 @@ def main(
                 f"iterations={cfg.train.iterations} out={out}",
                 flush=True,
             )
-            if args.preset == "default" and args.config is None:
-                print(DEFAULT_NOTE, flush=True)
+            if (
+                args.preset == "default"
+                and args.config is None
+                and args.iterations is None
+                and not budget
+            ):
+                print(DEFAULT_NOTE, flush=True)  # its figures are for the preset's 75 iterations
         t_wall0 = time.perf_counter()
         sess = open_session(
             cfg,
@@ -531,7 +536,8 @@ def _train_on_budget(args, sess, label, load_start, t_wall0, clock, fail) -> int
 
 DEFAULT_NOTE = (
     "the default preset: a first look, 75 iterations, about 4-5 minutes of training on a quiet "
-    "2-core CPU, longer on a slower or busy one (the README gives the range over ten seeds); the "
+    "2-core CPU, up to about 8 on a slower or busy one (the README gives the range over ten "
+    "seeds); the "
     "first iteration compiles, up to a minute of it. Far shorter than the paper's training "
     "(printed under the results table)"
 )

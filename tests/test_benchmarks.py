@@ -13,7 +13,15 @@ from pathlib import Path
 
 import pytest
 
-SCRIPTS = ["env_throughput", "pearl_step", "policy_latency", "memory", "iteration", "grbal_planner"]
+SCRIPTS = [
+    "env_throughput",
+    "pearl_step",
+    "policy_latency",
+    "memory",
+    "iteration",
+    "grbal_planner",
+    "learner_sizes",
+]
 
 
 @pytest.fixture
