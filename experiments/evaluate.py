@@ -36,6 +36,7 @@ results.json.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from dataclasses import asdict
@@ -61,6 +62,7 @@ from mpcpearl_jax.evaluation.runners import (
 from mpcpearl_jax.evaluation.scoring import failure_line, failures, per_task_metrics, pooled
 from mpcpearl_jax.mpc.shield import ShieldConfig
 from mpcpearl_jax.training.checkpoint import RUN_RECORDS, write_json
+from mpcpearl_jax.training.stopping import stop_exit_code, stoppable
 from mpcpearl_jax.validate import unwritable_folder
 
 CONTROLLERS = ("policy", "gp-mpc", "policy+mpc")
@@ -714,7 +716,28 @@ def main_task_seeds(args: argparse.Namespace) -> int:
     return 0
 
 
+@stoppable
 def main(argv: list[str] | None = None) -> int:
+    """The command; a stop signal (Ctrl-C, SIGTERM, SIGHUP) ends it with one line and exit code
+    128 + the signal. Nothing is lost: an evaluation saves only at its end, so the same command
+    (with --overwrite where its results.json was already written) starts it again."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print(
+            "interrupted before the evaluation finished; run the same command again "
+            "(with --overwrite if --out already holds its results.json)",
+            file=sys.stderr,
+            flush=True,
+        )
+        sys.stdout.flush()
+        # the signal can land inside JAX's compiler, which goes on compiling; tearing the runtime
+        # down under it can crash the process at exit (as in `experiments.common.main`). The MPC
+        # pool's workers end themselves when this process is gone (`mpc.solver.watch_parent`)
+        os._exit(stop_exit_code())
+
+
+def _main(argv: list[str] | None) -> int:
     args = make_parser().parse_args(argv)
     from mpcpearl_jax.errors import CheckpointError
 

@@ -17,6 +17,7 @@ Any field of `GrbalConfig` can be changed with --set grbal.FIELD=VALUE, a NavCon
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -24,6 +25,7 @@ from pathlib import Path
 from experiments.common import add_run_mode_options, add_task_source_options
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.grbal.config import PRESETS, GrbalExperimentConfig, resolve
+from mpcpearl_jax.training.stopping import stop_exit_code, stoppable
 
 
 def parser() -> argparse.ArgumentParser:
@@ -79,7 +81,29 @@ def build_config(args: argparse.Namespace) -> GrbalExperimentConfig:
     )
 
 
+@stoppable
 def main(argv: list[str] | None = None) -> int:
+    """The command; a stop signal (Ctrl-C, SIGTERM, SIGHUP) ends it with one line and exit code
+    128 + the signal, the run folder closed (`Session.__exit__`) and its last checkpoint kept."""
+    run: dict[str, Path] = {}  # the run folder, once known
+    try:
+        return _main(argv, run)
+    except KeyboardInterrupt:
+        if "out" in run and (run["out"] / "config.json").is_file():
+            line = (
+                "interrupted: the same command with --resume continues from the run's last "
+                "checkpoint (written every checkpoint_interval iterations; from the start if none)"
+            )
+        else:
+            line = "interrupted before the run started; the same command starts it again"
+        print(line, file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        # the signal can land inside JAX's compiler, which goes on compiling; tearing the runtime
+        # down under it can crash the process at exit (as in `experiments.common.main`)
+        os._exit(stop_exit_code())
+
+
+def _main(argv: list[str] | None, run: dict[str, Path]) -> int:
     args = parser().parse_args(argv)
     try:
         cfg = build_config(args)
@@ -92,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     from mpcpearl_jax.training.run import open_session
 
     out = args.out or Path("runs") / f"{args.env}-{args.preset}-grbal"
+    run["out"] = Path(out)
     g = cfg.grbal
     print(
         f"[{args.env}] GrBAL preset={args.preset} seeds={cfg.seeds} iterations={g.iterations} "

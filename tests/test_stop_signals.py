@@ -234,3 +234,76 @@ def test_ctrl_c_during_start_up_is_one_line_and_exit_130_wherever_it_lands(tmp_p
         assert rc == 130, (delay, rc, text[-2000:])
         assert "Traceback" not in text and "Fatal Python error" not in text, text[-2000:]
         assert "interrupted" in text.splitlines()[-1], text[-2000:]
+
+
+@pytest.mark.slow  # (~50 s: four start-ups of an evaluation)
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="POSIX process groups")
+def test_evaluate_stopped_anywhere_is_one_line_and_exit_128_plus_signal(tmp_path):
+    """`experiments.evaluate` stopped while it compiles and evaluates (cold compilation cache):
+    Ctrl-C used to print a KeyboardInterrupt traceback and, landing inside XLA's compiler, crash
+    the process at exit (SIGSEGV). Now: one line, exit 130 (SIGTERM: 143), nothing written."""
+    run = ROOT / "results" / "restaurant" / "main-default"
+    env = {**_env(), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "cache")}
+    cases = [(3.0, signal.SIGINT), (6.0, signal.SIGINT), (9.0, signal.SIGINT)]
+    cases.append((5.0, signal.SIGTERM))
+    for i, (delay, sig) in enumerate(cases):
+        log, out = tmp_path / f"log{i}", tmp_path / f"eval{i}"
+        cmd = [sys.executable, "-m", "experiments.evaluate", str(run), "--split", "val"]
+        cmd += ["--task-seeds", "1", "--figures", "none", "--out", str(out)]
+        with open(log, "w") as f:
+            proc = subprocess.Popen(
+                cmd,
+                cwd=ROOT,
+                stdout=f,
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,
+            )
+            time.sleep(delay)
+            assert proc.poll() is None, log.read_text()[-2000:]
+            os.killpg(proc.pid, sig)
+            rc = proc.wait(timeout=120)
+        text = log.read_text()
+        assert rc == 128 + int(sig), (delay, rc, text[-2000:])
+        assert "Traceback" not in text and "Fatal Python error" not in text, text[-2000:]
+        assert text.splitlines()[-1].startswith("interrupted before the evaluation finished")
+        assert not (out / "results.json").exists()
+
+
+@pytest.mark.slow  # (~70 s: two start-ups and a resumed smoke run)
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="POSIX process groups")
+def test_grbal_ctrl_c_is_one_line_exit_130_and_resumes(tmp_path):
+    """`experiments.grbal` stopped by Ctrl-C during its start-up (cold compilation cache): it
+    used to print a KeyboardInterrupt traceback and could crash at exit (SIGSEGV). Now: one line,
+    exit 130, the run folder released, and the command the line names finishes the run: the same
+    command before the run's config is written, with --resume after."""
+    env = {**_env(), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "cache")}
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "experiments.grbal", "--preset", "smoke", "--iterations", "2"]
+    cmd += ["--no-progress", "--out", str(out)]
+    for i, delay in enumerate((3.0, 6.0)):
+        log = tmp_path / f"log{i}"
+        with open(log, "w") as f:
+            proc = subprocess.Popen(
+                cmd + (["--resume"] if (out / "config.json").is_file() else []),
+                cwd=ROOT,
+                stdout=f,
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,
+            )
+            time.sleep(delay)
+            assert proc.poll() is None, log.read_text()[-2000:]
+            os.killpg(proc.pid, signal.SIGINT)
+            rc = proc.wait(timeout=120)
+        text = log.read_text()
+        assert rc == 130, (delay, rc, text[-2000:])
+        assert "Traceback" not in text and "Fatal Python error" not in text, text[-2000:]
+        last = text.splitlines()[-1]
+        assert last.startswith("interrupted"), text[-2000:]
+        resume = "--resume" in last
+        assert resume == (out / "config.json").is_file(), last
+    again = cmd + (["--resume"] if resume else [])
+    done = subprocess.run(again, cwd=ROOT, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (out / "results.json").is_file()
