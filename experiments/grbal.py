@@ -84,7 +84,10 @@ def build_config(args: argparse.Namespace) -> GrbalExperimentConfig:
 @stoppable
 def main(argv: list[str] | None = None) -> int:
     """The command; a stop signal (Ctrl-C, SIGTERM, SIGHUP) ends it with one line and exit code
-    128 + the signal, the run folder closed (`Session.__exit__`) and its last checkpoint kept."""
+    128 + the signal, the run folder closed (`Session.__exit__`). During training the first
+    signal finishes the iteration under way and saves it ("interrupted at iteration N; continue
+    with --resume"); a second one, or one during start-up or the final evaluation, stops at once
+    with the last checkpoint kept."""
     run: dict[str, Path] = {}  # the run folder, once known
     try:
         return _main(argv, run)
@@ -113,7 +116,7 @@ def _main(argv: list[str] | None, run: dict[str, Path]) -> int:
     from experiments.common import error_line, out_of_memory
     from mpcpearl_jax.errors import CheckpointError, RunDirError
     from mpcpearl_jax.grbal.run import GRBAL, final_evaluation, train_iterations
-    from mpcpearl_jax.training.run import open_session
+    from mpcpearl_jax.training.run import RunInterrupted, open_session
 
     out = args.out or Path("runs") / f"{args.env}-{args.preset}-grbal"
     run["out"] = Path(out)
@@ -129,9 +132,12 @@ def _main(argv: list[str] | None, run: dict[str, Path]) -> int:
     try:  # the run folder stays locked through the final evaluation
         with open_session(cfg, out, args.resume, kind=GRBAL, overwrite=args.overwrite) as sess:
             budget = None if args.minutes is None else 60.0 * args.minutes
-            state = train_iterations(sess, progress, budget)
+            state = train_iterations(sess, progress, budget, handle_sigint=True)
             print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
             final_evaluation(sess.trainer, state, out)
+    except RunInterrupted as e:  # the iteration under way finished and saved
+        print(str(e), file=sys.stderr, flush=True)
+        return stop_exit_code()
     except (ConfigError, CheckpointError, RunDirError, OSError) as e:
         print(f"error: {error_line(e)}", file=sys.stderr)
         return 2

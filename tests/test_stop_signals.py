@@ -307,3 +307,38 @@ def test_grbal_ctrl_c_is_one_line_exit_130_and_resumes(tmp_path):
     done = subprocess.run(again, cwd=ROOT, env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
     assert (out / "results.json").is_file()
+
+
+@pytest.mark.slow  # (~60 s: a GrBAL smoke run stopped after its first iteration, then resumed)
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="POSIX process groups")
+def test_grbal_ctrl_c_during_training_saves_the_iteration_and_resumes(tmp_path):
+    """Ctrl-C once GrBAL trains: the iteration under way is finished and saved (it used to be
+    lost back to the last scheduled checkpoint), the line says where, and --resume finishes the
+    run with one metrics row per iteration."""
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "experiments.grbal", "--preset", "smoke", "--iterations", "3"]
+    cmd += ["--no-progress", "--out", str(out)]
+    log = tmp_path / "log"
+    with open(log, "w") as f:
+        proc = subprocess.Popen(
+            cmd, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT, env=_env(), start_new_session=True
+        )
+        cond, t_end = rows_at_least(out, 1), time.monotonic() + 240
+        while not cond():
+            assert proc.poll() is None and time.monotonic() < t_end, log.read_text()[-2000:]
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGINT)
+        rc = proc.wait(timeout=240)
+    text = log.read_text()
+    assert rc == 130, text[-2000:]
+    assert "Traceback" not in text, text[-2000:]
+    last = text.splitlines()[-1]
+    assert last.startswith("interrupted at iteration "), last
+    n = int(last.split("interrupted at iteration ")[1].split(";")[0])
+    assert 1 <= n < 3, last
+    assert len(read_log(out / LOG_FILE)) == n
+    assert (out / "checkpoints" / str(n)).is_dir()
+    done = subprocess.run(cmd + ["--resume"], cwd=ROOT, env=_env(), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert [r["iteration"] for r in read_log(out / LOG_FILE)] == [1, 2, 3]
+    assert (out / "results.json").is_file()

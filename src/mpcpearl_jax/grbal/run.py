@@ -174,9 +174,14 @@ def _check_memory(trainer: GrbalTrainer) -> None:
 
 
 def train_iterations(
-    sess: Session, progress: Callable[[str], None] | None = print, budget_s: float | None = None
+    sess: Session,
+    progress: Callable[[str], None] | None = print,
+    budget_s: float | None = None,
+    handle_sigint: bool = False,
 ) -> GrbalState:
-    """GrBAL's rules on an open session (see `train`)."""
+    """GrBAL's rules on an open session (see `train`). With handle_sigint, a stop signal
+    (Ctrl-C, SIGTERM, SIGHUP) finishes the iteration under way, saves it and raises
+    RunInterrupted (`Session.train`); a second one stops at once."""
     trainer, g, done = sess.trainer, sess.cfg.grbal, sess.done
     t_start = time.perf_counter()
 
@@ -204,6 +209,7 @@ def train_iterations(
         until=until,
         on_row=on_row,
         checkpoint_after=lambda p, _: p.iterations % g.checkpoint_interval == 0,
+        handle_sigint=handle_sigint,
     )
     if sess.progress.iterations < g.iterations and progress is not None:
         progress(

@@ -20,6 +20,7 @@ The whole `GrbalState` is a pytree with a leading seed axis, checkpointed by
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -260,8 +261,12 @@ class GrbalTrainer:
         return state.replace(params=params, opt_state=opt_state, norm=norm, key=keys), losses
 
     # -------------------------------------------------------------- iteration
-    def iteration(self, state: GrbalState) -> tuple[GrbalState, dict]:
-        """One iteration: (random data first), fit the model, collect with the planner."""
+    def iteration(
+        self, state: GrbalState, stop: Callable[[], bool] | None = None
+    ) -> tuple[GrbalState, dict]:
+        """One iteration: (random data first), fit the model, collect with the planner. `stop`
+        (`loop.train_loop`'s stop request) is not polled: a stopped GrBAL run finishes the
+        iteration under way, which the loop then saves."""
         g = self.cfg.grbal
         log: dict[str, Any] = {}
         t0 = time.perf_counter()
