@@ -8,6 +8,7 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import NoReturn
 
 from mpcpearl_jax.config import PRESETS, ExperimentConfig, read_config, resolve
 from mpcpearl_jax.errors import ConfigError
@@ -488,13 +489,8 @@ def main(
         if not out_of_memory(e):
             raise
         return fail(MemoryError(out_of_memory(e)))
-    except KeyboardInterrupt:
-        print("interrupted before training started", file=sys.stderr, flush=True)
-        sys.stdout.flush()
-        # the signal can land inside JAX's compiler, which goes on compiling; tearing the
-        # runtime down under it crashed the process at exit (a segmentation fault after the line
-        # above). The session closed what it had opened: leave without the teardown
-        os._exit(stop_exit_code())
+    except KeyboardInterrupt:  # the session closed what it had opened
+        exit_interrupted("interrupted before training started")
     with sess:  # the run folder stays locked until its last file is written
         if budget:
             from mpcpearl_jax.training.budget import warn_if_busy
@@ -532,6 +528,17 @@ def _train_on_budget(args, sess, label, load_start, t_wall0, clock, fail) -> int
         if not out_of_memory(e):
             raise
         return fail(MemoryError(out_of_memory(e)))
+
+
+def exit_interrupted(line: str) -> NoReturn:
+    """Print `line` to stderr and end the process with `stop_exit_code()`, without the
+    interpreter's teardown: a stop signal can land inside JAX's compiler, which goes on
+    compiling, and tearing the runtime down under it crashed the process at exit (a segmentation
+    fault after the line). The caller has closed what it opened; MPC pool workers end themselves
+    when this process is gone (`mpc.solver.watch_parent`)."""
+    print(line, file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    os._exit(stop_exit_code())
 
 
 DEFAULT_NOTE = (

@@ -36,7 +36,6 @@ results.json.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from dataclasses import asdict
@@ -46,7 +45,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from experiments.common import add_task_source_options, error_line
+from experiments.common import add_task_source_options, error_line, exit_interrupted
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.envs import SPLITS, env_names, make_env, tasks_for
 from mpcpearl_jax.envs.perturb import parse_perturbation, perturb_tasks
@@ -62,7 +61,7 @@ from mpcpearl_jax.evaluation.runners import (
 from mpcpearl_jax.evaluation.scoring import failure_line, failures, per_task_metrics, pooled
 from mpcpearl_jax.mpc.shield import ShieldConfig
 from mpcpearl_jax.training.checkpoint import RUN_RECORDS, write_json
-from mpcpearl_jax.training.stopping import stop_exit_code, stoppable
+from mpcpearl_jax.training.stopping import stoppable
 from mpcpearl_jax.validate import unwritable_folder
 
 CONTROLLERS = ("policy", "gp-mpc", "policy+mpc")
@@ -724,17 +723,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _main(argv)
     except KeyboardInterrupt:
-        print(
+        exit_interrupted(
             "interrupted before the evaluation finished; run the same command again "
-            "(with --overwrite if --out already holds its results.json)",
-            file=sys.stderr,
-            flush=True,
+            "(with --overwrite if --out already holds its results.json)"
         )
-        sys.stdout.flush()
-        # the signal can land inside JAX's compiler, which goes on compiling; tearing the runtime
-        # down under it can crash the process at exit (as in `experiments.common.main`). The MPC
-        # pool's workers end themselves when this process is gone (`mpc.solver.watch_parent`)
-        os._exit(stop_exit_code())
 
 
 def _main(argv: list[str] | None) -> int:

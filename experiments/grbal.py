@@ -17,12 +17,11 @@ Any field of `GrbalConfig` can be changed with --set grbal.FIELD=VALUE, a NavCon
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
 
-from experiments.common import add_run_mode_options, add_task_source_options
+from experiments.common import add_run_mode_options, add_task_source_options, exit_interrupted
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.grbal.config import PRESETS, GrbalExperimentConfig, resolve
 from mpcpearl_jax.training.stopping import stop_exit_code, stoppable
@@ -99,11 +98,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         else:
             line = "interrupted before the run started; the same command starts it again"
-        print(line, file=sys.stderr, flush=True)
-        sys.stdout.flush()
-        # the signal can land inside JAX's compiler, which goes on compiling; tearing the runtime
-        # down under it can crash the process at exit (as in `experiments.common.main`)
-        os._exit(stop_exit_code())
+        exit_interrupted(line)
 
 
 def _main(argv: list[str] | None, run: dict[str, Path]) -> int:

@@ -208,6 +208,29 @@ def test_a_stop_inside_an_iteration_finishes_it_when_abandoning_would_lose_work(
     assert trainer.polled == []
 
 
+def _stopped_after(cmd, delay, sig, log, env, after=None):
+    """Run `cmd` in a process group of its own, send `sig` to the group `delay` seconds after it
+    started (with `after`: after its output first holds that text; it must still run), wait;
+    -> (exit code, its output)."""
+    with open(log, "w") as f:
+        proc = subprocess.Popen(
+            cmd, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True
+        )
+        t_end = time.monotonic() + 120
+        while after is not None and after not in log.read_text():
+            assert proc.poll() is None and time.monotonic() < t_end, log.read_text()[-2000:]
+            time.sleep(0.05)
+        time.sleep(delay)
+        assert proc.poll() is None, log.read_text()[-2000:]
+        os.killpg(proc.pid, sig)
+        rc = proc.wait(timeout=120)
+    return rc, log.read_text()
+
+
+def _no_crash(text):
+    assert "Traceback" not in text and "Fatal Python error" not in text, text[-2000:]
+
+
 @pytest.mark.slow  # (~90 s: eight start-ups)
 @pytest.mark.skipif(not hasattr(os, "killpg"), reason="POSIX process groups")
 def test_ctrl_c_during_start_up_is_one_line_and_exit_130_wherever_it_lands(tmp_path):
@@ -216,23 +239,13 @@ def test_ctrl_c_during_start_up_is_one_line_and_exit_130_wherever_it_lands(tmp_p
     XLA's compiler used to crash the process at exit (SIGSEGV after the line "interrupted before
     training started"). Wherever it lands: exit 130, one line, no traceback, no crash."""
     env = {**_env(), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "cache")}
-    args = ["--preset", "smoke", "--iterations", "50", "--no-progress"]
+    cmd = [sys.executable, "-m", "experiments.restaurant", "--preset", "smoke"]
+    cmd += ["--iterations", "50", "--no-progress"]
     for i, delay in enumerate((3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0)):
-        log = tmp_path / f"log{i}"
-        proc = spawn(
-            [*args, "--out", str(tmp_path / f"r{i}")],
-            log,
-            cli=True,
-            env=env,
-            start_new_session=True,
-        )
-        time.sleep(delay)
-        assert proc.poll() is None, log.read_text()[-2000:]
-        os.killpg(proc.pid, signal.SIGINT)
-        rc = proc.wait(timeout=120)
-        text = log.read_text()
+        out = ["--out", str(tmp_path / f"r{i}")]
+        rc, text = _stopped_after(cmd + out, delay, signal.SIGINT, tmp_path / f"log{i}", env)
         assert rc == 130, (delay, rc, text[-2000:])
-        assert "Traceback" not in text and "Fatal Python error" not in text, text[-2000:]
+        _no_crash(text)
         assert "interrupted" in text.splitlines()[-1], text[-2000:]
 
 
@@ -250,22 +263,9 @@ def test_evaluate_stopped_anywhere_is_one_line_and_exit_128_plus_signal(tmp_path
         log, out = tmp_path / f"log{i}", tmp_path / f"eval{i}"
         cmd = [sys.executable, "-m", "experiments.evaluate", str(run), "--split", "val"]
         cmd += ["--task-seeds", "1", "--figures", "none", "--out", str(out)]
-        with open(log, "w") as f:
-            proc = subprocess.Popen(
-                cmd,
-                cwd=ROOT,
-                stdout=f,
-                stderr=subprocess.STDOUT,
-                env=env,
-                start_new_session=True,
-            )
-            time.sleep(delay)
-            assert proc.poll() is None, log.read_text()[-2000:]
-            os.killpg(proc.pid, sig)
-            rc = proc.wait(timeout=120)
-        text = log.read_text()
+        rc, text = _stopped_after(cmd, delay, sig, log, env)
         assert rc == 128 + int(sig), (delay, rc, text[-2000:])
-        assert "Traceback" not in text and "Fatal Python error" not in text, text[-2000:]
+        _no_crash(text)
         assert text.splitlines()[-1].startswith("interrupted before the evaluation finished")
         assert not (out / "results.json").exists()
 
@@ -276,29 +276,19 @@ def test_grbal_ctrl_c_is_one_line_exit_130_and_resumes(tmp_path):
     """`experiments.grbal` stopped by Ctrl-C during its start-up (cold compilation cache): it
     used to print a KeyboardInterrupt traceback and could crash at exit (SIGSEGV). Now: one line,
     exit 130, the run folder released, and the command the line names finishes the run: the same
-    command before the run's config is written, with --resume after."""
+    command before the run's config is written, with --resume after. The delays count from the
+    command's first line: a signal during its module imports, before `main` runs, is Python's own
+    KeyboardInterrupt."""
     env = {**_env(), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "cache")}
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "experiments.grbal", "--preset", "smoke", "--iterations", "2"]
     cmd += ["--no-progress", "--out", str(out)]
     for i, delay in enumerate((3.0, 6.0)):
+        go_on = ["--resume"] if (out / "config.json").is_file() else []
         log = tmp_path / f"log{i}"
-        with open(log, "w") as f:
-            proc = subprocess.Popen(
-                cmd + (["--resume"] if (out / "config.json").is_file() else []),
-                cwd=ROOT,
-                stdout=f,
-                stderr=subprocess.STDOUT,
-                env=env,
-                start_new_session=True,
-            )
-            time.sleep(delay)
-            assert proc.poll() is None, log.read_text()[-2000:]
-            os.killpg(proc.pid, signal.SIGINT)
-            rc = proc.wait(timeout=120)
-        text = log.read_text()
+        rc, text = _stopped_after(cmd + go_on, delay, signal.SIGINT, log, env, after="GrBAL")
         assert rc == 130, (delay, rc, text[-2000:])
-        assert "Traceback" not in text and "Fatal Python error" not in text, text[-2000:]
+        _no_crash(text)
         last = text.splitlines()[-1]
         assert last.startswith("interrupted"), text[-2000:]
         resume = "--resume" in last
