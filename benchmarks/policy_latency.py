@@ -34,7 +34,8 @@ def save_untrained_run(run_dir: Path, preset_name: str) -> None:
     from mpcpearl_jax import make_env
     from mpcpearl_jax.config import preset
     from mpcpearl_jax.pearl.networks import Networks
-    from mpcpearl_jax.training.checkpoint import Checkpointer, save_config
+    from mpcpearl_jax.runfolder import save_config
+    from mpcpearl_jax.training.checkpoint import Checkpointer
 
     cfg = preset(preset_name)
     env = make_env(cfg.env)

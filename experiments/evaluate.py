@@ -60,7 +60,7 @@ from mpcpearl_jax.evaluation.runners import (
 )
 from mpcpearl_jax.evaluation.scoring import failure_line, failures, per_task_metrics, pooled
 from mpcpearl_jax.mpc.shield import ShieldConfig
-from mpcpearl_jax.training.checkpoint import RUN_RECORDS, write_json
+from mpcpearl_jax.runfolder import RUN_RECORDS, write_json
 from mpcpearl_jax.training.stopping import stoppable
 from mpcpearl_jax.validate import unwritable_folder
 
@@ -391,7 +391,7 @@ def setup(args: argparse.Namespace) -> Setup:
     from mpcpearl_jax.envs import mpc_defaults
     from mpcpearl_jax.evaluation.report import run_label
     from mpcpearl_jax.grbal.run import is_grbal_run
-    from mpcpearl_jax.training.checkpoint import load_config
+    from mpcpearl_jax.runfolder import load_config
 
     ctrl = args.controller
     cfg = None

@@ -34,7 +34,7 @@ def _json(path: Path) -> dict:
 
 def _load(run: Path) -> tuple[dict, list[dict], dict | None]:
     from mpcpearl_jax.errors import CheckpointError
-    from mpcpearl_jax.training.run import LOG_FILE, read_log
+    from mpcpearl_jax.runfolder import LOG_FILE, read_log
 
     if not run.is_dir():
         raise NotARun(f"{run}: no such run directory")

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from experiments.common import build_config, main, parser
-from mpcpearl_jax.training.run import LOG_FILE, read_log
+from mpcpearl_jax.runfolder import LOG_FILE, read_log
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -184,7 +184,7 @@ def test_runs_of_removed_options_evaluate_but_do_not_resume(tmp_path, folder, op
     from mpcpearl_jax import load_policy
     from mpcpearl_jax.config import REMOVED_OPTIONS, removed_options_on
     from mpcpearl_jax.errors import CheckpointError
-    from mpcpearl_jax.training.checkpoint import load_config
+    from mpcpearl_jax.runfolder import load_config
 
     run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / folder
     raw = json.loads((run / "config.json").read_text())
@@ -279,7 +279,7 @@ def test_removed_training_options_load_named_and_round_trip_off(tmp_path, change
 
     from mpcpearl_jax.config import REMOVED_OPTIONS, removed_options_on
     from mpcpearl_jax.errors import CheckpointError
-    from mpcpearl_jax.training.checkpoint import load_config
+    from mpcpearl_jax.runfolder import load_config
 
     base = preset("default")
     raw = json.loads(base.to_json())

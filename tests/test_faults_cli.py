@@ -13,7 +13,7 @@ from faults_helpers import ROOT, _env, _make_unwritable, _one_line_error, small_
 
 from experiments.common import build_config, main, parser
 from mpcpearl_jax.errors import ConfigError
-from mpcpearl_jax.training.run import LOG_FILE
+from mpcpearl_jax.runfolder import LOG_FILE
 
 
 @pytest.mark.parametrize(

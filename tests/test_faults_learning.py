@@ -24,7 +24,7 @@ from faults_helpers import (
     rows_at_least,
 )
 
-from mpcpearl_jax.training.run import LOG_FILE, read_log
+from mpcpearl_jax.runfolder import LOG_FILE, read_log
 
 
 class _Tick:

@@ -56,7 +56,8 @@ def _nan_policy(run: Path) -> Path:
 
 def test_non_finite_parameters_are_refused_on_save_and_load(tmp_path, ref0, capsys):
     from experiments import evaluate
-    from mpcpearl_jax.training.checkpoint import Checkpointer, save_params
+    from mpcpearl_jax.runfolder import save_params
+    from mpcpearl_jax.training.checkpoint import Checkpointer
 
     run = tmp_path / "run"
     shutil.copytree(ref0, run)
@@ -91,7 +92,7 @@ def test_results_json_never_holds_nan_or_infinity(tmp_path, ref0, capsys):
     """One task: the standard error over tasks is undefined (NaN); results.json says null and
     why, in strict JSON."""
     from experiments import evaluate
-    from mpcpearl_jax.training.checkpoint import strict_json
+    from mpcpearl_jax.runfolder import strict_json
 
     doc = _strict(strict_json({"a": float("nan"), "b": [1.0, float("-inf")], "c": 2}))
     assert doc["a"] is None and doc["b"] == [1.0, None] and doc["c"] == 2

@@ -33,8 +33,9 @@ from faults_helpers import (
 )
 
 from experiments.common import main
+from mpcpearl_jax.runfolder import LOG_FILE, read_log
 from mpcpearl_jax.training.checkpoint import CheckpointError
-from mpcpearl_jax.training.run import LOG_FILE, open_session, read_log, train
+from mpcpearl_jax.training.run import open_session, train
 from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer
 
 

@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 from faults_helpers import _env, _make_unwritable, _one_line_error, learning_args, small_args, spawn
 
-from mpcpearl_jax.training.run import LOG_FILE, RunDirError, check_writable
+from mpcpearl_jax.runfolder import LOG_FILE
+from mpcpearl_jax.training.run import RunDirError, check_writable
 
 
 def test_unwritable_checkpoints_folder_is_reported_before_training(tmp_path):

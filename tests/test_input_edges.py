@@ -116,7 +116,7 @@ def _corridor_run(tmp_path: Path) -> Path:
     """A corridor run's folder with its config.json only (no policy)."""
     import examples.corridor  # noqa: F401  (registers the family)
     from mpcpearl_jax.config import resolve
-    from mpcpearl_jax.training.checkpoint import save_config
+    from mpcpearl_jax.runfolder import save_config
 
     run = tmp_path / "corridor-run"
     run.mkdir()

@@ -10,9 +10,10 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "mpcpearl_jax"
 
 # lowest first; every module of the package is ranked, by its longest listed prefix (a
 # package's name ranks its modules not listed on their own). The packages are the layers:
-# envs < pearl, mpc < collection < config < evaluation < training, grbal < deploy. Collection
-# (episodes with event-triggered MPC infusion) sits below both training and evaluation, which
-# import it downward (the trainer, and the evaluation command's policy with MPC infusion). A
+# envs < pearl, mpc < collection < config < runfolder < evaluation < training, grbal < deploy.
+# Collection (episodes with event-triggered MPC infusion) sits below both training and
+# evaluation, which import it downward (the trainer, and the evaluation command's policy with MPC
+# infusion); the run folder's files (`runfolder`) below every reader of a run folder. A
 # trained run's final evaluation (`evaluation.final`) reads the run folder the run session wrote
 # (its log, its machine), so it ranks above the session.
 LAYERS = [
@@ -21,6 +22,7 @@ LAYERS = [
     ["envs", "pearl", "evaluation.metrics"],
     ["mpc", "collection"],
     ["config", "grbal.config", "grbal.model", "grbal.planner"],
+    ["runfolder"],
     ["evaluation"],
     ["training", "grbal.trainer"],
     ["training.run", "grbal.run", "grbal"],
@@ -90,6 +92,7 @@ def test_collection_sits_below_training_and_evaluation():
 def test_the_knots_of_issue_11_stay_untied():
     text = {m: p.read_text() for m, p in _modules()}
     assert "mpcpearl_jax.envs" not in text["training.checkpoint"]
+    assert "mpcpearl_jax.envs" not in text["runfolder"]
     assert "mpcpearl_jax.envs" not in text["envs.physics"]
     for m in ("config", "pearl.config", "mpc.config", "grbal.config"):
         assert "envs.types import ConfigError" not in text[m], m

@@ -3,6 +3,8 @@ gives the network dimensions, so a sidewalk run loads after its data file is gon
 
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -10,9 +12,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import mpcpearl_jax.runfolder as runfolder
 import mpcpearl_jax.training.checkpoint as checkpoint
 from mpcpearl_jax.deploy.policy import load_policy
-from mpcpearl_jax.training.checkpoint import NETWORK_FILE, CheckpointError, save_network
+from mpcpearl_jax.runfolder import NETWORK_FILE, save_network
+from mpcpearl_jax.training.checkpoint import CheckpointError
 
 ROOT = Path(__file__).resolve().parents[1]
 SIDEWALK_RUN = ROOT / "results" / "sidewalk" / "ablation" / "cpu-10min"  # no network.json
@@ -38,7 +42,19 @@ def _same_policy(a, b) -> None:
 
 
 def test_checkpoint_module_does_not_import_envs():
-    assert "mpcpearl_jax.envs" not in Path(checkpoint.__file__).read_text()
+    for module in (checkpoint, runfolder):
+        assert "mpcpearl_jax.envs" not in Path(module.__file__).read_text()
+
+
+def test_loading_a_policy_needs_no_orbax():
+    """deploy reads a run folder through `runfolder`, not the training package: loading a
+    policy imports no orbax (the checkpoints' library)."""
+    code = (
+        "import sys; import mpcpearl_jax.deploy.policy, mpcpearl_jax.deploy.export; "
+        "print([m for m in sys.modules if m.startswith(('orbax', 'mpcpearl_jax.training'))])"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
 
 
 def test_sidewalk_run_loads_after_its_data_file_is_gone(tmp_path):

@@ -57,7 +57,8 @@ def test_grbal_refuses_a_finished_run_without_overwrite(finished, capsys):
 
 def test_overwrite_replaces_only_what_a_run_writes(finished):
     from mpcpearl_jax.config import preset
-    from mpcpearl_jax.training.run import RUN_RECORDS, open_session
+    from mpcpearl_jax.runfolder import RUN_RECORDS
+    from mpcpearl_jax.training.run import open_session
 
     (finished / "notes.txt").write_text("mine")
     cfg = preset("smoke")

@@ -9,7 +9,8 @@ import pytest
 
 from mpcpearl_jax.config import preset
 from mpcpearl_jax.errors import CheckpointError
-from mpcpearl_jax.training.run import LOG_FILE, open_session
+from mpcpearl_jax.runfolder import LOG_FILE
+from mpcpearl_jax.training.run import open_session
 
 
 def _cfg():
@@ -76,7 +77,7 @@ def test_a_failed_write_before_any_checkpoint_says_what_to_do():
 
 
 def test_a_bad_line_inside_the_log_says_how_to_go_on(tmp_path):
-    from mpcpearl_jax.training.run import read_log
+    from mpcpearl_jax.runfolder import read_log
 
     path = tmp_path / LOG_FILE
     path.write_text('{"iteration": 1}\n{"iteration": 2, "x\n{"iteration": 3}\n')

@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 from faults_helpers import ROOT, _env, _interrupted_at, rows_at_least, small_args, spawn
 
+from mpcpearl_jax.runfolder import LOG_FILE, read_log
 from mpcpearl_jax.training.loop import Progress, train_loop
-from mpcpearl_jax.training.run import LOG_FILE, read_log
 from mpcpearl_jax.training.trainer import IterationAbandoned
 
 

@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     from mpcpearl_jax.evaluation import evaluate as eval_lib
     from mpcpearl_jax.evaluation.evaluate import EVAL_SEED  # the unshielded rows reproduce it
     from mpcpearl_jax.mpc.shield import ShieldConfig
-    from mpcpearl_jax.training.checkpoint import load_config
+    from mpcpearl_jax.runfolder import load_config
 
     policies = [load_policy(r) for r in args.runs]
     env_names = {pol.config.env for pol in policies} | {load_config(args.env_from).env}

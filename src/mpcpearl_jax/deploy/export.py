@@ -36,7 +36,7 @@ from mpcpearl_jax.deploy.policy import load_policy
 from mpcpearl_jax.envs.dynamics import DELTA_MAX
 from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 from mpcpearl_jax.evaluation.report import run_label
-from mpcpearl_jax.training.checkpoint import CONFIG_FILE, POLICY_FILE, RUN_RECORDS, atomic_write
+from mpcpearl_jax.runfolder import CONFIG_FILE, POLICY_FILE, RUN_RECORDS, atomic_write
 from mpcpearl_jax.validate import unwritable_folder
 
 EXPORT_FILE = "policy.export"
@@ -232,7 +232,7 @@ def check_target(out: Path) -> None:
     would replace a run's own record (policy.msgpack, results.json, ...) or any existing file
     that is not an earlier export."""
     for path in (out, sidecar_path(out)):
-        if path.name in RUN_RECORDS:  # a run's own record (training.checkpoint)
+        if path.name in RUN_RECORDS:  # a run's own record (runfolder.RUN_RECORDS)
             raise ExportError(
                 f"{path}: an export may not take the name of a run's own record; choose "
                 "another --out (default RUN/policy.export)"

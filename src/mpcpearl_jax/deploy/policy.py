@@ -1,7 +1,7 @@
 """A trained policy outside training: `load_policy(run_dir)` -> `LoadedPolicy`.
 
 `load_policy` reads a run directory's config.json, network.json and policy.msgpack only
-(`mpcpearl_jax.training.checkpoint` writes them): no environment is built, so a run loads without
+(`mpcpearl_jax.runfolder` names them): no environment is built, so a run loads without
 its
 data file. `LoadedPolicy` acts, infers the latent context z and does both in one call; every
 method is pure and jittable. For a robot's own control loop see `mpcpearl_jax.deploy.adapter`, for a
@@ -24,12 +24,7 @@ from jax import Array
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.pearl.networks import Networks
-from mpcpearl_jax.training.checkpoint import (
-    NETWORK_FILE,
-    POLICY_FILE,
-    load_config,
-    non_finite_leaves,
-)
+from mpcpearl_jax.runfolder import NETWORK_FILE, POLICY_FILE, load_config, non_finite_leaves
 
 
 def _is_traced(x: Any) -> bool:

@@ -17,9 +17,8 @@ import numpy as np
 
 from mpcpearl_jax.distributed import is_primary
 from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
-from mpcpearl_jax.training.checkpoint import write_json
+from mpcpearl_jax.runfolder import LOG_FILE, read_log, write_json
 from mpcpearl_jax.training.machine import machine_info
-from mpcpearl_jax.training.run import LOG_FILE, read_log
 from mpcpearl_jax.training.trainer import Trainer, TrainState
 
 

@@ -1,5 +1,5 @@
 """Run GrBAL: train with checkpoints and a metrics log, evaluate, write figures and the results
-table (the same files as `mpcpearl_jax.training.run`, so `lab.compare` reads both).
+table (the same files as `mpcpearl_jax.runfolder` names, so `lab.compare` reads both).
 
 Used by `python -m experiments.grbal`.
 """
@@ -21,10 +21,10 @@ from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
-from mpcpearl_jax.training.checkpoint import CONFIG_FILE, write_json
+from mpcpearl_jax.runfolder import CONFIG_FILE, LOG_FILE, read_log, write_json
 from mpcpearl_jax.training.loop import Progress
 from mpcpearl_jax.training.resources import check_fits, tree_bytes
-from mpcpearl_jax.training.run import LOG_FILE, Session, open_session, read_log
+from mpcpearl_jax.training.run import Session, open_session
 
 LABEL = "GrBAL"
 # The paper prints no GrBAL numbers (its restaurant bar charts only); its text (Sec. IV-A):
@@ -60,7 +60,7 @@ def load_model(run_dir: Path, data: str | None = None) -> tuple[GrbalTrainer, di
     match the config's model, or holds NaN or inf."""
     from flax import serialization
 
-    from mpcpearl_jax.training.checkpoint import POLICY_FILE, non_finite_leaves
+    from mpcpearl_jax.runfolder import POLICY_FILE, non_finite_leaves
 
     run_dir = Path(run_dir)
     cfg = load_config(run_dir)

@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from mpcpearl_jax.evaluation.report import run_label
-from mpcpearl_jax.training.checkpoint import write_json
+from mpcpearl_jax.runfolder import write_json
 from mpcpearl_jax.training.stopping import stop_exit_code
 
 METRICS = ("SR", "CFR", "TT", "SPL", "MGD", "return")
@@ -250,7 +250,8 @@ def train_for(
     "interrupted", `saved` is the iteration a resume starts from).
     """
     from mpcpearl_jax.errors import TrainingDiverged
-    from mpcpearl_jax.training.run import RunInterrupted, append_log
+    from mpcpearl_jax.runfolder import append_log
+    from mpcpearl_jax.training.run import RunInterrupted
 
     trainer = sess.trainer
     ups = trainer.cfg.train.updates_per_iteration
@@ -320,8 +321,7 @@ def train_for(
 def _restored_points(sess, points_path: Path) -> list[dict[str, Any]]:
     """The eval points up to the restored checkpoint (none for a new run); curve-points.jsonl
     is cut back to them."""
-    from mpcpearl_jax.training.checkpoint import atomic_write
-    from mpcpearl_jax.training.run import read_log
+    from mpcpearl_jax.runfolder import atomic_write, read_log
 
     points = read_log(points_path, sess.done) if sess.done or sess.saved >= 0 else []
     atomic_write(points_path, "".join(json.dumps(p) + "\n" for p in points))
@@ -357,9 +357,9 @@ def train_on_budget(
 
     from mpcpearl_jax.envs import validation_tasks
     from mpcpearl_jax.evaluation.final import final_evaluation
-    from mpcpearl_jax.training.checkpoint import POLICY_FILE, save_config, save_params
+    from mpcpearl_jax.runfolder import LOG_FILE, POLICY_FILE, read_log, save_config, save_params
     from mpcpearl_jax.training.machine import available_cores, machine_info, print_table
-    from mpcpearl_jax.training.run import LOG_FILE, RunInterrupted, policy_params, read_log
+    from mpcpearl_jax.training.run import RunInterrupted, policy_params
 
     budget_s = minutes * 60.0
     every_s = eval_every_minutes(minutes, eval_minutes) * 60.0

@@ -17,10 +17,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import os
 import shutil
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -30,25 +28,29 @@ from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
 from mpcpearl_jax.errors import CheckpointError, RunDirError
 from mpcpearl_jax.pearl.learner import acting_params
-from mpcpearl_jax.training.checkpoint import (
+from mpcpearl_jax.runfolder import (
+    LOG_FILE,
     RUN_RECORDS,
-    Checkpointer,
-    atomic_write,
-    check_resumable,
-    committed_steps,
+    append_log,
     load_config,
-    remove_partial,
-    resume_hint,
+    read_log,
     save_config,
     save_network,
+    warn,
+    write_log,
+)
+from mpcpearl_jax.training.checkpoint import (
+    Checkpointer,
+    check_resumable,
+    committed_steps,
+    remove_partial,
+    resume_hint,
 )
 from mpcpearl_jax.training.loop import Progress, train_loop
 from mpcpearl_jax.training.resources import check_state_fits
 from mpcpearl_jax.training.runlock import RunLock
 from mpcpearl_jax.training.stopping import stop_flag
 from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer, TrainState
-
-LOG_FILE = "metrics.jsonl"
 
 
 class RunInterrupted(Exception):
@@ -61,53 +63,6 @@ class RunInterrupted(Exception):
         extra = f" (iteration(s) {span}, finished after the last checkpoint, are redone)"
         extra = extra if lost else ""
         super().__init__(f"interrupted at iteration {iteration}; continue with --resume{extra}")
-
-
-def _warn(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
-def read_log(path: Path, upto: int = 10**9, report: Callable[[str], None] = _warn) -> list[dict]:
-    """Rows of metrics.jsonl with iteration <= upto. A torn last line (a process killed while
-    appending it) is dropped with a warning naming the file; a bad line elsewhere is an error."""
-    if not path.is_file():
-        return []
-    lines = path.read_bytes().split(b"\n")
-    rows = []
-    for i, raw in enumerate(lines):
-        if not raw.strip():
-            continue
-        try:
-            rows.append(json.loads(raw))
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            if any(x.strip() for x in lines[i + 1 :]):
-                raise CheckpointError(
-                    f"{path}: line {i + 1} is not JSON ({e}); repair or delete that line to "
-                    "resume (that iteration's logged numbers are lost), or start again with "
-                    "--overwrite"
-                ) from e
-            report(f"warning: {path}: dropped a torn last line (line {i + 1}, {len(raw)} bytes)")
-    return [r for r in rows if r.get("iteration", 0) <= upto]
-
-
-def _write_log(path: Path, rows: list[dict]) -> None:
-    atomic_write(path, "".join(json.dumps(r) + "\n" for r in rows))
-
-
-def append_log(path: Path, row: dict) -> None:
-    """Append one line with a single write on an O_APPEND descriptor: a crash leaves at most a
-    torn last line (dropped on resume), never a mixed one."""
-    data = (json.dumps(row) + "\n").encode()
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view) :]
-        finally:
-            os.close(fd)
-    except OSError as e:  # e.g. a full disk: name the file
-        raise OSError(e.errno, e.strerror or str(e), str(path)) from e
 
 
 def write_error(e: OSError, saved: int) -> RunDirError:
@@ -407,7 +362,7 @@ def _open_locked(
     tensorboard: bool,
 ) -> Session:
     for partial in remove_partial(run_dir) if is_primary() else []:  # a save killed midway
-        _warn(f"{partial}: removed an unfinished checkpoint (its save was interrupted)")
+        warn(f"{partial}: removed an unfinished checkpoint (its save was interrupted)")
     if resume:
         field = f"{kind.section}.iterations"
         check_resumable(kind.load_config(run_dir, True), cfg, run_dir, field)
@@ -445,7 +400,7 @@ def _open_locked(
         rows = read_log(run_dir / LOG_FILE, done)
         if is_primary():  # with several processes, process 0 writes the run's files
             save_config(run_dir, cfg)
-            _write_log(run_dir / LOG_FILE, rows)
+            write_log(run_dir / LOG_FILE, rows)
         tb = None
         if tensorboard and is_primary():
             from mpcpearl_jax.training.livelog import TB_DIR, TensorBoardLog
@@ -471,7 +426,7 @@ def check_nothing_lost(run_dir: Path) -> None:
             f"{LOG_FILE} logs {logged} iteration(s) that a restart would erase; start over "
             "without --resume (replacing them) or in another --out"
         )
-    _warn(f"{run_dir}: no checkpoint yet (stopped before its first one); starting at iteration 0")
+    warn(f"{run_dir}: no checkpoint yet (stopped before its first one); starting at iteration 0")
 
 
 def train(
