@@ -133,8 +133,8 @@ def train(
     (results.json, figures and the table in `out`); returns the results. `changes`: config
     fields by dotted name, e.g. {"train.iterations": 2, "train.eps": 0.2}."""
     from mpcpearl_jax.config import resolve
-    from mpcpearl_jax.evaluation.final import final_evaluation
     from mpcpearl_jax.evaluation.report import run_label
+    from mpcpearl_jax.training.final import final_evaluation
     from mpcpearl_jax.training.run import open_session, train_iterations
 
     cfg = resolve(preset, NAME, changes=changes)

@@ -571,7 +571,7 @@ def out_of_memory(e: BaseException) -> str:
 
 def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
     from mpcpearl_jax.errors import CheckpointError, RunDirError, TrainingDiverged
-    from mpcpearl_jax.evaluation.final import final_evaluation
+    from mpcpearl_jax.training.final import final_evaluation
     from mpcpearl_jax.training.run import RunInterrupted, train_iterations
 
     cfg, out, trainer = sess.cfg, sess.run_dir, sess.trainer

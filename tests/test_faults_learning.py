@@ -58,7 +58,7 @@ def test_learning_run_stops_on_ctrl_c_and_resumes_exactly(tmp_path, monkeypatch,
     from experiments.common import main
 
     monkeypatch.setattr(
-        "mpcpearl_jax.evaluation.final.final_evaluation", lambda *a, **k: {}
+        "mpcpearl_jax.training.final.final_evaluation", lambda *a, **k: {}
     )  # not needed
     ref, run = tmp_path / "ref", tmp_path / "run"
     assert main("restaurant", learning_args(ref, 0.1, 0.05), clock=_Tick()) == 0
@@ -104,7 +104,7 @@ def test_learning_run_ctrl_c_then_kill9_then_resume(tmp_path, monkeypatch):
         )
     assert kill_when(proc, rows_at_least(run, n + 2))
     before = read_log(run / "curve-points.jsonl")
-    monkeypatch.setattr("mpcpearl_jax.evaluation.final.final_evaluation", lambda *a, **k: {})
+    monkeypatch.setattr("mpcpearl_jax.training.final.final_evaluation", lambda *a, **k: {})
     # a budget already spent: no further iteration, the last point evaluated, the curve written
     assert main("restaurant", learning_args(run, 0.01, 0.005, "--resume")) == 0
     rows = read_log(run / LOG_FILE)

@@ -13,9 +13,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "mpcpearl_jax"
 # envs < pearl, mpc < collection < config < runfolder < evaluation < training, grbal < deploy.
 # Collection (episodes with event-triggered MPC infusion) sits below both training and
 # evaluation, which import it downward (the trainer, and the evaluation command's policy with MPC
-# infusion); the run folder's files (`runfolder`) below every reader of a run folder. A
-# trained run's final evaluation (`evaluation.final`) reads the run folder the run session wrote
-# (its log, its machine), so it ranks above the session.
+# infusion); the run folder's files (`runfolder`) below every reader of a run folder.
 LAYERS = [
     ["errors", "validate", "distributed"],
     ["envs.types", "envs.dynamics", "envs.physics", "pearl.types", "pearl.config", "mpc.config"],
@@ -26,7 +24,7 @@ LAYERS = [
     ["evaluation"],
     ["training", "grbal.trainer"],
     ["training.run", "grbal.run", "grbal"],
-    ["evaluation.final", "training.budget"],
+    ["training.budget"],
     ["deploy"],
 ]
 RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}
@@ -77,13 +75,9 @@ def test_every_module_is_in_a_layer():
 
 def test_collection_sits_below_training_and_evaluation():
     """Both the trainer and the evaluation command's runners collect episodes through
-    `collection`, downward; no module of the evaluation package imports training, but the final
-    evaluation of a trained run folder, which ranks above the run session."""
+    `collection`, downward; no module of the evaluation package imports training."""
     assert RANK["collection"] < RANK["evaluation"] < RANK["training"]
-    assert RANK["evaluation.final"] > RANK["training.run"]
-    evaluation = [
-        (m, p) for m, p in _modules() if m.split(".")[0] == "evaluation" and m != "evaluation.final"
-    ]
+    evaluation = [(m, p) for m, p in _modules() if m.split(".")[0] == "evaluation"]
     assert evaluation and all(_rank(m) <= RANK["evaluation"] for m, _ in evaluation)
     for m, path in evaluation:
         assert not [i for i in _imports(path) if i.split(".")[0] == "training"], m

@@ -16,8 +16,8 @@ back up):
 - `evaluation`: meta-test rollouts (Algorithm 2), the method's metrics, the controller runners,
   tables and figures;
 - `training`: the trainer (Algorithm 1), the run session (checkpoints, logs, Ctrl-C) and the
-  one training loop; `grbal`: the GrBAL baseline on the same session; `evaluation.final`: a
-  trained run's final evaluation (results.json, figures);
+  one training loop, a trained run's final evaluation (`training.final`: results.json,
+  figures); `grbal`: the GrBAL baseline on the same session;
 - `deploy`: a trained policy in your own code (`load_policy`, `Adapter`, `export_policy`,
   `load_exported`).
 """

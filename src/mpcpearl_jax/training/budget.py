@@ -356,8 +356,8 @@ def train_on_budget(
     import dataclasses
 
     from mpcpearl_jax.envs import validation_tasks
-    from mpcpearl_jax.evaluation.final import final_evaluation
     from mpcpearl_jax.runfolder import LOG_FILE, POLICY_FILE, read_log, save_config, save_params
+    from mpcpearl_jax.training.final import final_evaluation
     from mpcpearl_jax.training.machine import available_cores, machine_info, print_table
     from mpcpearl_jax.training.run import RunInterrupted, policy_params
 

@@ -3,7 +3,7 @@ lock, the restored state, the log cut back to it, progress rebuilt from it, Tens
 `Session.train` trains under a caller's rules and its one callback per row (the one training
 loop, `loop.train_loop`, with logging, Ctrl-C and write errors handled), `Session.close` closes
 it (checkpointer, the MPC bridge's worker pool, TensorBoard, lock). Its users keep only their
-rules: the training command (`train_iterations`, then `evaluation.final.final_evaluation`:
+rules: the training command (`train_iterations`, then `training.final.final_evaluation`:
 results.json, figures and the results table), training on a time budget
 (`training.budget`, `--minutes`) and GrBAL (`grbal.run`, with its own `RunKind`).
 

@@ -2,9 +2,8 @@
 tasks of the run's own task source, written into its folder as results.json, the learning
 curves, trajectory figures and an animated episode, and printed beside the paper's table.
 
-It evaluates a finished run folder (its log, the machine it ran on), so it ranks above the run
-session (`training.run`) in the layering; the evaluation it calls (`evaluate.make_evaluator`
-through the trainer) and the metrics sit below training.
+It is the last step of training: it evaluates through the trainer (`evaluate.make_evaluator`)
+and reads the run folder's log (`runfolder`), both below it.
 """
 
 from __future__ import annotations
