@@ -86,10 +86,10 @@ def compress(probs: list, inits: list, params: dict) -> dict[str, np.ndarray]:
 
 
 def solver_params_of(data) -> object:
-    """The SolverParams stored in a problem file."""
+    """The SolverParams stored in a problem file (fields added since: the MPCConfig default)."""
     from mpcpearl_jax.mpc.solver import SolverParams
 
-    d = json.loads(str(data["params"]))
+    d = {"multi_start": "off", **json.loads(str(data["params"]))}
     d["osqp_settings"] = tuple(tuple(x) for x in d["osqp_settings"])
     return SolverParams(**d)
 

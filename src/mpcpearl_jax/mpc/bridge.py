@@ -468,13 +468,16 @@ class MPCBridge:
         s["host_call_s"].append(host_s)
         s["status"].update(STATUS_NAMES[int(c)] for c in status)
         s["reasons"].update(r.reason for r in results)
+        s["sqp_stops"].update(r.stop for r in results)
+        s["starts"].update(r.start for r in results)
         s["solve_s"].extend(r.solve_time for r in results)
         s["qp_iters"].extend(r.qp_iters for r in results)
         s["n_qp"].extend(r.n_qp for r in results)
 
     def stats(self) -> dict[str, Any]:
         """Counters since the last reset: calls (host callbacks), rows_solved, fallbacks, status
-        and reason counts, per-row solve times (s), QP iterations and QPs per row, host time per
+        and reason counts, how each row's SQP ended (sqp_stops) and which start its plan came
+        from (starts), per-row solve times (s), QP iterations and QPs per row, host time per
         call (s)."""
         s = self._stats
         out = {
@@ -490,6 +493,8 @@ class MPCBridge:
             "rows_solved": 0,
             "status": Counter(),
             "reasons": Counter(),
+            "sqp_stops": Counter(),  # why each row's SQP ended (solver.SQP_STOPS)
+            "starts": Counter(),  # the start each row's plan came from (solver.START_NAMES)
             "solve_s": [],
             "qp_iters": [],
             "n_qp": [],

@@ -12,6 +12,10 @@ GP_MODES = ("fit", "fixed")
 # "osqp": the SQP on OSQP on the host, through a callback (the reference); "device": the same SQP
 # in JAX (`mpcpearl_jax.mpc.device_solver`), inside the jitted step
 SOLVERS = ("osqp", "device")
+# the SQP's extra starts (`solver.starts`): none, only when the first start's plan is unsafe or
+# its QP failed, or always (the safe plan of lowest exact merit is kept)
+MULTI_STARTS = ("off", "on_failure", "always")
+SQP_ITERS_MAX = 1000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +55,9 @@ class MPCConfig:
     # move of a 3 x 3 input grid; a plan whose first move is as safe as the best of that grid is
     # used (reason "least_violation") instead of falling back
     unsafe_recovery: bool = False
+    # extension (off = method §6): also run the SQP from a cold start and from standing still
+    # (MULTI_STARTS), keeping the safe plan of lowest exact merit
+    multi_start: str = "off"
     osqp_eps_abs: float = 1e-3
     osqp_eps_rel: float = 1e-3
     osqp_max_iter: int = 200
@@ -127,6 +134,26 @@ class MPCConfig:
         v.positive(self, "v_max", none_ok=True)
         v.one_of(self, "gp_mode", GP_MODES)
         v.one_of(self, "solver", SOLVERS)
+        v.one_of(self, "multi_start", MULTI_STARTS)
+        v.check(
+            self.sqp_iters <= SQP_ITERS_MAX,
+            self,
+            "sqp_iters",
+            f"must lie in [1, {SQP_ITERS_MAX}], got {self.sqp_iters!r}",
+        )
+        v.check(
+            math.isfinite(self.sqp_step_tol) and self.sqp_step_tol <= self.trust_v,
+            self,
+            "sqp_step_tol",
+            f"must lie in [0, trust_v = {self.trust_v}] (a step is at most the trust region), "
+            f"got {self.sqp_step_tol!r}",
+        )
+        v.check(
+            self.multi_start == "off" or self.solver == "osqp",
+            self,
+            "multi_start",
+            f"needs solver 'osqp' (the device solver has one start), got solver {self.solver!r}",
+        )
         v.check(
             self.num_samples * (1.0 - self.alpha) >= 1.0,
             self,

@@ -42,6 +42,22 @@ _OK_STATUS = (
 )
 
 
+def solve_through_stops(solver: osqp.OSQP, x0: np.ndarray, y0: np.ndarray, rho: float):
+    """`solver.solve()` from the warm start (x0, y0), its result the same whether or not a Ctrl-C
+    (SIGINT) arrives during it. OSQP takes SIGINT with a handler of its own while it solves: it
+    prints "Solver interrupted", returns status OSQP_SIGINT, and Python never sees the signal.
+    Here the signal goes on to Python's handler (a command's stop: the training saves and stops;
+    KeyboardInterrupt; ignored in the MPC's pool workers) and the QP is solved again from the
+    same start and step size rho."""
+    while True:
+        solver.warm_start(x=x0, y=y0)
+        res = solver.solve(raise_error=False)
+        if res.info.status_val != osqp.SolverStatus.OSQP_SIGINT:
+            return res
+        signal.raise_signal(signal.SIGINT)  # Python's handler runs now (it may raise)
+        solver.update_settings(rho=rho)
+
+
 @dataclasses.dataclass(frozen=True)
 class SolverParams:
     """Plain numbers the host solver needs (picklable for worker processes)."""
@@ -70,6 +86,7 @@ class SolverParams:
     cold_speed: float
     unsafe_tol: float
     unsafe_recovery: bool
+    multi_start: str
     osqp_settings: tuple[tuple[str, float | int | bool], ...]
 
 
@@ -113,6 +130,7 @@ def solver_params(cfg: MPCConfig, nav: NavConfig, num_static: int) -> SolverPara
         cold_speed=min(cfg.cold_speed, v_max),
         unsafe_tol=cfg.unsafe_tol,
         unsafe_recovery=cfg.unsafe_recovery,
+        multi_start=cfg.multi_start,
         osqp_settings=osqp_settings,
     )
 
@@ -131,16 +149,28 @@ class RowProblem(NamedTuple):
 
 
 class SolveResult(NamedTuple):
-    """u: [K, 2] physical plan; poses: [K + 1, 3]; ok: the plan is safe to apply."""
+    """u: [K, 2] physical plan; poses: [K + 1, 3]; ok: the plan is safe to apply.
+
+    stop: why the SQP that gave the plan ended (`SQP_STOPS`): "converged" (an accepted step below
+    `sqp_step_tol`), "stalled" (the line search found no decrease), "capped" (`sqp_iters` QPs
+    without either: the plan is the best iterate, the last accepted one) or "qp_failed"."""
 
     u: np.ndarray
     poses: np.ndarray
     ok: bool
-    reason: str  # "solved" | "qp_failed" | "unsafe" | "nonfinite"
+    reason: str  # "solved" | "least_violation" | "qp_failed" | "unsafe" | "nonfinite"
     qp_iters: int
     n_qp: int
     solve_time: float
     merit: float
+    stop: str = "converged"
+    start: str = "warm"  # the start the plan came from (`START_NAMES`)
+
+
+SQP_STOPS = ("converged", "stalled", "capped", "qp_failed")
+# the SQP's starting plans (`multi_start`): the caller's plan (the shifted previous plan, or the
+# cold start where it has none), the cold start, and standing still
+START_NAMES = ("warm", "cold", "stop")
 
 
 class _Layout:
@@ -333,6 +363,22 @@ def cold_start(p: SolverParams, prob: RowProblem) -> np.ndarray:
     return u
 
 
+def stop_start(p: SolverParams) -> np.ndarray:
+    """The standing-still plan [K, 2]: zero speed, straight wheels."""
+    return np.zeros((p.horizon, 2))
+
+
+def starts(
+    p: SolverParams, prob: RowProblem, u_init: np.ndarray | None
+) -> list[tuple[str, np.ndarray]]:
+    """The SQP's starting plans in order: (name, u [K, 2]); the caller's plan first (the cold
+    start if it has none), then the other starts of `START_NAMES`."""
+    cold = cold_start(p, prob)
+    first = [("warm", np.asarray(u_init, float))] if u_init is not None else [("cold", cold)]
+    rest = [("cold", cold)] if u_init is not None else []
+    return first + rest + [("stop", stop_start(p))]
+
+
 class SQPSolver:
     """SQP on OSQP with a fixed sparsity pattern, for problems of one size (K, M, N_adapt, S)."""
 
@@ -406,8 +452,8 @@ class SQPSolver:
             # inputs only (not on which rows this solver met before; exact resume, workers)
             self._osqp.update_settings(rho=self._rho)
             self._osqp.update(q=q, l=lo, u=hi, Ax=values[self._perm])
-        self._osqp.warm_start(x=self._primal_guess(lin, u, xs), y=np.zeros(self.lay.m))
-        res = self._osqp.solve(raise_error=False)
+        guess = self._primal_guess(lin, u, xs)
+        res = solve_through_stops(self._osqp, guess, np.zeros(self.lay.m), self._rho)
         status = res.info.status_val
         if (
             status not in _OK_STATUS
@@ -420,20 +466,35 @@ class SQPSolver:
     def solve(self, prob: RowProblem, u_init: np.ndarray | None = None) -> SolveResult:
         """SQP from the plan u_init [K, 2] (cold start if None); never raises on solver failure.
 
+        With `multi_start` "always" the SQP also runs from the other starts of `starts` (cold,
+        standing still) and the safe plan of lowest exact merit is kept; with "on_failure" the
+        other starts run only when the first plan is not safe. Where no start gives a safe plan,
+        the first start's result stands (and the caller falls back as without multi-start).
+
         With `unsafe_recovery` (extension), a plan whose first stage is unsafe is solved once more
         from the least-violating first move of a 3 x 3 input grid, and a plan whose first move is
         itself the least violating one available is used (reason "least_violation").
         """
         t0 = time.perf_counter()
         p = self.p
-        u = clip_inputs(p, cold_start(p, prob) if u_init is None else np.asarray(u_init, float))
-        u, xs, cur, iters, n_qp, reason = self._sqp(prob, u)
+        plan = starts(p, prob, u_init)
+        name, u0 = plan[0]
+        u, xs, cur, iters, n_qp, reason, stop = self._sqp(prob, clip_inputs(p, u0))
+        if p.multi_start == "always" or (p.multi_start == "on_failure" and reason != "solved"):
+            best = (u, xs, cur, reason, stop, name) if reason == "solved" else None
+            for other, u_other in plan[1:]:
+                u2, xs2, cur2, it2, nq2, reason2, stop2 = self._sqp(prob, clip_inputs(p, u_other))
+                iters, n_qp = iters + it2, n_qp + nq2
+                if reason2 == "solved" and (best is None or cur2 < best[2]):
+                    best = (u2, xs2, cur2, reason2, stop2, other)
+            if best is not None:
+                u, xs, cur, reason, stop, name = best
         if reason == "unsafe" and p.unsafe_recovery:
             best, best_u = self._grid_first_moves(prob, u)
-            u2, xs2, cur2, it2, nq2, reason2 = self._sqp(prob, best_u)
+            u2, xs2, cur2, it2, nq2, reason2, stop2 = self._sqp(prob, best_u)
             iters, n_qp = iters + it2, n_qp + nq2
             if reason2 == "solved":
-                u, xs, cur, reason = u2, xs2, cur2, reason2
+                u, xs, cur, reason, stop = u2, xs2, cur2, reason2, stop2
             else:
                 for cand in ((u, xs, cur), (u2, xs2, cur2)):
                     if np.all(np.isfinite(cand[0])) and self._first_violation(prob, cand[1]) <= (
@@ -443,31 +504,37 @@ class SQPSolver:
                         reason = "least_violation"
                         break
         ok = reason in ("solved", "least_violation")
-        return SolveResult(u, xs, ok, reason, iters, n_qp, time.perf_counter() - t0, cur)
+        elapsed = time.perf_counter() - t0
+        return SolveResult(u, xs, ok, reason, iters, n_qp, elapsed, cur, stop, name)
 
     def _sqp(self, prob: RowProblem, u: np.ndarray):
-        """SQP iterations from u; -> (u, xs, merit, qp iterations, QPs, reason)."""
+        """SQP iterations from u, at most `sqp_iters` QPs; -> (u, xs, merit, qp iterations, QPs,
+        reason, stop). Every accepted step lowers the exact merit, so the plan returned is the
+        best iterate whatever ends the loop (`SolveResult.stop` says what did)."""
         p = self.p
         xs = model.rollout(prob.x0, u, p.dt, p.wheelbase)
         cur = merit(p, prob, u, xs)
-        iters, n_qp, reason = 0, 0, "solved"
+        iters, n_qp, reason, stop = 0, 0, "solved", "capped"
         for _ in range(p.sqp_iters):
             u_qp, status, it = self._solve_qp(prob, u, xs)
             iters, n_qp = iters + it, n_qp + 1
             if u_qp is None:
                 reason = "qp_failed" if n_qp == 1 else reason
+                stop = "qp_failed"
                 break
             step = self._line_search(prob, u, clip_inputs(p, u_qp) - u, cur)
             if step is None:
+                stop = "stalled"
                 break
             u, xs, cur, size = step
             if size < p.sqp_step_tol:
+                stop = "converged"
                 break
         if reason == "solved" and not np.all(np.isfinite(u)):
             reason = "nonfinite"
         if reason == "solved" and not self.first_stage_safe(prob, xs):
             reason = "unsafe"
-        return u, xs, cur, iters, n_qp, reason
+        return u, xs, cur, iters, n_qp, reason, stop
 
     def _first_violation(self, prob: RowProblem, xs: np.ndarray) -> float:
         """The larger first-stage violation of eq. (4c) and eq. (4b) (>= 0)."""
