@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import NoReturn
 
@@ -411,14 +413,10 @@ def main(
     line on stderr, the traceback with --debug), 1 training diverged, 130 Ctrl-C (resumable).
     `clock` times a --minutes budget (tests give a fake one)."""
     args = parse_args(env, argv, command=command, from_config=from_config)
-    from mpcpearl_jax.errors import CheckpointError, RunDirError
     from mpcpearl_jax.training.run import open_session
 
     def fail(e: BaseException, code: int = 2) -> int:
-        if args.debug:
-            raise e
-        print(f"error: {error_line(e)}", file=sys.stderr, flush=True)
-        return code
+        return fail_line(e, code, args.debug)
 
     if _budget_error(args):
         return fail(ValueError(_budget_error(args)))
@@ -434,100 +432,247 @@ def main(
             return fail(e)
         print(cfg.to_json(), flush=True)
         return 0
-    from mpcpearl_jax.distributed import CoordinatorTimeout, initialize
-
     budget = args.minutes is not None
     t_wall0 = time.perf_counter()
     try:  # everything up to training: each check names the field, file or folder
-        # before any JAX work
-        initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
-        family = _family(args.env)
-        cfg = build_config(args, family, **extra)
-        label = args.label or default_label(family, args.preset, args.algo, cfg.train.eps)
-        out = args.out or Path("runs") / label
-        if budget:
-            from mpcpearl_jax.training.budget import eval_every_minutes, load_at_start
+        with one_line_errors(args.debug, interrupted=None) as startup:
+            _initialize(args)  # before any JAX work
+            family = _family(args.env)
+            cfg = build_config(args, family, **extra)
+            label = args.label or default_label(family, args.preset, args.algo, cfg.train.eps)
+            out = args.out or Path("runs") / label
+            _print_start(args, family, cfg, label, out)
+            load_start = None
+            if budget:
+                from mpcpearl_jax.training.budget import load_at_start
 
-            load_start = load_at_start()
-            every = eval_every_minutes(args.minutes, args.eval_minutes)
-            print(
-                f"[{family}] {run_label(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
-                f"budget={args.minutes:g} min, eval every {every:.3g} min "
-                f"({'online' if cfg.online_eval else 'adaptation'} protocol), out={out}"
-                + (" (resumed)" if args.resume else ""),
-                flush=True,
+                load_start = load_at_start()
+            t_wall0 = time.perf_counter()
+            sess = open_session(
+                cfg,
+                out,
+                resume=args.resume,
+                until_budget=budget,
+                tensorboard=args.tensorboard,
+                overwrite=args.overwrite,
             )
-        else:
-            print(
-                f"[{family}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "
-                f"iterations={cfg.train.iterations} out={out}",
-                flush=True,
-            )
-            if (
-                args.preset == "default"
-                and args.config is None
-                and args.iterations is None
-                and not budget
-            ):
-                print(DEFAULT_NOTE, flush=True)  # its figures are for the preset's 75 iterations
-        t_wall0 = time.perf_counter()
-        sess = open_session(
-            cfg,
-            out,
-            resume=args.resume,
-            until_budget=budget,
-            tensorboard=args.tensorboard,
-            overwrite=args.overwrite,
-        )
-    except CoordinatorTimeout as e:  # the runtime's start-up thread would abort the process
-        print(f"error: {e}", file=sys.stderr, flush=True)
-        sys.stdout.flush()
-        os._exit(2)
-    except (ValueError, TypeError, OSError, CheckpointError, RunDirError) as e:
-        return fail(e)
-    except RuntimeError as e:
-        if not out_of_memory(e):
-            raise
-        return fail(MemoryError(out_of_memory(e)))
     except KeyboardInterrupt:  # the session closed what it had opened
         exit_interrupted("interrupted before training started")
+    if startup.code is not None:
+        return startup.code
     with sess:  # the run folder stays locked until its last file is written
         if budget:
             from mpcpearl_jax.training.budget import warn_if_busy
 
             warn_if_busy(load_start)  # measured before the trainer was built
-            return _train_on_budget(args, sess, label, load_start, t_wall0, clock, fail)
-        return _train_and_evaluate(args, sess, fail)
+        return _train(args, sess, label, load_start, t_wall0, clock)
 
 
-def _train_on_budget(args, sess, label, load_start, t_wall0, clock, fail) -> int:
-    """--minutes: `training.budget.train_on_budget`, its errors as one line."""
-    from mpcpearl_jax.errors import CheckpointError, RunDirError
-    from mpcpearl_jax.training.budget import train_on_budget
+def _initialize(args: argparse.Namespace) -> None:
+    """jax.distributed for --coordinator and its options (nothing without them)."""
+    from mpcpearl_jax.distributed import CoordinatorTimeout, initialize
 
     try:
-        return train_on_budget(
+        initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
+    except CoordinatorTimeout as e:  # the runtime's start-up thread would abort the process
+        print(f"error: {e}", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(2)
+
+
+def _print_start(args: argparse.Namespace, family: str, cfg, label: str, out: Path) -> None:
+    """The command's first line: what it trains, how long, into which folder."""
+    if args.minutes is not None:
+        from mpcpearl_jax.training.budget import eval_every_minutes
+
+        every = eval_every_minutes(args.minutes, args.eval_minutes)
+        print(
+            f"[{family}] {run_label(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
+            f"budget={args.minutes:g} min, eval every {every:.3g} min "
+            f"({'online' if cfg.online_eval else 'adaptation'} protocol), out={out}"
+            + (" (resumed)" if args.resume else ""),
+            flush=True,
+        )
+        return
+    print(
+        f"[{family}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "
+        f"iterations={cfg.train.iterations} out={out}",
+        flush=True,
+    )
+    if args.preset == "default" and args.config is None and args.iterations is None:
+        print(DEFAULT_NOTE, flush=True)  # its figures are for the preset's 75 iterations
+
+
+def _train(args: argparse.Namespace, sess, label: str, load_start, t_wall0: float, clock) -> int:
+    """The training command's one path: train the open session in the iterations or the minutes
+    mode, `training.final.finish` (results.json, figures, a minutes run's curve), then print what
+    happened; its errors as one line (`one_line_errors`)."""
+    with one_line_errors(args.debug) as outcome:
+        return _train_and_report(args, sess, label, load_start, t_wall0, clock)
+    return outcome.code
+
+
+def _train_and_report(args, sess, label, load_start, t_wall0, clock) -> int:
+    from mpcpearl_jax.distributed import is_primary
+    from mpcpearl_jax.evaluation.report import results_table
+    from mpcpearl_jax.training.final import finish
+    from mpcpearl_jax.training.run import RunInterrupted
+
+    cfg, out, start, minutes = sess.cfg, sess.run_dir, sess.done, args.minutes
+    build_s = time.perf_counter() - t_wall0  # the trainer and its initial (or restored) state
+    t0 = time.perf_counter()
+    if minutes is None:
+        state, info = _train_iterations(sess, progress=not args.no_progress)
+    else:
+        from mpcpearl_jax.training.budget import train_minutes
+
+        state, info = train_minutes(
             sess,
-            minutes=args.minutes,
+            minutes=minutes,
             eval_minutes=args.eval_minutes,
-            label=label,
-            preset=args.preset,
-            argv=args.argv,
-            resumed=args.resume,
             policy_only=args.policy_only,
-            load_start=load_start,
-            t_wall0=t_wall0,
+            on_point=print_point,
             clock=clock,
         )
-    except (ValueError, CheckpointError, RunDirError, OSError) as e:
-        return fail(e)
-    except KeyboardInterrupt:  # a second Ctrl-C: stopped at once, the last checkpoint stands
-        print("interrupted; continue with --resume", file=sys.stderr, flush=True)
+    train_s = time.perf_counter() - t0
+    stopped = info["stopped"]
+    if stopped.startswith("diverged"):
+        if minutes is None:
+            raise info["error"]
+        print(f"error: {info['error']}", file=sys.stderr, flush=True)  # the curve is still written
+    if minutes is None:
+        if stopped == "done":
+            print(f"trained in {train_s:.1f} s; evaluating", flush=True)
+        try:
+            results = finish(sess, state, info, label=run_label(cfg))
+        except KeyboardInterrupt:
+            print(
+                f"interrupted in the final evaluation; training is saved (iteration "
+                f"{cfg.train.iterations}): evaluate it with --resume",
+                file=sys.stderr,
+                flush=True,
+            )
+            return stop_exit_code()
+    else:
+        curve = dict(preset=args.preset, argv=args.argv, resumed=args.resume)
+        curve.update(load_start=load_start, build_s=build_s, t_wall0=t_wall0)
+        results = finish(sess, state, info, label=label, **curve)
+    if stopped == "interrupted":
+        line = str(RunInterrupted(info["iterations"], info["lost"]))
+        if args.policy_only:
+            saved = info["iterations"]
+            line = f"interrupted at iteration {saved} (--policy-only: no checkpoint to resume from)"
+        print(line, file=sys.stderr, flush=True)
         return stop_exit_code()
+    if results is not None and is_primary():
+        print(results_table(results))
+    if minutes is not None:
+        return _curve_summary(info, label, out)
+    print(trained_line(cfg, train_s, start), flush=True)
+    print(LONGER if cfg.env == "restaurant" else LONGER_ANY, flush=True)
+    print(f"results, curves and figures in {out}", flush=True)
+    return 0
+
+
+def _train_iterations(sess, progress: bool):
+    """`training.run.train_iterations` with the command's stop signals and progress bar."""
+    from mpcpearl_jax.training.run import progress_bar, train_iterations
+
+    bar = progress_bar(sess) if progress else None
+    try:
+        return train_iterations(sess, bar.row if bar is not None else None, handle_sigint=True)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def print_point(p: dict) -> None:
+    """One line per eval point of a minutes run."""
+    print(
+        f"[learning] {p['minutes']:7.2f} min  it {p['iteration']:6d}  grad {p['grad_steps']:8d}"
+        f"  test SR {p['test_SR']:.2f} CFR {p['test_CFR']:.2f} ret {p['test_return']:8.1f}"
+        f"  val SR {p['val_SR']:.2f} CFR {p['val_CFR']:.2f}  (eval {p['eval_s']:.1f} s)",
+        flush=True,
+    )
+
+
+def _curve_summary(info: dict, label: str, out: Path) -> int:
+    """A minutes run's end: the time-to-target table and one line of what it trained; exit 0
+    when the budget was spent, 1 when training diverged or no iteration finished."""
+    from mpcpearl_jax.training.budget import CURVE_FILE, summary_rows
+    from mpcpearl_jax.training.machine import print_table
+
+    record, done = info["curve"], info["iterations"]
+    if done == 0:
+        print(f"error: no iteration finished; {out / CURVE_FILE} written", file=sys.stderr)
+        return 1
+    print_table(
+        summary_rows(record),
+        ["split", "target", "minutes", "grad steps", "iteration"],
+        title=f"{label}: time to target (training minutes, compile included)",
+    )
+    hit = record["time_to"]["train"]["first_success"]
+    first = "never" if hit is None else f"{hit['minutes']:.2f} min"
+    last, tm = info["points"][-1], record["timing"]
+    print(
+        f"trained {info['train_s'] / 60:.2f} min ({done} iterations, {record['grad_steps']} "
+        f"gradient steps, {record['env_steps']} env steps per seed; first iteration incl. "
+        f"compile {info['first_iteration_s']:.1f} s); evaluation {info['eval_s']:.1f} s off the "
+        f"clock; first training success: {first}; final test SR {last['test_SR']:.2f}, val SR "
+        f"{last['val_SR']:.2f}; total wall {tm['total_wall_s']:.1f} s",
+        flush=True,
+    )
+    print(f"curve, policy and results in {out}", flush=True)
+    return 0 if info["stopped"] == "budget" else 1
+
+
+class Outcome:
+    """What `one_line_errors` leaves: the exit code of the error it reported (None: none)."""
+
+    code: int | None = None
+
+
+@contextlib.contextmanager
+def one_line_errors(
+    debug: bool = False, interrupted: str | None = "interrupted; continue with --resume"
+) -> Iterator[Outcome]:
+    """The commands' one error ladder, around their work: each error as one line on stderr
+    (`error_line`; the traceback with `debug`) and its exit code in the yielded `Outcome`: 2 a
+    config, data, checkpoint or run-folder error, an OS error (a file, permissions, a full disk)
+    or XLA's out-of-memory error; 1 training diverged; `stop_exit_code()` a stop signal during
+    training (`RunInterrupted`: its line), or a second one (KeyboardInterrupt: `interrupted`;
+    None lets it through to the caller)."""
+    from mpcpearl_jax.errors import CheckpointError, RunDirError, TrainingDiverged
+    from mpcpearl_jax.training.run import RunInterrupted
+
+    outcome = Outcome()
+    try:
+        yield outcome
+    except RunInterrupted as e:  # the last finished iteration saved
+        print(str(e), file=sys.stderr, flush=True)
+        outcome.code = stop_exit_code()
+    except KeyboardInterrupt:  # a second Ctrl-C: stopped at once, the last checkpoint stands
+        if interrupted is None:
+            raise
+        print(interrupted, file=sys.stderr, flush=True)
+        outcome.code = stop_exit_code()
+    except TrainingDiverged as e:
+        outcome.code = fail_line(e, 1, debug)
+    except (ValueError, TypeError, OSError, CheckpointError, RunDirError) as e:
+        outcome.code = fail_line(e, 2, debug)
     except RuntimeError as e:
         if not out_of_memory(e):
             raise
-        return fail(MemoryError(out_of_memory(e)))
+        outcome.code = fail_line(MemoryError(out_of_memory(e)), 2, debug)
+
+
+def fail_line(e: BaseException, code: int = 2, debug: bool = False) -> int:
+    """Print `e` as one line on stderr (`error_line`) and return `code`; with `debug`, raise it
+    (its traceback)."""
+    if debug:
+        raise e
+    print(f"error: {error_line(e)}", file=sys.stderr, flush=True)
+    return code
 
 
 def exit_interrupted(line: str) -> NoReturn:
@@ -567,49 +712,6 @@ def out_of_memory(e: BaseException) -> str:
         return ""
     first = text.strip().splitlines()[0]
     return f"out of memory ({first}); lower the config's size fields (--set)"
-
-
-def _train_and_evaluate(args: argparse.Namespace, sess, fail) -> int:
-    from mpcpearl_jax.errors import CheckpointError, RunDirError, TrainingDiverged
-    from mpcpearl_jax.training.final import final_evaluation
-    from mpcpearl_jax.training.run import RunInterrupted, train_iterations
-
-    cfg, out, trainer = sess.cfg, sess.run_dir, sess.trainer
-    start, t0 = sess.done, time.perf_counter()
-    try:
-        state = train_iterations(sess, progress=not args.no_progress, handle_sigint=True)
-    except RunInterrupted as e:
-        print(str(e), file=sys.stderr, flush=True)
-        return stop_exit_code()
-    except KeyboardInterrupt:  # a second Ctrl-C: stopped at once, the last checkpoint stands
-        print("interrupted; continue with --resume", file=sys.stderr, flush=True)
-        return stop_exit_code()
-    except (OSError, CheckpointError, RunDirError) as e:
-        return fail(e)
-    except TrainingDiverged as e:
-        return fail(e, 1)
-    except RuntimeError as e:
-        if not out_of_memory(e):
-            raise
-        return fail(MemoryError(out_of_memory(e)))
-    train_s = time.perf_counter() - t0
-    print(f"trained in {train_s:.1f} s; evaluating", flush=True)
-    try:
-        final_evaluation(trainer, state, out, run_label(cfg))
-    except OSError as e:
-        return fail(e)
-    except KeyboardInterrupt:
-        print(
-            f"interrupted in the final evaluation; training is saved (iteration "
-            f"{cfg.train.iterations}): evaluate it with --resume",
-            file=sys.stderr,
-            flush=True,
-        )
-        return stop_exit_code()
-    print(trained_line(cfg, train_s, start), flush=True)
-    print(LONGER if cfg.env == "restaurant" else LONGER_ANY, flush=True)
-    print(f"results, curves and figures in {out}", flush=True)
-    return 0
 
 
 # the recipe of the five-seed comparison (docs/usage.md, "Training longer")

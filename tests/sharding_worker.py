@@ -43,7 +43,7 @@ def main(argv: list[str]) -> int:
     cfg = build_config(args, "restaurant")
     with open_session(cfg, args.out, resume=args.resume) as sess:
         sess_rows, trainer = sess.rows, sess.trainer
-        state = train_iterations(sess, progress=False)
+        state, _ = train_iterations(sess)
     # the first EVAL_TASKS test tasks (seconds instead of a minute on a 2-core CPU)
     tasks = jax.tree_util.tree_map(lambda x: x[:EVAL_TASKS], trainer.test_tasks)
     ev = trainer.evaluate(state, tasks=tasks)

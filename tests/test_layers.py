@@ -25,6 +25,7 @@ LAYERS = [
     ["training", "grbal.trainer"],
     ["training.run", "grbal.run", "grbal"],
     ["training.budget"],
+    ["training.final"],  # the end of either mode and Python's entry, `mpcpearl_jax.train`
     ["deploy"],
 ]
 RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}

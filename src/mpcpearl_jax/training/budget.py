@@ -2,7 +2,7 @@
 minutes of training? (`python -m experiments.restaurant --minutes M [--eval-minutes X]`, and
 the sidewalk's command.)
 
-`train_on_budget` runs the session's trainer (`run.Session.train`) until M minutes of training
+`train_minutes` runs the session's trainer (`run.Session.train`) until M minutes of training
 have passed, counted from the start of the first iteration (its compilation included, and
 reported on its own). Every X minutes of training (default M / 8; at most M / 2) and once more at
 the end the policy is evaluated deterministically on the test tasks (the run's headline
@@ -11,11 +11,11 @@ that is not the test set (`envs.validation_tasks`). The clock stops while evalua
 evaluation seconds are recorded separately. There is also an evaluation of the untrained policy
 at minute 0.
 
-Writes into the run folder: curve.json (config, machine, load average, eval points, time to the
-first success and to SR 0.5 / 0.75 on test and val), curve.png, curve-points.jsonl (the eval
-points so far) beside what every run writes (metrics.jsonl, config.json, the policy and training
-state; `mpcpearl_jax.load_policy(out)` works) and what `run.final_evaluation` writes
-(results.json, learning_curves.png, trajectory figures).
+`write_curve` writes into the run folder (through `training.final.finish`): curve.json (config,
+machine, load average, eval points, time to the first success and to SR 0.5 / 0.75 on test and val),
+curve.png, curve-points.jsonl (the eval points so far) beside what every run writes (metrics.jsonl,
+config.json, the policy and training state; `mpcpearl_jax.load_policy(out)` works) and what
+`final.final_evaluation` writes (results.json, learning_curves.png, trajectory figures).
 
 The training state is checkpointed every `train.checkpoint_interval` iterations and after every
 evaluation, so a crash (kill -9) loses at most the work since then. Ctrl-C (or SIGTERM, SIGHUP)
@@ -41,7 +41,6 @@ from typing import Any
 
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.runfolder import write_json
-from mpcpearl_jax.training.stopping import stop_exit_code
 
 METRICS = ("SR", "CFR", "TT", "SPL", "MGD", "return")
 SPLITS = ("test", "val")
@@ -52,6 +51,7 @@ TARGETS = (
     ("SR_0.5", "SR", 0.5, False),
     ("SR_0.75", "SR", 0.75, False),
 )
+CURVE_FILE = "curve.json"
 POINTS_FILE = "curve-points.jsonl"  # one line per eval point, as metrics.jsonl (for --resume)
 
 
@@ -212,15 +212,6 @@ def env_steps(trainer, iterations: int) -> int:
     return trainer.num_train * tc.initial_episodes * horizon + iterations * per_iter
 
 
-def _print_point(p: dict[str, Any]) -> None:
-    print(
-        f"[learning] {p['minutes']:7.2f} min  it {p['iteration']:6d}  grad {p['grad_steps']:8d}"
-        f"  test SR {p['test_SR']:.2f} CFR {p['test_CFR']:.2f} ret {p['test_return']:8.1f}"
-        f"  val SR {p['val_SR']:.2f} CFR {p['val_CFR']:.2f}  (eval {p['eval_s']:.1f} s)",
-        flush=True,
-    )
-
-
 def train_for(
     sess,
     *,
@@ -229,7 +220,7 @@ def train_for(
     val_tasks,
     online: bool = False,
     clock=time.perf_counter,
-    on_point=_print_point,
+    on_point=None,
     save=None,
     checkpoint_every: int = 0,
     handle_sigint: bool = False,
@@ -246,8 +237,9 @@ def train_for(
     (`handle_sigint`). `points` are the eval points of an earlier process, continued from the
     session's restored progress. Returns (state, eval points, info) with info = {iterations,
     saved, train_s, eval_s, first_iteration_s, stopped}; stopped is "budget", "interrupted" or
-    "diverged: ..." (then `state` is None: the failed or abandoned iteration consumed it; after
-    "interrupted", `saved` is the iteration a resume starts from).
+    "diverged: ..." (then `state` is None: the failed or abandoned iteration consumed it, and
+    info["error"] is the exception; after "interrupted", `saved` is the iteration a resume starts
+    from). `on_point(point)` sees each eval point as it is made (the command prints it).
     """
     from mpcpearl_jax.errors import TrainingDiverged
     from mpcpearl_jax.runfolder import append_log
@@ -305,10 +297,9 @@ def train_for(
         if points[-1]["iteration"] != progress.iterations:  # resumed at the end of the budget
             evaluate(state, progress)
     except TrainingDiverged as e:
-        info["stopped"], state = f"diverged: {e}", None
-        print(f"error: {e}", file=sys.stderr, flush=True)
-    except RunInterrupted:  # Ctrl-C: saved at `progress.saved`
-        info["stopped"], state = "interrupted", None
+        info["stopped"], info["error"], state = f"diverged: {e}", e, None
+    except RunInterrupted as e:  # Ctrl-C: saved at `progress.saved`
+        info["stopped"], info["error"], state = "interrupted", e, None
     info.update(
         iterations=progress.iterations,
         saved=progress.saved,
@@ -328,74 +319,96 @@ def _restored_points(sess, points_path: Path) -> list[dict[str, Any]]:
     return points
 
 
-def train_on_budget(
+def train_minutes(
     sess,
     *,
     minutes: float,
     eval_minutes: float | None = None,
-    label: str,
-    preset: str,
-    argv: Sequence[str] = (),
-    resumed: bool = False,
     policy_only: bool = False,
-    load_start: list[float] | None = None,
-    t_wall0: float | None = None,
+    on_point=None,
     clock=time.perf_counter,
-) -> int:
-    """Train the open run session `sess` (`run.open_session(..., until_budget=True)`) for
-    `minutes` of training with an eval point every `eval_minutes` (`eval_every_minutes`), write
-    curve.json and curve.png, run the final evaluation and print the time-to-target table.
-    `label` names the run in the record and the figures; `preset` and `argv` are recorded;
-    `policy_only` saves policy.msgpack alone (no orbax checkpoint: no resume); `load_start` and
-    `t_wall0` (`time.perf_counter()` before the session was opened) are recorded; `clock` times
-    the training (tests give a fake one).
+) -> tuple[Any, dict[str, Any]]:
+    """The minutes mode: train the open run session `sess` (`run.open_session(...,
+    until_budget=True)`) for `minutes` of training with an eval point every `eval_minutes`
+    (`eval_every_minutes`) on the test and validation tasks; a stop signal saves and stops.
+    `policy_only` saves policy.msgpack alone (no orbax checkpoint: no resume); `on_point` sees
+    each eval point; `clock` times the training (tests give a fake one). Prints nothing.
 
-    Returns the command's exit code: 0 the budget was spent and the run evaluated, 1 training
-    diverged or no iteration finished, 130 interrupted by Ctrl-C (saved; continue with
-    --resume)."""
-    import dataclasses
-
+    Returns (state, info): `train_for`'s info with `iterations` those a resume continues from,
+    `lost` the iterations finished after the last checkpoint of an interrupted run, `points` the
+    curve's eval points up to them, and what `write_curve` records (mode, minutes, every_s,
+    val_tasks, val_set, policy_only). `training.final.finish` writes the results."""
     from mpcpearl_jax.envs import validation_tasks
-    from mpcpearl_jax.runfolder import LOG_FILE, POLICY_FILE, read_log, save_config, save_params
-    from mpcpearl_jax.training.final import final_evaluation
-    from mpcpearl_jax.training.machine import available_cores, machine_info, print_table
-    from mpcpearl_jax.training.run import RunInterrupted, policy_params
+    from mpcpearl_jax.runfolder import POLICY_FILE, save_params
+    from mpcpearl_jax.training.run import policy_params
 
-    budget_s = minutes * 60.0
-    every_s = eval_every_minutes(minutes, eval_minutes) * 60.0
-    t_wall0 = time.perf_counter() if t_wall0 is None else t_wall0
     cfg, trainer, out = sess.cfg, sess.trainer, sess.run_dir
-    online = cfg.online_eval
-    build_s = time.perf_counter() - t_wall0
+    every_s = eval_every_minutes(minutes, eval_minutes) * 60.0
     val_tasks, val_set = validation_tasks(
         cfg, config=trainer.env.config, train_tasks=trainer.train_tasks
     )
-    tc = cfg.train
-    log_path, points_path = out / LOG_FILE, out / POINTS_FILE
+    points_path = out / POINTS_FILE
 
     def save_policy(step: int, state) -> None:  # no orbax checkpoint (no --resume)
         save_params(out / POLICY_FILE, policy_params(state))
 
     state, points, info = train_for(
         sess,
-        budget_s=budget_s,
+        budget_s=minutes * 60.0,
         every_s=every_s,
         val_tasks=val_tasks,
-        online=online,
+        online=cfg.online_eval,
         clock=clock,
+        on_point=on_point,
         # as the training command: orbax checkpoint of the TrainState + policy.msgpack
         save=save_policy if policy_only else sess.save,
-        checkpoint_every=tc.checkpoint_interval,
+        checkpoint_every=cfg.train.checkpoint_interval,
         handle_sigint=True,
         points=_restored_points(sess, points_path),
         points_path=points_path,
     )
-    done, train_s, eval_s = info["iterations"], info["train_s"], info["eval_s"]
-    stopped, first_iteration_s = info["stopped"], info["first_iteration_s"]
-    saved = max(info["saved"], 0)
-    if stopped == "interrupted":  # the curve as a resume will continue it
-        done, points = saved, [p for p in points if p["iteration"] <= saved]
-    load_end = _loadavg()
+    info["lost"] = 0
+    if info["stopped"] == "interrupted":  # the curve as a resume will continue it
+        saved = max(info["saved"], 0)
+        info["lost"] = info["iterations"] - saved
+        info["iterations"], points = saved, [p for p in points if p["iteration"] <= saved]
+    info.update(
+        mode="minutes",
+        minutes=minutes,
+        every_s=every_s,
+        val_tasks=int(val_tasks.start.shape[0]),
+        val_set=val_set,
+        policy_only=policy_only,
+        points=points,
+    )
+    return state, info
+
+
+def write_curve(
+    sess,
+    info: dict[str, Any],
+    *,
+    label: str,
+    preset: str = "",
+    argv: Sequence[str] = (),
+    resumed: bool = False,
+    load_start: list[float] | None = None,
+    build_s: float | None = None,
+) -> dict[str, Any]:
+    """config.json as run (train.iterations: those done, which a --resume continues from),
+    curve.json (the record of `train_minutes`'s `info`: config, machine, load average, eval
+    points, time to the first success and to SR 0.5 / 0.75 on test and val) and curve.png.
+    `label` names the run in the record and the figure; `preset` and `argv` are recorded;
+    `load_start` and `build_s` (the seconds the session took to open: the trainer and its initial
+    or restored state) too.
+    Returns the record."""
+    import dataclasses
+
+    from mpcpearl_jax.runfolder import LOG_FILE, read_log, save_config
+    from mpcpearl_jax.training.machine import available_cores, machine_info
+
+    cfg, trainer, out = sess.cfg, sess.trainer, sess.run_dir
+    done, points, tc = info["iterations"], info["points"], cfg.train
     if done:  # the config as run: iterations = those done (a --resume continues from here)
         cfg = cfg.replace(train=dataclasses.replace(cfg.train, iterations=done))
         trainer.cfg = cfg  # only train.iterations differs, which the trainer never reads
@@ -406,13 +419,13 @@ def train_on_budget(
         "env": cfg.env,
         "preset": preset,
         "argv": list(argv),
-        "budget_minutes": minutes,
-        "eval_every_minutes": every_s / 60.0,
-        "eval_protocol": "online" if online else "adapt",
+        "budget_minutes": info["minutes"],
+        "eval_every_minutes": info["every_s"] / 60.0,
+        "eval_protocol": "online" if cfg.online_eval else "adapt",
         "test_tasks": int(trainer.test_tasks.start.shape[0]),
-        "val_tasks": int(val_tasks.start.shape[0]),
-        "val_set": val_set,
-        "stopped": stopped,
+        "val_tasks": info["val_tasks"],
+        "val_set": info["val_set"],
+        "stopped": info["stopped"],
         "iterations": done,
         "updates_per_iteration": tc.updates_per_iteration,
         "grad_steps": done * tc.updates_per_iteration,
@@ -420,13 +433,13 @@ def train_on_budget(
         "resumed_at_iteration": sess.done if resumed else None,
         "timing": {
             "build_s": build_s,  # the trainer and its initial (or restored) state
-            "first_iteration_s": first_iteration_s,
-            "train_s": train_s,
-            "eval_s": eval_s,
+            "first_iteration_s": info["first_iteration_s"],
+            "train_s": info["train_s"],
+            "eval_s": info["eval_s"],
             "first_eval_s": points[0]["eval_s"],
         },
         "loadavg_start_1m_5m_15m": load_start,
-        "loadavg_end_1m_5m_15m": load_end,
+        "loadavg_end_1m_5m_15m": _loadavg(),
         "load_warning": bool(load_start and load_start[0] > LOAD_WARN),
         "machine": machine_info(),
         "threads": {
@@ -441,50 +454,14 @@ def train_on_budget(
         "time_to": time_to_targets(points),
         "points": points,
     }
-    rows = read_log(log_path)
+    rows = read_log(out / LOG_FILE)
     record["time_to"]["train"] = {
         "first_success": first_train_success(rows, tc.updates_per_iteration)
     }
     steady = [b["train_s"] - a["train_s"] for a, b in zip(rows, rows[1:], strict=False)]
     # compilation ~ first iteration minus a steady one (the first also does the initial collection)
     record["timing"]["iteration_s_median"] = statistics.median(steady) if steady else None
-    curve_path = out / "curve.json"
-    write_json(curve_path, record)
-    plot_curve(points, out / "curve.png", f"{label}: {run_label(cfg)}, {minutes:g} min")
-    if stopped == "interrupted":
-        lost = info["iterations"] - saved
-        line = str(RunInterrupted(saved, lost))
-        if policy_only:
-            line = f"interrupted at iteration {saved} (--policy-only: no checkpoint to resume from)"
-        print(line, file=sys.stderr, flush=True)
-        return stop_exit_code()
-    if done == 0:
-        print(f"error: no iteration finished; {curve_path} written", file=sys.stderr)
-        return 1
-
-    t = time.perf_counter()  # the last checkpoint was saved with the last evaluation
-    if stopped == "budget":
-        final_evaluation(trainer, state, out, label)
-    record["timing"]["final_evaluation_s"] = time.perf_counter() - t
-    record["timing"]["total_wall_s"] = time.perf_counter() - t_wall0
-    write_json(curve_path, record)
-
-    tm = record["timing"]
-    print_table(
-        summary_rows(record),
-        ["split", "target", "minutes", "grad steps", "iteration"],
-        title=f"{label}: time to target (training minutes, compile included)",
-    )
-    hit = record["time_to"]["train"]["first_success"]
-    first = "never" if hit is None else f"{hit['minutes']:.2f} min"
-    print(
-        f"trained {train_s / 60:.2f} min ({done} iterations, {record['grad_steps']} gradient "
-        f"steps, {record['env_steps']} env steps per seed; first iteration incl. compile "
-        f"{first_iteration_s:.1f} s); evaluation {eval_s:.1f} s off the clock; first training "
-        f"success: {first}; "
-        f"final test SR {points[-1]['test_SR']:.2f}, val SR {points[-1]['val_SR']:.2f}; "
-        f"total wall {tm['total_wall_s']:.1f} s",
-        flush=True,
-    )
-    print(f"curve, policy and results in {out}", flush=True)
-    return 0 if stopped == "budget" else 1
+    write_json(out / CURVE_FILE, record)
+    title = f"{label}: {run_label(cfg)}, {info['minutes']:g} min"
+    plot_curve(points, out / "curve.png", title)
+    return record

@@ -1,13 +1,17 @@
-"""The final evaluation of a trained run: the test tasks (adaptation and online) and the OOD
-tasks of the run's own task source, written into its folder as results.json, the learning
-curves, trajectory figures and an animated episode, and printed beside the paper's table.
+"""The end of a training, and Python's one entry to it.
 
-It is the last step of training: it evaluates through the trainer (`evaluate.make_evaluator`)
-and reads the run folder's log (`runfolder`), both below it.
+`train(cfg, out, minutes=None)` opens the run folder, trains in the iterations mode
+(`run.train_iterations`) or the minutes mode (`budget.train_minutes`) and `finish`es: the
+learning curve (a minutes run: curve.json, curve.png), then the final evaluation of the trained
+policy, `final_evaluation`: the test tasks (adaptation and online) and the OOD tasks of the run's
+own task source, written into its folder as results.json, the learning curves, trajectory
+figures and an animated episode. Nothing here prints: the training command prints the results
+table (`evaluation.report.results_table`) and its lines.
 """
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -15,10 +19,63 @@ import jax
 import numpy as np
 
 from mpcpearl_jax.distributed import is_primary
-from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
+from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, run_label
 from mpcpearl_jax.runfolder import LOG_FILE, read_log, write_json
+from mpcpearl_jax.training.budget import CURVE_FILE, train_minutes, write_curve
 from mpcpearl_jax.training.machine import machine_info
+from mpcpearl_jax.training.run import Session, open_session, train_iterations
 from mpcpearl_jax.training.trainer import Trainer, TrainState
+
+
+def train(
+    cfg: Any, out: str | Path, minutes: float | None = None, *, label: str | None = None
+) -> tuple[TrainState, dict[str, Any]]:
+    """Train `cfg` (a config from `config.resolve`) into the new run folder `out`: its
+    `train.iterations` iterations, or `minutes` minutes of training with a learning curve
+    (`budget.train_minutes`); then `finish`. Returns (state, results): the trained state and
+    results.json's content. `label` names the run in its results and figures (default: the
+    method's, e.g. "MPC-PEARL 0.2"). A diverged training raises TrainingDiverged; Ctrl-C stops
+    at the next phase boundary (RunInterrupted, the last finished iteration saved)."""
+    label = label or run_label(cfg)
+    with open_session(cfg, out, until_budget=minutes is not None) as sess:
+        if minutes is None:
+            state, info = train_iterations(sess, handle_sigint=True)
+        else:
+            state, info = train_minutes(sess, minutes=minutes)
+        if "error" in info:
+            raise info["error"]
+        return state, finish(sess, state, info, label=label) or {}
+
+
+def finish(
+    sess: Session,
+    state: Any,
+    info: dict[str, Any],
+    *,
+    label: str,
+    t_wall0: float | None = None,
+    **curve: Any,
+) -> dict[str, Any] | None:
+    """What a training writes once it stops (`info`: the mode's): a minutes run's learning curve
+    (`budget.write_curve`, with `curve`'s fields recorded), then, once training is done (not
+    interrupted, diverged or without an iteration), the final evaluation (`final_evaluation`);
+    the curve records how long that took and, from `t_wall0` (`time.perf_counter()` before the
+    session was opened), the whole run. Returns results.json's content, or None where not
+    evaluated; info["curve"] is the curve's record (minutes mode)."""
+    record = None
+    if info["mode"] == "minutes":
+        record = info["curve"] = write_curve(sess, info, label=label, **curve)
+    if info["stopped"] == "interrupted" or not info["iterations"]:
+        return None
+    t, results = time.perf_counter(), None
+    if info["stopped"] in ("done", "budget"):
+        results = final_evaluation(sess.trainer, state, sess.run_dir, label)
+    if record is not None:
+        record["timing"]["final_evaluation_s"] = time.perf_counter() - t
+        if t_wall0 is not None:
+            record["timing"]["total_wall_s"] = time.perf_counter() - t_wall0
+        write_json(sess.run_dir / CURVE_FILE, record)
+    return results
 
 
 def final_evaluation(
@@ -46,7 +103,6 @@ def final_evaluation(
     if not is_primary():  # every process evaluates its seeds; process 0 writes
         return results
     write_json(run_dir / "results.json", results)
-    print(results_table(results))
     rows = read_log(run_dir / LOG_FILE)  # the saved policy is the last iteration's: marked
     plot_learning_curves([(label, rows)], run_dir / "learning_curves.png", saved_last=True)
     _trajectory_figure(trainer, raw, run_dir)

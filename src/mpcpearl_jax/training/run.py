@@ -445,40 +445,78 @@ def train(
     and raises RunInterrupted. With tensorboard, every metrics row also goes to out/tensorboard
     (`mpcpearl_jax.training.livelog`)."""
     with open_session(cfg, out, resume, tensorboard=tensorboard, overwrite=overwrite) as sess:
-        return sess.trainer, train_iterations(sess, progress, handle_sigint)
+        bar = progress_bar(sess) if progress else None
+        try:
+            state, info = train_iterations(sess, bar.row if bar else None, handle_sigint)
+        finally:
+            if bar is not None:
+                bar.close()
+        if "error" in info:
+            raise info["error"]
+        return sess.trainer, state
 
 
-def train_iterations(sess: Session, progress: bool = True, handle_sigint: bool = False) -> Any:
-    """The training command's rules: `train.iterations` iterations, evaluation on the test tasks
-    every `eval_interval` iterations and at the end, checkpoints every `checkpoint_interval`;
-    a progress bar (tqdm) on process 0."""
+def train_iterations(
+    sess: Session,
+    on_row: Callable[[dict[str, Any]], None] | None = None,
+    handle_sigint: bool = False,
+) -> tuple[Any, dict[str, Any]]:
+    """The iterations mode, the training command's rules: `train.iterations` iterations,
+    evaluation on the test tasks every `eval_interval` iterations and at the end, checkpoints
+    every `checkpoint_interval`; `on_row(row)` sees every row with its evaluation (the command's
+    progress bar, `progress_bar`). Prints nothing.
+
+    Returns (state, info), info = {mode, stopped, iterations, saved, lost, train_s,
+    first_iteration_s}: stopped is "done", "interrupted" (a stop signal, with handle_sigint: the
+    last finished iteration saved) or "diverged: ..."; after those two `state` is None and
+    info["error"] is the exception (`RunInterrupted`, `TrainingDiverged`)."""
+    from mpcpearl_jax.errors import TrainingDiverged
+
     cfg, trainer = sess.cfg, sess.trainer
     tc, total = cfg.train, cfg.train.iterations
-    bar = None
-    if progress and is_primary():
-        bar = ProgressBar(total, sess.done, f"{cfg.env} eps={tc.eps}")
 
-    def on_row(row: dict[str, Any], state: TrainState, p: Progress) -> dict[str, Any] | None:
+    def evaluate(row: dict[str, Any], state: TrainState, p: Progress) -> dict[str, Any] | None:
         fields = None
         if p.last or (tc.eval_interval > 0 and p.iterations % tc.eval_interval == 0):
             t0 = time.perf_counter()
             ev = trainer.evaluate(state, online=cfg.online_eval)
             fields = {f"test_{k}": v for k, v in ev.items() if not k.endswith("_per_seed")}
             fields["eval_s"] = time.perf_counter() - t0
-        if bar is not None:
-            bar.row({**row, **(fields or {})})
+        if on_row is not None:
+            on_row({**row, **(fields or {})})
         return fields
 
+    info: dict[str, Any] = {"mode": "iterations", "stopped": "done", "lost": 0}
     try:
-        return sess.train(
+        state = sess.train(
             until=lambda p: p.iterations >= total,
-            on_row=on_row,
+            on_row=evaluate,
             checkpoint_after=lambda p, _: p.iterations % tc.checkpoint_interval == 0,
             handle_sigint=handle_sigint,
         )
-    finally:
-        if bar is not None:
-            bar.close()
+    except RunInterrupted as e:
+        info.update(stopped="interrupted", error=e, lost=e.lost)
+        state = None
+    except TrainingDiverged as e:
+        info.update(stopped=f"diverged: {e}", error=e)
+        state = None
+    p = sess.progress
+    info.update(
+        # an interrupted run: the iterations a resume continues from
+        iterations=info["error"].iteration if info["stopped"] == "interrupted" else p.iterations,
+        saved=p.saved,
+        train_s=p.train_s,
+        first_iteration_s=p.first_iteration_s,
+    )
+    return state, info
+
+
+def progress_bar(sess: Session) -> ProgressBar | None:
+    """The training command's progress bar for the session's run (process 0 only)."""
+    if not is_primary():
+        return None
+    cfg = sess.cfg
+    return ProgressBar(cfg.train.iterations, sess.done, f"{cfg.env} eps={cfg.train.eps}")
 
 
 class ProgressBar:
