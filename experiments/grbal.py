@@ -24,7 +24,7 @@ from pathlib import Path
 from experiments.common import add_run_mode_options, add_task_source_options, exit_interrupted
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.grbal.config import PRESETS, GrbalExperimentConfig, resolve
-from mpcpearl_jax.training.stopping import stop_exit_code, stoppable
+from mpcpearl_jax.training.stopping import stoppable
 
 
 def parser() -> argparse.ArgumentParser:
@@ -108,10 +108,9 @@ def _main(argv: list[str] | None, run: dict[str, Path]) -> int:
     except (ConfigError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    from experiments.common import error_line, out_of_memory
-    from mpcpearl_jax.errors import CheckpointError, RunDirError
+    from experiments.common import one_line_errors
     from mpcpearl_jax.grbal.run import GRBAL, final_evaluation, train_iterations
-    from mpcpearl_jax.training.run import RunInterrupted, open_session
+    from mpcpearl_jax.training.run import open_session
 
     out = args.out or Path("runs") / f"{args.env}-{args.preset}-grbal"
     run["out"] = Path(out)
@@ -124,23 +123,16 @@ def _main(argv: list[str] | None, run: dict[str, Path]) -> int:
     )
     t0 = time.perf_counter()
     progress = None if args.no_progress else (lambda line: print(line, flush=True))
-    try:  # the run folder stays locked through the final evaluation
+    # errors as one line; a stop signal: the iteration under way finished and saved
+    with one_line_errors(interrupted=None) as outcome:
+        # the run folder stays locked through the final evaluation
         with open_session(cfg, out, args.resume, kind=GRBAL, overwrite=args.overwrite) as sess:
             budget = None if args.minutes is None else 60.0 * args.minutes
             state = train_iterations(sess, progress, budget, handle_sigint=True)
             print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
             final_evaluation(sess.trainer, state, out)
-    except RunInterrupted as e:  # the iteration under way finished and saved
-        print(str(e), file=sys.stderr, flush=True)
-        return stop_exit_code()
-    except (ConfigError, CheckpointError, RunDirError, OSError) as e:
-        print(f"error: {error_line(e)}", file=sys.stderr)
-        return 2
-    except RuntimeError as e:
-        if not out_of_memory(e):
-            raise
-        print(f"error: {out_of_memory(e)}", file=sys.stderr)
-        return 2
+    if outcome.code is not None:
+        return outcome.code
     print(f"results, curves and figures in {out}", flush=True)
     return 0
 
