@@ -130,17 +130,14 @@ def train(
     out: str | Path, preset: str = "smoke", changes: dict[str, Any] | None = None
 ) -> dict[str, Any]:
     """Train MPC-PEARL on the corridor from Python, then evaluate it as the command line does
-    (results.json, figures and the table in `out`); returns the results. `changes`: config
-    fields by dotted name, e.g. {"train.iterations": 2, "train.eps": 0.2}."""
+    (results.json and figures in `out`); returns the results. `changes`: config fields by
+    dotted name, e.g. {"train.iterations": 2, "train.eps": 0.2}."""
+    import mpcpearl_jax
     from mpcpearl_jax.config import resolve
-    from mpcpearl_jax.evaluation.report import run_label
-    from mpcpearl_jax.training.final import final_evaluation
-    from mpcpearl_jax.training.run import open_session, train_iterations
 
-    cfg = resolve(preset, NAME, changes=changes)
-    with open_session(cfg, out) as session:  # checks, the run folder's lock, config.json
-        state = train_iterations(session, progress=False)
-        return final_evaluation(session.trainer, state, out, run_label(cfg))
+    cfg = resolve(preset, NAME, changes=changes)  # checked across fields
+    _, results = mpcpearl_jax.train(cfg, out)
+    return results
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 """mpcpearl_jax: MPC-PEARL (meta-RL with event-triggered risk-aware MPC infusion) in JAX.
 
-Public entry points: `make_env`, `make_tasks` (environments), `load_policy` (a trained policy
-from a run directory), `metrics`; `Adapter`, `Frame`, `Scene`, `observe` (a policy in your own
+Public entry points: `make_env`, `make_tasks` (environments), `train` (a run from a config:
+`train(cfg, out, minutes=None) -> (state, results)`), `load_policy` (a trained policy from a run
+directory), `metrics`; `Adapter`, `Frame`, `Scene`, `observe` (a policy in your own
 control loop, from raw sensor arrays), `export_policy` and `load_exported` (a portable artifact
 run with jax alone).
 
@@ -37,6 +38,7 @@ __all__ = [
     "make_tasks",
     "metrics",
     "observe",
+    "train",
     "__version__",
 ]
 
@@ -52,6 +54,7 @@ _LAZY = {
     "export_policy": "deploy.export",
     "load_exported": "deploy.exported",
     "load_policy": "deploy.policy",
+    "train": "training.final",
 }
 
 
