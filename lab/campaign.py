@@ -186,19 +186,6 @@ def _has_checkpoint(run: CampaignRun) -> bool:
     return ckpts.is_dir() and any(p.name.isdigit() for p in ckpts.iterdir())
 
 
-def _legacy_finished(run: CampaignRun) -> bool:
-    """A work folder trained before the campaign wrote its mark: its record says finished."""
-    record = run.work / run.record
-    if not record.is_file():
-        return False
-    if run.record == "results.json":
-        return True
-    try:
-        return json.loads(record.read_text()).get("stopped") == "budget"
-    except (OSError, json.JSONDecodeError):
-        return False
-
-
 def state_of(run: CampaignRun) -> str:
     """'done', 'finished' (trained, not yet copied), 'resume', or 'new'. A run is finished once
     its training process exited 0 (the campaign's mark, `TRAINED`); a process killed after its
@@ -209,8 +196,6 @@ def state_of(run: CampaignRun) -> str:
         return "finished"
     if _has_checkpoint(run):
         return "resume"
-    if _legacy_finished(run) and not (run.work / TRAINED).exists():
-        return "finished"  # without checkpoints (e.g. --policy-only) it cannot be resumed
     return "new"
 
 

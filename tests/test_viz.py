@@ -7,8 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mpcpearl_jax.envs import make_env, make_tasks
-from mpcpearl_jax.evaluation import viz
+from mpcpearl_jax.envs import drawing, make_env, make_tasks
 
 
 def _episode(env, params, policy_seed):
@@ -35,7 +34,7 @@ def test_restaurant_figure(tmp_path):
     pos_b = np.linspace(np.asarray(params.start[:2]), centre, env.config.horizon + 1)
     col_b = np.linalg.norm(pos_b[1:] - centre, axis=-1) < 0.75
     assert col_b.any()
-    out = viz.save_trajectory_figure(
+    out = drawing.save_trajectory_figure(
         tmp_path / "figs" / "restaurant.png",
         params,
         {"random policy": pos_a, "straight line": pos_b},
@@ -60,14 +59,14 @@ def test_boxes_and_absent_people(tmp_path):
     )
     params = params.replace(static_hi=params.static_hi.at[1].add(jnp.array([1.0, 0.5])))
     path = np.zeros((81, 2))
-    out = viz.save_trajectory_figure(tmp_path / "boxes.png", params, {"still": path})
+    out = drawing.save_trajectory_figure(tmp_path / "boxes.png", params, {"still": path})
     _png_ok(out)
 
 
 def test_bad_inputs():
     tasks = make_tasks("restaurant", "test")
     with pytest.raises(ValueError, match="one task"):
-        viz.plot_episode(tasks, {"a": np.zeros((81, 2))})
+        drawing.plot_episode(tasks, {"a": np.zeros((81, 2))})
     params = jax.tree_util.tree_map(lambda x: x[0], tasks)
     with pytest.raises(ValueError, match="collisions for 'a'"):
-        viz.plot_episode(params, {"a": np.zeros((81, 2))}, {"a": np.zeros(5, bool)})
+        drawing.plot_episode(params, {"a": np.zeros((81, 2))}, {"a": np.zeros(5, bool)})

@@ -156,10 +156,6 @@ class TaskParams:
     goal: Array
 
     @property
-    def static_center(self) -> Array:
-        return 0.5 * (self.static_lo + self.static_hi)
-
-    @property
     def num_tasks(self) -> int:
         """Size of the leading task axis (only for stacked params)."""
         return int(self.start.shape[0]) if self.start.ndim == 2 else 1

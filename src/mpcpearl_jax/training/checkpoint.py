@@ -92,9 +92,6 @@ class Checkpointer:
         )
         self.manager = ocp.CheckpointManager(self.run_dir / "checkpoints", options=options)
 
-    def latest(self) -> int | None:
-        return self.manager.latest_step()
-
     def steps(self) -> list[int]:
         """Committed checkpoint steps, oldest first."""
         return sorted(self.manager.all_steps())
