@@ -427,7 +427,7 @@ def main(
             return fail(LiveLogError(missing()))
     if args.print_config:
         try:
-            cfg = build_config(args, _family(args.env), **extra)
+            cfg = build_config(args, env_family(args.env), **extra)
         except (ValueError, TypeError, OSError) as e:
             return fail(e)
         print(cfg.to_json(), flush=True)
@@ -437,7 +437,7 @@ def main(
     try:  # everything up to training: each check names the field, file or folder
         with one_line_errors(args.debug, interrupted=None) as startup:
             _initialize(args)  # before any JAX work
-            family = _family(args.env)
+            family = env_family(args.env)
             cfg = build_config(args, family, **extra)
             label = args.label or default_label(family, args.preset, args.algo, cfg.train.eps)
             out = args.out or Path("runs") / label
@@ -695,14 +695,15 @@ DEFAULT_NOTE = (
 )
 
 
-def _family(spec: str) -> str:
-    """--env's family (`envs.load_family`), its error naming the flag."""
+def env_family(spec: str, error: type[Exception] = ValueError) -> str:
+    """--env's family: NAME or MODULE:NAME (`envs.load_family`, which imports MODULE to register
+    NAME); its error as `error`, naming the flag."""
     from mpcpearl_jax.envs import load_family
 
     try:
         return load_family(spec)
     except ValueError as e:
-        raise ValueError(f"--env {e}") from None
+        raise error(f"--env {e}") from None
 
 
 def out_of_memory(e: BaseException) -> str:

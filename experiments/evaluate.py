@@ -45,7 +45,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from experiments.common import add_task_source_options, error_line, exit_interrupted
+from experiments.common import add_task_source_options, env_family, error_line, exit_interrupted
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.envs import SPLITS, env_names, make_env, tasks_for
 from mpcpearl_jax.envs.perturb import parse_perturbation, perturb_tasks
@@ -199,16 +199,6 @@ def _parse_ranges(
     if cap is not None and n > cap:
         raise UsageError(f"{what} {text}: {n} {unit}; at most {cap}{hint}")
     return {i for lo, hi in spans for i in range(lo, hi + 1)}
-
-
-def _family(spec: str) -> str:
-    """--env's family: NAME or MODULE:NAME (`envs.load_family`, which imports MODULE)."""
-    from mpcpearl_jax.envs import load_family
-
-    try:
-        return load_family(spec)
-    except ValueError as e:
-        raise UsageError(f"--env {e}") from None
 
 
 def check_eval_seed(seed: int) -> None:
@@ -431,7 +421,7 @@ def setup(args: argparse.Namespace) -> Setup:
             "within the one scored episode: give one of them"
         )
     check_eval_seed(args.eval_seed)
-    family = _family(args.env) if args.env else None  # MODULE:NAME registers NAME
+    family = env_family(args.env, UsageError) if args.env else None  # MODULE:NAME registers NAME
     env_name = cfg.env if cfg else (family or "restaurant")
     if cfg and family and family != cfg.env:
         raise UsageError(f"--env {args.env}: the run {args.run} was trained on {cfg.env}")

@@ -18,9 +18,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from experiments.common import add_task_source_options, error_line
+from experiments.common import add_task_source_options, env_family, error_line
 from mpcpearl_jax.config import ExperimentConfig, apply_overrides, task_source
-from mpcpearl_jax.envs import load_family, make_env, mpc_defaults, tasks_for
+from mpcpearl_jax.envs import make_env, mpc_defaults, tasks_for
 from mpcpearl_jax.evaluation import metrics
 from mpcpearl_jax.evaluation.report import PAPER, metrics_table
 from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     try:
-        args.env = _family(args.env)  # MODULE:NAME registers NAME
+        args.env = env_family(args.env)  # MODULE:NAME registers NAME
         env = make_env(args.env)
         # the family's MPC defaults, then --set (ConfigError naming the field)
         cfg = apply_overrides(MPCConfig(**mpc_defaults(args.env)), args.set)
@@ -105,14 +105,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error_line(e)}", file=sys.stderr)
         return 2
     return 0
-
-
-def _family(spec: str) -> str:
-    """--env's family: NAME or MODULE:NAME (`envs.load_family`), its error naming the flag."""
-    try:
-        return load_family(spec)
-    except ValueError as e:
-        raise ValueError(f"--env {e}") from None
 
 
 def probe_out(out: Path) -> None:

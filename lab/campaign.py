@@ -217,10 +217,10 @@ def built_config(run: CampaignRun):
     argv = list(run.argv)
     try:
         if run.trainer == "learning":
-            from experiments.common import _family, build_config, parse_args
+            from experiments.common import build_config, env_family, parse_args
 
             args = parse_args("restaurant", argv)
-            return build_config(args, _family(args.env))
+            return build_config(args, env_family(args.env))
         if run.trainer == "grbal":
             from experiments import grbal
 
