@@ -12,16 +12,19 @@ JAX computation), so that both libraries get the same number of cores.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
-import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from mpcpearl_jax.training.machine import available_cores, machine_info, print_table  # noqa: F401 (re-exported)
+from mpcpearl_jax.training import machine
+from mpcpearl_jax.training.machine import (  # noqa: F401 (re-exported)
+    available_cores,
+    configure_threads,
+    machine_info,
+    print_table,
+)
 
 DEFAULT_OUT = Path("benchmarks") / "results"
 SIZES = ("tiny", "default", "full")
@@ -50,36 +53,6 @@ def size_of(args: argparse.Namespace) -> str:
 
 
 # -------------------------------------------------------------------------- threads
-def configure_threads(n: int | None) -> dict[str, Any]:
-    """Give JAX (XLA) and PyTorch the same `n` CPU cores; returns what was set, for the record.
-
-    The process is pinned to `n` cores (XLA sizes its intra-op pool from the schedulable cores);
-    with n == 1 XLA's multi-threaded Eigen is also switched off. PyTorch gets
-    `set_num_threads(n)` when it is imported later through `torch_threads`.
-    """
-    n = n or available_cores()
-    info: dict[str, Any] = {"threads": n}
-    if hasattr(os, "getloadavg"):  # other work on the machine skews every timing: record it
-        info["loadavg_at_start_1m_5m_15m"] = list(os.getloadavg())
-    jax_started = "jax" in sys.modules
-    if hasattr(os, "sched_setaffinity"):
-        cores = sorted(os.sched_getaffinity(0))
-        if n > len(cores):
-            raise ValueError(f"--threads {n} but only {len(cores)} cores are available")
-        os.sched_setaffinity(0, cores[:n])
-        info["affinity"] = cores[:n]
-    if n == 1:
-        flags = os.environ.get("XLA_FLAGS", "")
-        extra = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
-        os.environ["XLA_FLAGS"] = (flags + " " + extra).strip()
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = str(n)
-    info["xla_flags"] = os.environ.get("XLA_FLAGS", "")
-    if jax_started:
-        info["note"] = "jax was imported before configure_threads; XLA flags may not apply"
-    return info
-
-
 def torch_threads(n: int) -> dict[str, Any] | None:
     """Import PyTorch with `n` intra-op threads; None when it is not installed."""
     try:
@@ -172,24 +145,6 @@ def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
 def write_record(
     name: str, config: dict[str, Any], results: Any, out_dir: str | Path | None = None
 ) -> Path:
-    """Write {machine, config, results} to OUT/name.json and return the path."""
-    out = Path(out_dir) if out_dir else DEFAULT_OUT
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{name}.json"
-    record = {
-        "benchmark": name,
-        "machine": machine_info(),
-        "config": config,
-        "results": results,
-        "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
-    }
-    path.write_text(json.dumps(record, indent=2, default=_jsonable))
-    print(f"wrote {path}", flush=True)
-    return path
-
-
-def _jsonable(x: Any) -> Any:
-    try:
-        return float(x)
-    except (TypeError, ValueError):
-        return str(x)
+    """Write {machine, config, results} to OUT/name.json (default benchmarks/results) and
+    return the path (`training.machine.write_record`)."""
+    return machine.write_record(name, config, results, out_dir or DEFAULT_OUT)

@@ -30,7 +30,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from benchmarks import harness
+from lab import harness
 from lab.diagnostics.shield import _relative, episode_outcomes, pool
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository

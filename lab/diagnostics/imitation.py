@@ -27,7 +27,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from benchmarks import harness
+from lab import harness
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository
 DEFAULT_RUN = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"

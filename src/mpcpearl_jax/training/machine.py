@@ -1,13 +1,17 @@
 """The machine a run or benchmark ran on (recorded in every curve and benchmark record) and a
 Markdown table printer shared by training on a time budget (`training.budget`) and the benchmark
-scripts."""
+scripts; the cores a benchmark or diagnostic process uses (`configure_threads`) and its JSON
+record (`write_record`)."""
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import sys
+import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 
@@ -68,3 +72,58 @@ def print_table(rows: Sequence[dict[str, Any]], columns: Sequence[str], title: s
     text = "\n".join(lines)
     print(text, flush=True)
     return text
+
+
+def configure_threads(n: int | None) -> dict[str, Any]:
+    """Give JAX (XLA) and PyTorch the same `n` CPU cores; returns what was set, for the record.
+
+    The process is pinned to `n` cores (XLA sizes its intra-op pool from the schedulable cores);
+    with n == 1 XLA's multi-threaded Eigen is also switched off. PyTorch gets
+    `set_num_threads(n)` when it is imported later through `torch_threads`.
+    """
+    n = n or available_cores()
+    info: dict[str, Any] = {"threads": n}
+    if hasattr(os, "getloadavg"):  # other work on the machine skews every timing: record it
+        info["loadavg_at_start_1m_5m_15m"] = list(os.getloadavg())
+    jax_started = "jax" in sys.modules
+    if hasattr(os, "sched_setaffinity"):
+        cores = sorted(os.sched_getaffinity(0))
+        if n > len(cores):
+            raise ValueError(f"--threads {n} but only {len(cores)} cores are available")
+        os.sched_setaffinity(0, cores[:n])
+        info["affinity"] = cores[:n]
+    if n == 1:
+        flags = os.environ.get("XLA_FLAGS", "")
+        extra = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+        os.environ["XLA_FLAGS"] = (flags + " " + extra).strip()
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = str(n)
+    info["xla_flags"] = os.environ.get("XLA_FLAGS", "")
+    if jax_started:
+        info["note"] = "jax was imported before configure_threads; XLA flags may not apply"
+    return info
+
+
+def write_record(name: str, config: dict[str, Any], results: Any, out_dir: str | Path) -> Path:
+    """Write {machine, config, results} of a benchmark or diagnostic to out_dir/name.json and
+    return the path."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{name}.json"
+    record = {
+        "benchmark": name,
+        "machine": machine_info(),
+        "config": config,
+        "results": results,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
+    path.write_text(json.dumps(record, indent=2, default=_jsonable))
+    print(f"wrote {path}", flush=True)
+    return path
+
+
+def _jsonable(x: Any) -> Any:
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return str(x)

@@ -1,0 +1,46 @@
+"""What the lab's diagnostics share (`lab.diagnostics.imitation`, `lab.diagnostics.crowd_cause`):
+their command line (--tiny, --full, --out, --threads), the cores they use and their JSON record
+(`mpcpearl_jax.training.machine`), and a one-off timing."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from mpcpearl_jax.training.machine import (  # noqa: F401 (re-exported)
+    configure_threads,
+    print_table,
+    write_record,
+)
+
+SIZES = ("tiny", "default", "full")
+
+
+def common_parser(description: str) -> argparse.ArgumentParser:
+    """A diagnostic's parser: its size (--tiny for the tests, --full), --out and --threads."""
+    p = argparse.ArgumentParser(description=description)
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--tiny", action="store_true", help="a seconds-long check (the tests)")
+    size.add_argument("--full", action="store_true", help="every task (slow)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("."),
+        help="folder of the JSON record (default: the current one)",
+    )
+    p.add_argument("--threads", type=int, help="CPU cores (default: all this process may use)")
+    return p
+
+
+def size_of(args: argparse.Namespace) -> str:
+    """'tiny', 'default' or 'full' from the parsed flags."""
+    return next(s for s, on in (("tiny", args.tiny), ("full", args.full), ("default", True)) if on)
+
+
+def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
+    """(fn(), seconds) of one call."""
+    start = time.perf_counter()
+    return fn(), time.perf_counter() - start
