@@ -2,9 +2,13 @@
 
     python -m experiments.gp_mpc --env restaurant --split test [--set v_max=5.0 --set alpha=0.95]
     python -m experiments.gp_mpc --scenarios path/to/MPC-PEARL --split test   # the paper's tasks
+    python -m experiments.gp_mpc --scenarios path/to/MPC-PEARL --split train --tasks 0:30
 
 Prints the method §8 metrics next to the paper's numbers, the MPC status counts and solve times, and
-writes a JSON record and a trajectory figure (one task) under --out.
+writes a JSON record and a trajectory figure (one task) under --out. A stop signal (Ctrl-C,
+SIGTERM, SIGHUP) ends it with one line and exit code 128 + the signal, nothing written; the
+rollout of all tasks is one program, so the stop takes effect when it ends (--tasks makes it
+shorter).
 """
 
 from __future__ import annotations
@@ -18,16 +22,55 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from experiments.common import add_task_source_options, env_family, error_line
+from experiments.common import add_task_source_options, env_family, error_line, exit_interrupted
 from mpcpearl_jax.config import ExperimentConfig, apply_overrides, task_source
 from mpcpearl_jax.envs import make_env, mpc_defaults, tasks_for
 from mpcpearl_jax.evaluation import metrics
 from mpcpearl_jax.evaluation.report import PAPER, metrics_table
 from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
+from mpcpearl_jax.training.stopping import stoppable
 from mpcpearl_jax.validate import unwritable_folder
 
 
+@stoppable
 def main(argv: list[str] | None = None) -> int:
+    """The command; a stop signal ends it with one line and exit code 128 + the signal."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        exit_interrupted("interrupted before GP-MPC finished; nothing was written")
+
+
+def select_tasks(tasks, span: str | None, max_tasks: int | None, plot_task: int | None):
+    """The tasks of --tasks START:STOP (the split's tasks START to STOP - 1; either may be left
+    out), then of --max-tasks (the first N of them), and the index among them of --plot-task (a
+    task of the split; default the first selected) -> (tasks, first task's index, plot index);
+    ValueError naming the flag."""
+    n = tasks.num_tasks
+    lo, hi = 0, n
+    if span is not None:
+        start, sep, stop = span.partition(":")
+        try:
+            lo = int(start) if start.strip() else 0
+            hi = int(stop) if stop.strip() else n
+        except ValueError:
+            sep = ""
+        if not sep or lo < 0 or hi <= lo:
+            raise ValueError(f"--tasks {span}: not START:STOP with 0 <= START < STOP (e.g. 0:30)")
+        if lo >= n:
+            raise ValueError(f"--tasks {span}: the {n} tasks of the split are 0 to {n - 1}")
+    if max_tasks is not None:
+        if max_tasks < 1:
+            raise ValueError(f"--max-tasks must be positive, got {max_tasks}")
+        hi = min(hi, lo + max_tasks)
+    hi = min(hi, n)
+    plot = lo if plot_task is None else plot_task
+    if not lo <= plot < hi:
+        raise ValueError(f"--plot-task {plot_task}: not among the tasks run ({lo} to {hi - 1})")
+    return jax.tree_util.tree_map(lambda a: a[lo:hi], tasks), lo, plot - lo
+
+
+def _main(argv: list[str] | None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.gp_mpc", description=__doc__)
     ap.add_argument("--env", default="restaurant")
     ap.add_argument("--split", default="test")
@@ -41,8 +84,20 @@ def main(argv: list[str] | None = None) -> int:
         help="override an MPCConfig field (repeatable; values read by the field's type)",
     )
     ap.add_argument("--out", type=Path, default=Path("runs") / "gp_mpc")
-    ap.add_argument("--plot-task", type=int, default=0)
-    ap.add_argument("--max-tasks", type=int, help="only the first N tasks of the split")
+    ap.add_argument(
+        "--plot-task",
+        type=int,
+        metavar="I",
+        help="the split's task the trajectory figure shows (default: the first one run)",
+    )
+    ap.add_argument(
+        "--max-tasks", type=int, help="only the first N tasks of the split (of --tasks)"
+    )
+    ap.add_argument(
+        "--tasks",
+        metavar="START:STOP",
+        help="only the split's tasks START to STOP - 1, e.g. --tasks 0:30 (default: all)",
+    )
     add_task_source_options(ap)
     args = ap.parse_args(argv)
 
@@ -53,12 +108,11 @@ def main(argv: list[str] | None = None) -> int:
         cfg = apply_overrides(MPCConfig(**mpc_defaults(args.env)), args.set)
         source = task_source(args.env, args.scenarios, data=args.data)
         tasks = tasks_for(ExperimentConfig(env=args.env, **source), args.split, seed=args.seed)
+        tasks, first, plot = select_tasks(tasks, args.tasks, args.max_tasks, args.plot_task)
         probe_out(args.out)  # before the rollout, not after it
     except (ValueError, TypeError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    if args.max_tasks:
-        tasks = jax.tree_util.tree_map(lambda a: a[: args.max_tasks], tasks)
     bridge = make_mpc_bridge(env, cfg)
     t0 = time.perf_counter()
     traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(args.sample_seed), tasks)
@@ -70,7 +124,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     stats = bridge.stats()
     paper = PAPER.get(args.env, {}).get("GP-MPC", {})
-    print(f"GP-MPC on {args.env}/{args.split}: {tasks.num_tasks} tasks, {wall:.1f} s")
+    last = first + tasks.num_tasks - 1
+    print(
+        f"GP-MPC on {args.env}/{args.split}: {tasks.num_tasks} tasks ({first} to {last}), "
+        f"{wall:.1f} s"
+    )
     print(metrics_table([("this run", m), ("paper GP-MPC", paper)]))
     solve_ms = 1e3 * np.asarray(stats["solve_s"])  # per row on the host; none on the device
     med = float(np.median(solve_ms)) if solve_ms.size else None
@@ -82,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     record = {
         "env": args.env,
         "split": args.split,
+        "tasks": [first, last + 1],  # the split's tasks first to last
         "data": str(args.data) if args.data else None,
         "scenarios": source.get("task_options"),
         "seed": None if args.scenarios is not None else args.seed,
@@ -96,11 +155,12 @@ def main(argv: list[str] | None = None) -> int:
         "wall_s": wall,
         "per_task": {k: traj[k].sum(axis=1).tolist() for k in ("collision", "in_goal")},
     }
-    path = args.out / f"{args.env}_{args.split}.json"
+    part = f"_tasks{first}-{last + 1}" if args.tasks else ""
+    path = args.out / f"{args.env}_{args.split}{part}.json"
     try:
         path.write_text(json.dumps(record, indent=2))
         print(f"wrote {path}")
-        _plot(args, env, tasks, traj)
+        _plot(args, env, tasks, traj, plot, first + plot)
     except OSError as e:
         print(f"error: {error_line(e)}", file=sys.stderr)
         return 2
@@ -115,18 +175,18 @@ def probe_out(out: Path) -> None:
         raise OSError(f"--out {out}: not writable ({why}); choose another --out")
 
 
-def _plot(args, env, tasks, traj) -> None:
+def _plot(args, env, tasks, traj, i: int, task: int) -> None:
+    """The trajectory of tasks[i], the split's task `task`."""
     from mpcpearl_jax.envs import save_trajectory
 
-    i = args.plot_task
     params = jax.tree_util.tree_map(lambda a: a[i], tasks)
     png = save_trajectory(
         args.env,
-        args.out / f"{args.env}_{args.split}_task{i}.png",
+        args.out / f"{args.env}_{args.split}_task{task}.png",
         params,
         {"GP-MPC": (traj["position"][i], traj["collision"][i])},
         env.config,
-        title=f"GP-MPC, {args.env} {args.split} task {i}",
+        title=f"GP-MPC, {args.env} {args.split} task {task}",
     )
     print(f"wrote {png}")
 

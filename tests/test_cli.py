@@ -67,3 +67,25 @@ def test_compare_names_the_runs_with_labels(tmp_path, capsys):
     assert compare.main([*runs, "--out", str(out), "--labels", "only one"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--labels" in err and "\n" not in err
+
+
+def test_gp_mpc_tasks_and_max_tasks_are_checked_before_the_rollout(tmp_path, capsys):
+    """--tasks START:STOP, --max-tasks and --plot-task out of range or malformed: one line
+    naming the flag, exit 2, nothing written."""
+    from experiments import gp_mpc
+
+    out = tmp_path / "g"
+    cases = [
+        (["--tasks", "5"], "--tasks 5: not START:STOP"),
+        (["--tasks", "3:3"], "--tasks 3:3: not START:STOP"),
+        (["--tasks", "a:b"], "--tasks a:b: not START:STOP"),
+        (["--tasks=-1:2"], "--tasks -1:2: not START:STOP"),
+        (["--tasks", "30:40"], "--tasks 30:40: the 24 tasks of the split are 0 to 23"),
+        (["--max-tasks", "0"], "--max-tasks must be positive, got 0"),
+        (["--tasks", "0:2", "--plot-task", "5"], "--plot-task 5: not among the tasks run (0 to 1)"),
+    ]
+    for extra, msg in cases:
+        assert gp_mpc.main(["--split", "test", *extra, "--out", str(out)]) == 2, extra
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"error: {msg}") and "\n" not in err, (extra, err)
+    assert not list(out.glob("*.json"))

@@ -251,6 +251,22 @@ def test_gp_mpc_cli_on_scenarios(tmp_path, synthetic, capsys):
     assert "no such directory" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # (~15 s)
+def test_gp_mpc_runs_a_range_of_the_180_training_scenarios(tmp_path, synthetic, capsys):
+    """`experiments.gp_mpc --scenarios DIR --split train --tasks 178:180`: the last two of the
+    180 training scenarios, recorded with their range in a file of their own."""
+    from experiments import gp_mpc
+
+    out = tmp_path / "g"
+    argv = ["--scenarios", str(synthetic), "--split", "train", "--tasks", "178:180"]
+    assert gp_mpc.main([*argv, "--out", str(out)]) == 0
+    assert "2 tasks (178 to 179)" in capsys.readouterr().out
+    rec = json.loads((out / "restaurant_train_tasks178-180.json").read_text())
+    assert rec["split"] == "train" and rec["tasks"] == [178, 180]
+    assert len(rec["per_task"]["in_goal"]) == 2
+    assert (out / "restaurant_train_task178.png").is_file()
+
+
 @pytest.mark.slow  # a training on the authors' scenarios (~60 s); their loading is tested fast
 def test_a_run_trained_on_scenarios_records_its_source_and_evaluates(tmp_path, capsys):
     """One smoke iteration on synthetic scenarios (no OOD file) with the val hold-out: the run
