@@ -6,7 +6,8 @@
 Writes the policy's `act` and the encoder's `infer_z`, serialized with `jax.export`, and a JSON
 sidecar; `mpcpearl_jax.load_exported` (one file: `mpcpearl_jax/deploy/exported.py`, jax only) runs
 them
-without flax or the project's networks. A bad folder or seed index is a one-line error (exit 2).
+without flax or the project's networks. A bad folder or seed index is a one-line error (exit 2);
+a stop signal (Ctrl-C, SIGTERM, SIGHUP) one line and exit code 128 + the signal.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ import json
 import sys
 from pathlib import Path
 
-from experiments.common import error_line
+from experiments.common import error_line, exit_interrupted
+from mpcpearl_jax.training.stopping import stoppable
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -35,7 +37,18 @@ def make_parser() -> argparse.ArgumentParser:
     return p
 
 
+@stoppable
 def main(argv: list[str] | None = None) -> int:
+    """The command; a stop signal ends it with one line and exit code 128 + the signal."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        exit_interrupted(
+            "interrupted before the export was complete; the same command writes it again"
+        )
+
+
+def _main(argv: list[str] | None) -> int:
     args = make_parser().parse_args(argv)
     import jax
 

@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from faults_helpers import ROOT, _env, _interrupted_at, rows_at_least, small_args, spawn
 
@@ -332,3 +333,200 @@ def test_grbal_ctrl_c_during_training_saves_the_iteration_and_resumes(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     assert [r["iteration"] for r in read_log(out / LOG_FILE)] == [1, 2, 3]
     assert (out / "results.json").is_file()
+
+
+_GUARDED = """
+import os, signal, sys, time
+sys.argv[0] = "-m"  # as `python -m PACKAGE.MODULE` runs its package's __init__
+from mpcpearl_jax.training.stopping import guard_program, stoppable
+guard_program()
+if sys.argv[1] == "after":
+    stoppable(lambda: 0)()  # a command that returned: its output is complete
+print("ready", flush=True)
+os.kill(os.getpid(), int(sys.argv[2]))
+time.sleep(30)
+"""
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="POSIX signals")
+def test_a_stop_outside_a_commands_own_handling_is_one_line_and_exit_128_plus_signal(tmp_path):
+    """`guard_program` (run by the experiments, lab and benchmarks packages for `python -m`):
+    a stop signal during a command's imports, or in the interpreter's exit after the command
+    returned (evaluate's SIGTERM just after "wrote results.json" exited 143 without a word),
+    ends the process with one line and exit code 128 + the signal."""
+    script = tmp_path / "guarded.py"
+    script.write_text(_GUARDED)
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    cases = [
+        ("before", signal.SIGINT, "interrupted (Ctrl-C)"),
+        (
+            "after",
+            signal.SIGTERM,
+            "interrupted (SIGTERM) after the command finished (its output is complete)",
+        ),
+        (
+            "after",
+            signal.SIGHUP,
+            "interrupted (SIGHUP) after the command finished (its output is complete)",
+        ),
+    ]
+    for when, sig, line in cases:
+        cmd = [sys.executable, str(script), when, str(int(sig))]
+        done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=60)
+        assert done.returncode == 128 + sig, (when, sig, done.stderr)
+        assert done.stdout == "ready\n" and done.stderr == line + "\n", (when, done.stderr)
+
+
+@pytest.mark.slow  # (~60 s: nine start-ups)
+@pytest.mark.skipif(not hasattr(os, "killpg"), reason="POSIX process groups")
+def test_export_gp_mpc_sidewalk_and_benchmarks_stopped_anywhere_are_one_line(tmp_path):
+    """`experiments.export`, `experiments.gp_mpc`, `experiments.sidewalk` and a benchmark
+    stopped during their imports, while they compile (cold compilation cache) and while they
+    run: Ctrl-C used to print a KeyboardInterrupt traceback (export at 2.5 s) and crash the
+    process at exit (gp_mpc at 10 s: SIGSEGV). Now: one line, exit 128 + the signal, nothing
+    written."""
+    env = {**_env(), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "cache")}
+    run = ROOT / "results" / "restaurant" / "main-default"
+    m = [sys.executable, "-m"]
+    export = [*m, "experiments.export", str(run), "--platforms", "cpu"]
+    gp_mpc = [*m, "experiments.gp_mpc", "--split", "test", "--max-tasks", "4"]
+    sidewalk = [*m, "experiments.sidewalk", "--preset", "smoke", "--no-progress"]
+    bench = [*m, "benchmarks.env_throughput", "--out", str(tmp_path / "bench")]
+    cases = [
+        (export, 0.5, signal.SIGINT),
+        (export, 2.5, signal.SIGINT),
+        (export, 2.0, signal.SIGTERM),
+        (gp_mpc, 0.5, signal.SIGINT),
+        (gp_mpc, 6.0, signal.SIGINT),
+        (gp_mpc, 10.0, signal.SIGTERM),
+        (sidewalk, 0.5, signal.SIGINT),
+        (bench, 0.5, signal.SIGINT),
+        (bench, 6.0, signal.SIGINT),
+    ]
+    for i, (cmd, delay, sig) in enumerate(cases):
+        out = tmp_path / f"out{i}"
+        args = cmd + ["--out", str(out / "policy.export")] if cmd is export else cmd
+        args = args + ["--out", str(out)] if cmd in (gp_mpc, sidewalk) else args
+        rc, text = _stopped_after(args, delay, sig, tmp_path / f"log{i}", env)
+        assert rc == 128 + int(sig), (cmd[2], delay, rc, text[-2000:])
+        _no_crash(text)
+        assert text.splitlines()[-1].startswith("interrupted"), (cmd[2], delay, text[-2000:])
+        assert not list(out.glob("*.json")) and not (out / "policy.export").exists()
+
+
+def test_the_sqp_passes_on_a_ctrl_c_that_osqp_took_and_solves_again(monkeypatch):
+    """OSQP takes SIGINT with a handler of its own while it solves ("Solver interrupted",
+    status OSQP_SIGINT): a Ctrl-C during training printed that line, the training never saw it
+    and ran to its end. The SQP now raises the signal again for Python's handler (here one that
+    records it, as the training's stop flag does) and solves the QP again: the same plan as
+    without the signal."""
+    import types
+
+    import osqp
+
+    from mpcpearl_jax.envs import make_env
+    from mpcpearl_jax.mpc import MPCConfig, RowProblem, SQPSolver, solver_params
+
+    cfg = MPCConfig()
+    p = solver_params(cfg, make_env("restaurant").config, 1)
+    rng = np.random.default_rng(0)
+    samples = 0.3 * rng.standard_normal((cfg.horizon, 2, cfg.num_samples, 2))
+    box = np.array([[3.0, 3.5]])
+    prob = RowProblem(
+        np.array([-3.0, 0.0, 0.0]),
+        np.array([4.0, 0.0]),
+        samples,
+        np.ones(2, bool),
+        box,
+        box,
+        np.ones(1),
+    )
+    clean = SQPSolver(p).solve(prob)
+    solve, taken = osqp.OSQP.solve, []
+
+    def swallowing(self, *a, **kw):  # the first solve is cut short by a Ctrl-C OSQP took
+        if not taken:
+            taken.append(True)
+            info = types.SimpleNamespace(status_val=osqp.SolverStatus.OSQP_SIGINT, iter=1)
+            return types.SimpleNamespace(info=info, x=None)
+        return solve(self, *a, **kw)
+
+    monkeypatch.setattr(osqp.OSQP, "solve", swallowing)
+    got: list[int] = []
+    old = signal.signal(signal.SIGINT, lambda s, f: got.append(s))
+    try:
+        again = SQPSolver(p).solve(prob)
+    finally:
+        signal.signal(signal.SIGINT, old)
+    assert taken and got == [signal.SIGINT]
+    np.testing.assert_array_equal(again.u, clean.u)
+    assert (again.reason, again.qp_iters) == (clean.reason, clean.qp_iters)
+
+
+_OSQP_STOP = """
+import os, signal, subprocess, sys
+import numpy as np, scipy.sparse as sp, osqp
+from mpcpearl_jax.mpc.solver import solve_through_stops
+
+
+def problem():  # a QP OSQP takes about a second or more for
+    n = 3000
+    m = sp.random(n, n, density=0.01, random_state=0)
+    p = (m @ m.T + sp.eye(n)).tocsc()
+    a = sp.vstack([sp.eye(n), sp.random(n, n, density=0.01, random_state=1)]).tocsc()
+    q = np.random.default_rng(0).normal(size=n)
+    s = osqp.OSQP()
+    s.setup(p, q, a, -np.ones(2 * n), np.ones(2 * n), eps_abs=1e-9, eps_rel=1e-9, rho=0.1,
+            adaptive_rho_interval=25, max_iter=100000, verbose=False)
+    return s, np.zeros(n), np.zeros(2 * n)
+
+
+def solve(interrupt):  # -> (status, x, Python's handler raised)
+    s, x0, y0 = problem()
+    if interrupt:  # SIGINT to this process 0.3 s into the solve
+        subprocess.Popen(["sh", "-c", f"sleep 0.3; kill -INT {os.getpid()}"])
+    try:
+        res = solve_through_stops(s, x0, y0, 0.1)
+    except KeyboardInterrupt:
+        return None, None, True
+    return int(res.info.status_val), res.x, False
+
+
+def in_worker():  # as a pool worker (`pool_worker_init`: SIGINT ignored)
+    status, x, raised = solve(True)
+    return status, x.tolist(), raised
+
+
+if __name__ == "__main__":
+    status, clean, _ = solve(False)
+    got = []
+    signal.signal(signal.SIGINT, lambda s, f: got.append(s))  # a stop flag, as the training's
+    st, x, _ = solve(True)
+    print("flag", st == status and np.array_equal(x, clean), got == [signal.SIGINT], flush=True)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    print("raise", solve(True)[2], flush=True)
+    from mpcpearl_jax.mpc.bridge import make_pool
+
+    pool = make_pool(1)
+    st, x, raised = pool.submit(in_worker).result()
+    print("worker", st == status and np.array_equal(x, clean) and not raised, flush=True)
+    pool.shutdown()
+"""
+
+
+@pytest.mark.slow  # (~15 s: five solves of a large QP)
+def test_a_ctrl_c_osqp_takes_during_a_solve_reaches_python_and_the_solve_is_redone(tmp_path):
+    """A real SIGINT during a real OSQP solve (`mpc.solver.solve_through_stops`): in the
+    training process it reaches Python's handler (a stop flag records it; the default handler
+    raises KeyboardInterrupt) and the QP is solved again to the same solution; in an MPC pool
+    worker, which ignores SIGINT, the solution is the same as without the signal."""
+    script = tmp_path / "osqp_stop.py"
+    script.write_text(_OSQP_STOP)
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    done = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=240
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = done.stdout.split("\n")
+    rows = [x for x in lines if x.split(" ")[0] in ("flag", "raise", "worker")]
+    assert rows == ["flag True True", "raise True", "worker True"], done.stdout

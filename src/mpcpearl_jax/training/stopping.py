@@ -6,13 +6,16 @@ signal raises KeyboardInterrupt, as Ctrl-C does, and is recorded, so the command
 `stop_exit_code()` (128 + the signal: 130 for Ctrl-C). While `Session.train` trains, `_stop_flag`
 replaces that: the first signal asks the loop to save and stop (`loop.train_loop`), a second
 one stops at once. The MPC's worker processes leave the process group and ignore these signals
-(`mpc.solver.pool_worker_init`): the training process ends them.
+(`mpc.solver.pool_worker_init`): the training process ends them. Outside a command's own handling
+(its module imports, a command with none, the interpreter's exit after it returned),
+`guard_program` ends the process with one line.
 """
 
 from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import signal
 import sys
 import threading
@@ -32,6 +35,7 @@ STOP_SIGNALS = tuple(
     getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)
 )
 _received: list[int] = []  # the stop signals received inside `stop_signals_interrupt`
+_finished: list[bool] = []  # a `stoppable` command returned (its output is complete)
 
 
 def stop_exit_code() -> int:
@@ -80,9 +84,35 @@ def stoppable(main: Callable[..., int]) -> Callable[..., int]:
     @functools.wraps(main)
     def wrapper(*args: Any, **kwargs: Any) -> int:
         with stop_signals_interrupt():
-            return main(*args, **kwargs)
+            code = main(*args, **kwargs)
+            _finished.append(True)
+            return code
 
     return wrapper
+
+
+def guard_program() -> None:
+    """Called by a package's `__init__` (experiments, lab, benchmarks): when the process runs
+    one of its modules as a program (`python -m PACKAGE.MODULE`, so before the module's own
+    imports, seconds of them with JAX), a stop signal that no handler of the command takes ends
+    the process at once with one line on stderr and exit code 128 + the signal: during the
+    imports, in a command without handling of its own, and in the interpreter's exit after a
+    command returned (then the line says its output is complete). No traceback, and no crash of
+    JAX's runtime torn down under a compilation. A `stoppable` command's own handling replaces
+    it while the command runs."""
+    if sys.argv[:1] != ["-m"] or threading.current_thread() is not threading.main_thread():
+        return
+
+    def handler(signum, frame):
+        _received.append(signum)
+        done = " after the command finished (its output is complete)" if _finished else ""
+        with contextlib.suppress(Exception):  # stdout may be closed, or mid-write
+            sys.stdout.flush()
+        with contextlib.suppress(Exception):
+            print(f"interrupted ({_signal_name(signum)}){done}", file=sys.stderr, flush=True)
+        os._exit(128 + signum)
+
+    _install(handler)
 
 
 @contextlib.contextmanager
