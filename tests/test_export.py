@@ -353,3 +353,28 @@ def test_platforms_are_checked_before_anything_is_written(tmp_path, capsys):
     assert cli.main([str(HEADLINE), "--out", str(out), "--platforms", other]) == 0
     assert f"not for this machine's {jax.default_backend()}" in capsys.readouterr().out
     assert json.loads(sidecar_path(out).read_text())["platforms"] == [other]
+
+
+def test_an_empty_batch_gives_an_empty_batch_of_actions(exported):
+    """`act` takes any batch size, none included: B = 0 gives [0, 2] (it raised JAX's internal
+    "Expected value >= 1 for dimension variable 'b'"), eagerly and jitted."""
+    ex = load_exported(exported)
+    obs, z = np.zeros((0, ex.obs_dim)), np.zeros((0, ex.latent_dim))
+    assert ex.act(obs, z).shape == (0, 2)
+    assert ex.jit()[0](obs, z).shape == (0, 2)
+    assert ex(obs, np.zeros((3, ex.context_dim))).shape == (0, 2)
+
+
+def test_a_sidecar_with_edited_run_hashes_is_refused_away_from_its_run(exported, tmp_path):
+    """An export copied away from its run cannot compare the sidecar's policy_sha256 and
+    config_sha256 with the run's files; the export records them too, so an edited one is a
+    one-line error naming the field (it loaded without a word), as is one that is not hex."""
+    out, side, meta = _copy(exported, tmp_path)
+    load_exported(out)
+    for key in ("policy_sha256", "config_sha256"):
+        side.write_text(json.dumps({**meta, key: "0" * 64}))
+        with pytest.raises(ExportError, match=f"field {key} differs from the one policy.export"):
+            load_exported(out)
+    side.write_text(json.dumps({**meta, "policy_sha256": "z" * 64}))
+    with pytest.raises(ExportError, match="field policy_sha256 must be a SHA-256"):
+        load_exported(out)

@@ -275,13 +275,15 @@ def export_policy(
     check_target(out)
     policy = load_policy(run_dir, seed_index)
     blobs = _serialize(policy, platforms)
+    meta = sidecar(policy, run_dir, seed_index, blobs, platforms)
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
-        manifest = {"format": FORMAT, "format_version": FORMAT_VERSION}
+        # the run files' SHA-256 in the export too: a sidecar edited away from its run is found
+        shas = {k: meta[k] for k in ("policy_sha256", "config_sha256")}
+        manifest = {"format": FORMAT, "format_version": FORMAT_VERSION, **shas}
         _add(z, MANIFEST, json.dumps(manifest, indent=2).encode())
         for name in FUNCTIONS:
             _add(z, f"{name}.jaxexport", blobs[name])
-    meta = sidecar(policy, run_dir, seed_index, blobs, platforms)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write(out, buf.getvalue())
     atomic_write(sidecar_path(out), json.dumps(meta, indent=2) + "\n")

@@ -147,6 +147,8 @@ class ExportedPolicy:
         z = _checked("z", z, f"{list(want)} (the batch shape of obs)", lambda s: s == want)
         if obs.ndim == 1:
             return self._act.call(obs[None], z[None])[0]
+        if obs.shape[0] == 0:  # the exported function's batch dimension starts at 1
+            return jnp.zeros((0, self._act.out_avals[0].shape[-1]), jnp.float32)
         return self._act.call(obs, z)
 
     def infer_z(self, context: Any, mask: Any = None, key: Any = None) -> Any:
@@ -195,7 +197,10 @@ _POSITIVE_INT = (
     lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1,
     "a positive integer",
 )
-_SHA = (lambda v: isinstance(v, str) and len(v) == 64, "a SHA-256 hex string")
+_SHA = (
+    lambda v: isinstance(v, str) and len(v) == 64 and set(v) <= set("0123456789abcdef"),
+    "a SHA-256 hex string",
+)
 SIDECAR_FIELDS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "observation.dim": _POSITIVE_INT,
     "latent_dim": _POSITIVE_INT,
@@ -268,8 +273,14 @@ def load_exported(path: str | Path) -> ExportedPolicy:
     meta = _read_json(side, f"the sidecar of {path.name}")
     check_format(meta, side)
     check_sidecar(meta, side)
+    manifest, blobs = _read_members(path)
+    for key in ("policy_sha256", "config_sha256"):  # the export records them too (not older ones)
+        if key in manifest and meta.get(key) != manifest[key]:
+            raise ExportError(
+                f"{side}: field {key} differs from the one {path.name} records; the sidecar was "
+                "edited or belongs to another export: export again"
+            )
     check_not_stale(meta, path)
-    _, blobs = _read_members(path)
     for name in FUNCTIONS:
         want = meta.get("functions", {}).get(name, {}).get("sha256")
         if want != sha256(blobs[name]):
