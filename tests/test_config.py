@@ -454,3 +454,38 @@ def test_mpc_solver_choice_is_checked_and_old_configs_load():
     old = preset("default").to_dict()  # a config.json written before the option
     del old["mpc"]["solver"], old["mpc"]["device_qp_iters"]
     assert ExperimentConfig.from_dict(old).mpc.solver == "osqp"
+
+
+def test_a_seed_beyond_64_bits_or_negative_is_one_line_before_anything_runs(capsys):
+    """--seed 1180591620717411303424 ended in an OverflowError traceback when the seeds' PRNG keys
+    were made (--print-config accepted it); a negative seed failed later in the host streams of
+    re-drawn crowds. Now both are refused where the config is resolved, --print-config too."""
+    from experiments.common import main
+
+    top = 2**63 - 2
+    cases = [
+        (["--seed", "1180591620717411303424"], "seed: must be at most"),
+        (["--seed", str(top + 1), "--seeds", "2"], f"seed: must be at most {top}"),
+        (["--seed=-1"], "seed: must be a non-negative int"),
+        (["--set", "task_seed=-3"], "task_seed: must be a non-negative int"),
+    ]
+    for extra, msg in cases:
+        for mode in ([], ["--print-config"]):
+            assert main("restaurant", ["--preset", "smoke", *extra, *mode]) == 2, extra
+            err = capsys.readouterr().err.strip()
+            assert err.startswith("error: ") and msg in err and "\n" not in err, err
+    assert ExperimentConfig(seed=2**63 - 1).seed == 2**63 - 1
+
+
+def test_an_unknown_field_in_a_config_file_is_named_as_set_names_it(tmp_path):
+    """A --config file (or a run's config.json) with a field no section has: the words of --set
+    ('TrainConfig has no field(s) ['foo']'), not Python's raw __init__() message."""
+    base = ExperimentConfig().to_dict()
+    cases = [
+        ({**base, "train": {**base["train"], "foo": 1}}, "TrainConfig has no field(s) ['foo']"),
+        ({**base, "pearl": {**base["pearl"], "foo": 1}}, "PearlConfig has no field(s) ['foo']"),
+        ({**base, "bar": 2}, "ExperimentConfig has no field(s) ['bar']"),
+    ]
+    for bad, msg in cases:
+        with pytest.raises(ConfigError, match=re.escape(msg)):
+            ExperimentConfig.from_dict(bad)

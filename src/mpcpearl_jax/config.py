@@ -198,7 +198,11 @@ class ExperimentConfig(SerializableConfig):
             object.__setattr__(self, "mpc", mpc_config(self.mpc))
         v.ints(self, "seeds")
         v.ints(self, "devices", lo=0)
-        v.ints(self, "seed", "task_seed", lo=None)
+        v.ints(self, "seed", "task_seed", lo=0)
+        # the seeds' PRNG keys and host streams take 64-bit seeds: seed s uses seed + s
+        top = 2**63 - self.seeds
+        v.check(self.seed <= top, self, "seed", f"must be at most {top}, got {self.seed}")
+        v.check(self.task_seed < 2**63, self, "task_seed", "must be below 2**63")
         v.instance(self, "env", str, "a task family name")
         v.instance(self, "task_options", dict, "a dict of builder options")
         v.instance(self, "pearl", PearlConfig, "a PearlConfig")
@@ -217,15 +221,15 @@ class ExperimentConfig(SerializableConfig):
         run trained, never the policy's inputs or networks, so the policy still loads and
         evaluates (`removed_options_on` names them; resuming such a run is refused)."""
         d = _without_removed(d)
-        pearl = dict(d.pop("pearl", {}))
+        pearl = dict(known_fields(PearlConfig, d.pop("pearl", {})))
         for f in ("hidden", "encoder_hidden"):
             if f in pearl:
                 pearl[f] = tuple(pearl[f])
         return cls(
             pearl=PearlConfig(**pearl),
-            train=TrainConfig(**d.pop("train", {})),
+            train=TrainConfig(**known_fields(TrainConfig, d.pop("train", {}))),
             mpc=mpc_config(d.pop("mpc", {})),
-            **d,
+            **known_fields(cls, d),
         )
 
 
@@ -363,14 +367,19 @@ def validate(cfg: ExperimentConfig) -> ExperimentConfig:
     return cfg
 
 
+def known_fields(cls: type, fields: dict) -> dict:
+    """`fields`, a dict of the dataclass `cls`'s fields; ConfigError naming any unknown one, in
+    the words of `--set`."""
+    unknown = sorted(set(fields) - {f.name for f in dataclasses.fields(cls)})
+    if unknown:
+        raise ConfigError(f"{cls.__name__} has no field(s) {unknown}")
+    return fields
+
+
 def mpc_config(fields: dict) -> MPCConfig:
     """An MPCConfig from a dict of its fields (the defaults for the others); ConfigError naming
     any unknown field."""
-    known = {f.name for f in dataclasses.fields(MPCConfig)}
-    unknown = sorted(set(fields) - known)
-    if unknown:
-        raise ConfigError(f"MPCConfig has no field(s) {unknown}")
-    return MPCConfig(**fields)
+    return MPCConfig(**known_fields(MPCConfig, fields))
 
 
 # ------------------------------------------------------------------------------ presets
