@@ -89,3 +89,22 @@ def test_gp_mpc_tasks_and_max_tasks_are_checked_before_the_rollout(tmp_path, cap
         err = capsys.readouterr().err.strip()
         assert err.startswith(f"error: {msg}") and "\n" not in err, (extra, err)
     assert not list(out.glob("*.json"))
+
+
+def test_an_out_through_a_file_and_a_data_folder_say_what_is_wrong(tmp_path, capsys):
+    """--out whose path passes through a regular file said "fix its permissions"; --data given a
+    folder said "no such file". Each is now one line that names the real cause."""
+    from experiments.common import main
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    assert main("restaurant", ["--preset", "smoke", "--out", str(afile / "run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"error: {afile / 'run'}: not writable (a file is where a folder should be); choose "
+        "another --out"
+    )
+    assert main("sidewalk", ["--preset", "smoke", "--data", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: --data {tmp_path}: a folder; give a trajectory file in it")
+    assert "\n" not in err

@@ -637,6 +637,11 @@ def task_source(
         except OSError as e:
             raise ConfigError(str(e)) from e
     if data is not None:
+        if Path(data).is_dir():
+            raise ConfigError(
+                f"--data {data}: a folder; give a trajectory file in it (ETH/UCY, e.g. "
+                "crowds_zara01.txt)"
+            )
         if not Path(data).is_file():
             raise ConfigError(f"--data {data}: no such file")
         out["data"] = str(data)

@@ -107,6 +107,15 @@ def unwritable_folder(folder) -> str | None:
     return None
 
 
+def not_writable(path, e: OSError) -> str:
+    """The one-line error of a folder `path` that `e` kept from being written, with the advice
+    its cause calls for."""
+    if isinstance(e, (FileExistsError, NotADirectoryError)):
+        return f"{path}: not writable (a file is where a folder should be); choose another --out"
+    fix = "fix its permissions or " if isinstance(e, PermissionError) else ""
+    return f"{path}: not writable ({e.strerror or type(e).__name__}); {fix}choose another --out"
+
+
 __all__ = [
     "check",
     "fail",
@@ -118,6 +127,7 @@ __all__ = [
     "is_int",
     "is_number",
     "nonnegative",
+    "not_writable",
     "one_of",
     "positive",
     "unwritable_folder",

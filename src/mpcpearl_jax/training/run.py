@@ -51,6 +51,7 @@ from mpcpearl_jax.training.resources import check_state_fits
 from mpcpearl_jax.training.runlock import RunLock
 from mpcpearl_jax.training.stopping import stop_flag
 from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer, TrainState
+from mpcpearl_jax.validate import not_writable
 
 
 class RunInterrupted(Exception):
@@ -83,10 +84,7 @@ def check_writable(run_dir: Path) -> None:
                 f.write(b"probe")
             probe.unlink()
         except OSError as e:
-            raise RunDirError(
-                f"{d}: not writable ({e.strerror or type(e).__name__}); fix its permissions "
-                "or choose another --out"
-            ) from e
+            raise RunDirError(not_writable(d, e)) from e
 
 
 class RunKind(Protocol):

@@ -18,14 +18,14 @@ import sys
 from pathlib import Path
 
 from mpcpearl_jax.errors import RunDirError
+from mpcpearl_jax.validate import not_writable
 
 LOCK_FILE = ".lock"
 _HELD: dict[str, list[int]] = {}  # real path of the folder -> [fd, holders in this process]
 
 
 def _not_writable(path: Path, e: OSError) -> RunDirError:
-    why = e.strerror or type(e).__name__
-    return RunDirError(f"{path}: not writable ({why}); fix its permissions or choose another --out")
+    return RunDirError(not_writable(path, e))
 
 
 def _holder(fd: int) -> str:
