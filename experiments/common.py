@@ -441,6 +441,10 @@ def main(
             cfg = build_config(args, family, **extra)
             label = args.label or default_label(family, args.preset, args.algo, cfg.train.eps)
             out = args.out or Path("runs") / label
+            finished = finished_line(out, cfg) if args.resume and not budget else None
+            if finished is not None:  # nothing to train or evaluate: no file is touched
+                print(finished, flush=True)
+                return 0
             _print_start(args, family, cfg, label, out)
             load_start = None
             if budget:
@@ -466,6 +470,27 @@ def main(
 
             warn_if_busy(load_start)  # measured before the trainer was built
         return _train(args, sess, label, load_start, t_wall0, clock)
+
+
+def finished_line(out: Path, cfg: ExperimentConfig) -> str | None:
+    """--resume of a run trained on iterations: the one line that says the run in `out` is
+    finished (results.json written for the config's iterations, every one of them logged), or
+    None where there is something to train or evaluate."""
+    import json
+
+    from mpcpearl_jax.runfolder import LOG_FILE, read_log
+
+    try:
+        done = json.loads((out / "results.json").read_text())["config"]["train"]["iterations"]
+        logged = len(read_log(out / LOG_FILE))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # opening the session names any problem
+    if done != cfg.train.iterations or logged != done:
+        return None
+    return (
+        f"{out}: finished ({done} iteration(s), results.json written); nothing to do (to train it "
+        f"further: --resume --iterations N, N above {done})"
+    )
 
 
 def _initialize(args: argparse.Namespace) -> None:

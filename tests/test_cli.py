@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 
 def test_sidewalk_cli_with_mpc_infusion(tmp_path):
     """`python -m experiments.sidewalk` (synthetic crowd) with eps > 0: the MPC really acts."""
@@ -108,3 +110,29 @@ def test_an_out_through_a_file_and_a_data_folder_say_what_is_wrong(tmp_path, cap
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"error: --data {tmp_path}: a folder; give a trajectory file in it")
     assert "\n" not in err
+
+
+@pytest.mark.slow  # (~40 s: three small trainings)
+def test_resume_of_a_finished_run_says_so_in_one_line_and_changes_nothing(tmp_path, capsys):
+    """--resume of a run that trained all its iterations and wrote results.json: one line that
+    it is finished, exit 0, no file touched (it re-ran the final evaluation, rewrote
+    results.json and printed "0 iteration(s) ... trained in 0.0 min"). With more iterations it
+    trains on."""
+    from faults_helpers import small_args
+
+    from experiments.common import main
+
+    run = tmp_path / "run"
+    assert main("restaurant", small_args(0.0, run, 1)) == 0
+    capsys.readouterr()
+    before = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in run.rglob("*") if p.is_file()}
+    assert main("restaurant", [*small_args(0.0, run, 1), "--resume"]) == 0
+    out = capsys.readouterr().out.strip()
+    assert out == (
+        f"{run}: finished (1 iteration(s), results.json written); nothing to do (to train it "
+        "further: --resume --iterations N, N above 1)"
+    )
+    after = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in run.rglob("*") if p.is_file()}
+    assert after == before
+    assert main("restaurant", [*small_args(0.0, run, 2), "--resume"]) == 0
+    assert "1 iteration(s) x 3 gradient steps" in capsys.readouterr().out
