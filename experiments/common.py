@@ -171,11 +171,11 @@ def add_config_options(
     base.add_argument(
         "--preset",
         default=default_preset,
-        choices=sorted(PRESETS),
+        metavar="{" + ",".join(sorted(PRESETS)) + "}",
         help="smoke: ~2 min pipeline check; default: 4-5 minutes of training on a quiet 2-core "
-        "CPU; "
-        "cpu-explore: the recommended CPU recipe; cpu-paper: the paper's algorithm on the CPU "
-        "schedule; paper: method §7 exactly (docs/usage.md)",
+        "CPU; recipe: the recommended CPU recipe, trained on a time budget (--minutes 24); "
+        "cpu-explore: the recipe without automatic entropy tuning; paper: method §7 exactly "
+        "(docs/usage.md)",
     )
     base.add_argument(
         "--config",

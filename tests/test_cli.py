@@ -136,3 +136,21 @@ def test_resume_of_a_finished_run_says_so_in_one_line_and_changes_nothing(tmp_pa
     assert after == before
     assert main("restaurant", [*small_args(0.0, run, 2), "--resume"]) == 0
     assert "1 iteration(s) x 3 gradient steps" in capsys.readouterr().out
+
+
+def test_preset_help_names_the_presets_and_a_removed_one_gets_its_message(capsys):
+    """--preset's help names the presets there are (it named the removed cpu-paper and called
+    cpu-explore the recipe), and --preset cpu-paper reaches the removed-preset message (argparse's
+    choices refused it first)."""
+    from experiments.common import main, parser
+    from mpcpearl_jax.config import PRESETS
+
+    text = " ".join(parser("restaurant").format_help().split())
+    assert "cpu-paper" not in text and "recipe: the recommended CPU recipe" in text
+    assert "{" + ",".join(sorted(PRESETS)) + "}" in text
+    for extra in ([], ["--print-config"]):
+        assert main("restaurant", ["--preset", "cpu-paper", *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("error: preset 'cpu-paper' was removed (") and "\n" not in err
+    assert main("restaurant", ["--preset", "nope", "--print-config"]) == 2
+    assert "unknown preset 'nope'" in capsys.readouterr().err

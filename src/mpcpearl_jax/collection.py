@@ -2,8 +2,9 @@
 event-triggered MPC infusion (Algorithm 1, lines 4-17; method §5).
 
 The env batch is one explicit flat axis R_all = seeds x rows so that the MPC bridge sees the whole
-batch in one `pure_callback` (method §6); the policy is evaluated per seed with `vmap` over the
-seed axis of the parameters.
+batch at once (method §6): in one `pure_callback` per step to the host solver, or inside the scan
+with the device solver (`mpc.solver = "device"`, whose per-row memory rides in the scan's
+carry); the policy is evaluated per seed with `vmap` over the seed axis of the parameters.
 """
 
 from __future__ import annotations

@@ -15,13 +15,13 @@ at minute 0.
 machine, load average, eval points, time to the first success and to SR 0.5 / 0.75 on test and val),
 curve.png, curve-points.jsonl (the eval points so far) beside what every run writes (metrics.jsonl,
 config.json, the policy and training state; `mpcpearl_jax.load_policy(out)` works) and what
-`final.final_evaluation` writes (results.json, learning_curves.png, trajectory figures).
+`training.final.final_evaluation` writes (results.json, learning_curves.png, trajectory figures).
 
 The training state is checkpointed every `train.checkpoint_interval` iterations and after every
 evaluation, so a crash (kill -9) loses at most the work since then. Ctrl-C (or SIGTERM, SIGHUP)
-saves and stops, and exits 130 (128 + the signal); `--resume` (the same options; --minutes may
-grow) continues exactly: the curve points so far are kept and the budget counts the training
-minutes already spent.
+saves and stops (info "stopped": "interrupted"; the command then exits 128 + the signal);
+`--resume` (the same options; --minutes may grow) continues exactly: the curve points so far
+are kept and the budget counts the training minutes already spent.
 
 Train alone: other work on the machine slows every iteration down and so shifts the whole curve.
 The 1-minute load average at the start is recorded, with a warning above LOAD_WARN.

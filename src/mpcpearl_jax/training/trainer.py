@@ -2,8 +2,9 @@
 
 `Trainer(cfg)` builds the env, tasks, networks, MPC bridge and three jitted phases:
   * collection (a `Phase`: the initial, prior-z and posterior-z collections of Algorithm 1)
-    over a flat batch of seeds x tasks x episodes, with event-triggered MPC through one
-    `pure_callback` per step (only when an event fires);
+    over a flat batch of seeds x tasks x episodes (`mpcpearl_jax.collection`), with
+    event-triggered MPC: the host solver through one `pure_callback` per step where an event
+    fires, or the device solver inside the scan (`mpc.solver = "device"`);
   * the N_train gradient steps as one `lax.scan` (run in chunks), vmapped over seeds, buffers
     donated;
   * meta-test evaluation (Algorithm 2), vmapped over seeds and tasks.
