@@ -441,7 +441,7 @@ def main(
             cfg = build_config(args, family, **extra)
             label = args.label or default_label(family, args.preset, args.algo, cfg.train.eps)
             out = args.out or Path("runs") / label
-            finished = finished_line(out, cfg) if args.resume and not budget else None
+            finished = finished_line(out, cfg, args.minutes) if args.resume else None
             if finished is not None:  # nothing to train or evaluate: no file is touched
                 print(finished, flush=True)
                 return 0
@@ -472,19 +472,31 @@ def main(
         return _train(args, sess, label, load_start, t_wall0, clock)
 
 
-def finished_line(out: Path, cfg: ExperimentConfig) -> str | None:
-    """--resume of a run trained on iterations: the one line that says the run in `out` is
-    finished (results.json written for the config's iterations, every one of them logged), or
-    None where there is something to train or evaluate."""
+def finished_line(out: Path, cfg: ExperimentConfig, minutes: float | None = None) -> str | None:
+    """For --resume: the one line that says the run in `out` is finished, or None where there
+    is something to train or evaluate. On iterations: results.json written for the config's
+    iterations, every one of them logged; on a time budget (`minutes`): results.json written
+    and curve.json's budget spent, and `minutes` no larger than it."""
     import json
 
     from mpcpearl_jax.runfolder import LOG_FILE, read_log
+    from mpcpearl_jax.training.budget import CURVE_FILE
 
     try:
         done = json.loads((out / "results.json").read_text())["config"]["train"]["iterations"]
         logged = len(read_log(out / LOG_FILE))
+        curve = json.loads((out / CURVE_FILE).read_text()) if minutes is not None else {}
     except (OSError, ValueError, KeyError, TypeError):
         return None  # opening the session names any problem
+    if minutes is not None:
+        budget = curve.get("budget_minutes")
+        spent = curve.get("stopped") == "budget" and curve.get("iterations") == logged
+        if not (spent and isinstance(budget, (int, float)) and minutes <= budget):
+            return None
+        return (
+            f"{out}: finished ({budget:g} minutes of training, results.json written); nothing "
+            f"to do (to train it further: --resume --minutes M, M above {budget:g})"
+        )
     if done != cfg.train.iterations or logged != done:
         return None
     return (

@@ -154,3 +154,25 @@ def test_preset_help_names_the_presets_and_a_removed_one_gets_its_message(capsys
         assert err.startswith("error: preset 'cpu-paper' was removed (") and "\n" not in err
     assert main("restaurant", ["--preset", "nope", "--print-config"]) == 2
     assert "unknown preset 'nope'" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # (~40 s: a 0.2-minute training, then its resume)
+def test_resume_of_a_finished_minutes_run_says_so_and_changes_nothing(tmp_path, capsys):
+    """The same for a run on a time budget: its budget spent and results.json written,
+    --resume with the same --minutes is one line and touches nothing (it re-evaluated and
+    rewrote results.json and curve.json)."""
+    from faults_helpers import learning_args
+
+    from experiments.common import main
+
+    run = tmp_path / "run"
+    assert main("restaurant", learning_args(run, 0.2, 0.1, "--no-progress")) == 0
+    capsys.readouterr()
+    before = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in run.rglob("*") if p.is_file()}
+    assert main("restaurant", [*learning_args(run, 0.2, 0.1, "--no-progress"), "--resume"]) == 0
+    assert capsys.readouterr().out.strip() == (
+        f"{run}: finished (0.2 minutes of training, results.json written); nothing to do (to "
+        "train it further: --resume --minutes M, M above 0.2)"
+    )
+    after = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in run.rglob("*") if p.is_file()}
+    assert after == before
