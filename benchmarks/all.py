@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 from benchmarks import harness
+from experiments.common import stops_with
 
 # Run order: cheap and independent first. mpc_latency.py belongs to the MPC module.
 SCRIPTS = (
@@ -61,6 +62,7 @@ def run_script(name: str, size: str, out: Path, threads: int | None) -> dict:
     return {"name": name, "rc": rc, "wall_s": wall, "cmd": cmd[1:]}
 
 
+@stops_with("interrupted; the benchmarks run so far wrote their records, all.json is not written")
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sizes = p.add_mutually_exclusive_group()

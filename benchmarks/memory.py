@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import harness
+from experiments.common import stops_with
 
 SIZES: dict[str, dict[str, Any]] = {
     "tiny": dict(preset="smoke", seeds=(1,), tasks=(10, 120), iterate=False),
@@ -138,6 +139,7 @@ def in_child(args: list[str], threads: int) -> dict[str, Any]:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+@stops_with("interrupted; the memory record is not written")
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     p = harness.common_parser(__doc__.splitlines()[0])
     p.add_argument("--child", nargs=4, help=argparse.SUPPRESS)  # KIND PRESET N ITERATE

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import harness
+from experiments.common import stops_with
 
 SEEDS = 4
 SIZES: dict[str, dict[str, Any]] = {
@@ -101,6 +102,7 @@ def child(size: str, devices: int, out: Path) -> None:
     out.write_text(json.dumps(res))
 
 
+@stops_with("interrupted; the scaling record is not written")
 def main(argv: list[str] | None = None) -> None:
     p = harness.common_parser(__doc__.splitlines()[0])
     p.add_argument("--devices", type=int, nargs="+", default=[1, 2, 4])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import math
 import os
 import sys
@@ -710,6 +711,26 @@ def fail_line(e: BaseException, code: int = 2, debug: bool = False) -> int:
         raise e
     print(f"error: {error_line(e)}", file=sys.stderr, flush=True)
     return code
+
+
+def stops_with(line: str):
+    """A command's `main` decorated: run under `stoppable`, a stop signal (Ctrl-C, SIGTERM,
+    SIGHUP) ends it with `line` and exit code 128 + the signal (`exit_interrupted`), after the
+    `finally` blocks and context managers it was in have run (a child process killed, a pool
+    shut down)."""
+
+    def decorate(main):
+        @stoppable
+        @functools.wraps(main)
+        def run(*args, **kwargs):
+            try:
+                return main(*args, **kwargs)
+            except KeyboardInterrupt:
+                exit_interrupted(line)
+
+        return run
+
+    return decorate
 
 
 def exit_interrupted(line: str) -> NoReturn:

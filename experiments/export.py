@@ -17,8 +17,7 @@ import json
 import sys
 from pathlib import Path
 
-from experiments.common import error_line, exit_interrupted
-from mpcpearl_jax.training.stopping import stoppable
+from experiments.common import error_line, stops_with
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -37,18 +36,8 @@ def make_parser() -> argparse.ArgumentParser:
     return p
 
 
-@stoppable
+@stops_with("interrupted before the export was complete; the same command writes it again")
 def main(argv: list[str] | None = None) -> int:
-    """The command; a stop signal ends it with one line and exit code 128 + the signal."""
-    try:
-        return _main(argv)
-    except KeyboardInterrupt:
-        exit_interrupted(
-            "interrupted before the export was complete; the same command writes it again"
-        )
-
-
-def _main(argv: list[str] | None) -> int:
     args = make_parser().parse_args(argv)
     import jax
 

@@ -22,23 +22,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from experiments.common import add_task_source_options, env_family, error_line, exit_interrupted
+from experiments.common import add_task_source_options, env_family, error_line, stops_with
 from mpcpearl_jax.config import ExperimentConfig, apply_overrides, task_source
 from mpcpearl_jax.envs import make_env, mpc_defaults, tasks_for
 from mpcpearl_jax.evaluation import metrics
 from mpcpearl_jax.evaluation.report import PAPER, metrics_table
 from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
-from mpcpearl_jax.training.stopping import stoppable
 from mpcpearl_jax.validate import unwritable_folder
-
-
-@stoppable
-def main(argv: list[str] | None = None) -> int:
-    """The command; a stop signal ends it with one line and exit code 128 + the signal."""
-    try:
-        return _main(argv)
-    except KeyboardInterrupt:
-        exit_interrupted("interrupted before GP-MPC finished; nothing was written")
 
 
 def select_tasks(tasks, span: str | None, max_tasks: int | None, plot_task: int | None):
@@ -70,7 +60,8 @@ def select_tasks(tasks, span: str | None, max_tasks: int | None, plot_task: int 
     return jax.tree_util.tree_map(lambda a: a[lo:hi], tasks), lo, plot - lo
 
 
-def _main(argv: list[str] | None) -> int:
+@stops_with("interrupted before GP-MPC finished; nothing was written")
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.gp_mpc", description=__doc__)
     ap.add_argument("--env", default="restaurant")
     ap.add_argument("--split", default="test")
