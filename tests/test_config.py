@@ -11,6 +11,7 @@ import pytest
 
 from mpcpearl_jax.config import ExperimentConfig, PearlConfig, TrainConfig, preset, validate
 from mpcpearl_jax.errors import ConfigError
+from mpcpearl_jax.mpc import MPCConfig
 
 
 @pytest.mark.parametrize(
@@ -84,7 +85,18 @@ def test_five_presets_and_cpu_explore_is_cpu_paper_with_the_documented_extension
     assert explore.pearl == paper.pearl.replace(layer_norm=True)
     changed = {k: v for k, v in explore.train.__dict__.items() if paper.train.__dict__[k] != v}
     assert changed == {"redraw_behaviours": True, "explore_start_share": 0.5}
-    assert explore.mpc == paper.mpc.replace(unsafe_recovery=True, n_workers=2)
+    # the MPC: unsafe-plan recovery, two workers and the expert chosen on the convergence curve
+    # (the committed run predates it: 2 QPs, step tolerance 0.05, one start)
+    expert = dict(sqp_iters=5, sqp_step_tol=1e-3, line_search_steps=3, multi_start="on_failure")
+    assert explore.mpc == paper.mpc.replace(unsafe_recovery=True, n_workers=2, **expert)
+    assert preset("smoke").mpc == MPCConfig(**expert)
+    # the paper preset runs the SQP to convergence, as the paper's NLP solver
+    assert preset("paper").mpc == MPCConfig()
+    assert (MPCConfig().sqp_iters, MPCConfig().sqp_step_tol, MPCConfig().multi_start) == (
+        100,
+        1e-4,
+        "off",
+    )
     assert explore.env_overrides == {
         "observe_velocity": True,
         "sensing_radius": 3.0,
@@ -98,6 +110,16 @@ def test_five_presets_and_cpu_explore_is_cpu_paper_with_the_documented_extension
     )
     assert default.train == dataclasses.replace(explore.train, iterations=75)
     assert default.mpc == explore.mpc and default.env_overrides == explore.env_overrides
+
+
+# the expert the committed runs were trained with, before the one chosen on the convergence
+# curve: 2 QPs, step tolerance 0.05, one start (docs/method.md §6)
+EARLIER_EXPERT = (
+    "mpc.sqp_iters=2",
+    "mpc.sqp_step_tol=0.05",
+    "mpc.line_search_steps=3",
+    "mpc.multi_start=off",
+)
 
 
 @pytest.mark.parametrize(
@@ -123,16 +145,17 @@ def test_five_presets_and_cpu_explore_is_cpu_paper_with_the_documented_extension
 def test_cpu_explore_and_recipe_build_the_committed_restaurant_runs(
     tmp_path, capsys, name, sets, eps, algo, folder
 ):
-    """`--preset cpu-explore|recipe --eps E [--set ...]` builds exactly the committed run's
-    config.json
-    (the run wrote the iterations it finished; options since removed are dropped at their
-    inactive values), so one short command reproduces it; the sidewalk, which cannot re-draw its
-    crowds, is refused before anything is written."""
+    """`--preset cpu-explore|recipe --eps E [--set ...]` with the earlier expert's four `--set`
+    (`EARLIER_EXPERT`) builds exactly the committed run's config.json (the run wrote the
+    iterations it finished; options since removed are dropped at their inactive values), so one
+    short command reproduces it; the sidewalk, which cannot re-draw its crowds, is refused before
+    anything is written."""
     import json
 
     from experiments.common import build_config, main, parse_args
 
     argv = ["--preset", name, "--eps", eps, "--algo", algo, "--minutes", "60"]
+    sets = (*sets, *EARLIER_EXPERT)
     args = parse_args("restaurant", [*argv, *(x for item in sets for x in ("--set", item))])
     cfg = build_config(args, "restaurant")
     head = Path(__file__).parents[1] / "results/restaurant" / folder / "config.json"
