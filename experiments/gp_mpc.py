@@ -125,6 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     med = float(np.median(solve_ms)) if solve_ms.size else None
     p95 = float(np.percentile(solve_ms, 95)) if solve_ms.size else None
     print(f"status: {stats['status']}  reasons: {stats['reasons']}")
+    if stats["sqp_stops"]:  # why each row's SQP ended (capped: the cap's best iterate was used)
+        print(f"SQP ended: {stats['sqp_stops']}  plans from starts: {stats['starts']}")
     if solve_ms.size:
         print(f"solve ms: median {med:.2f}, p95 {p95:.2f}")
 
@@ -141,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
         "paper": paper,
         "status": stats["status"],
         "reasons": stats["reasons"],
+        "sqp_stops": stats["sqp_stops"],
+        "starts": stats["starts"],
         "solve_ms_median": med,
         "solve_ms_p95": p95,
         "wall_s": wall,
