@@ -15,7 +15,7 @@ A screen file names its arms and seeds once; every arm is trained with every see
                    "--out", "{results}/eval/policy-val-seeds1-8"]],
      "baseline": "default",
      "arms": {"default": {"argv": [], "runs": {"0": "results/restaurant/main-default", ...}},
-              "guide": {"argv": ["--set", "train.guide_share=0.5"]}}}
+              "explore": {"argv": ["--set", "train.explore_start_share=0.5"]}}}
 
 An arm with `runs` reuses finished run folders, one per seed (nothing is trained for it; their
 configs must be the ones its argv builds with each seed). An arm marked `"retired"` (a line naming

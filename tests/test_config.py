@@ -195,6 +195,8 @@ def test_default_preset_keeps_the_sidewalk_crowd():
         ("screen/keep-s0", "train.keep_best"),
         ("screen/nstep-s0", "pearl.n_step"),
         ("screen/crossq-s0", "pearl.crossq"),
+        ("screen/guide-s0", "train.guide_share"),
+        ("screen/guide-window-s0", "train.guide_window"),
     ],
 )
 def test_runs_of_removed_options_evaluate_but_do_not_resume(tmp_path, folder, option):
@@ -290,14 +292,20 @@ def test_runs_of_removed_options_evaluate_but_do_not_resume(tmp_path, folder, op
             ["pearl.crossq", "pearl.crossq_momentum"],
         ),
         ({"pearl.crossq_momentum": 0.9}, []),
+        # the guide's roll-in steps, decrement, threshold and window acted only with a share
+        (
+            {"train.guide_share": 0.5, "train.guide_window": 32},
+            ["train.guide_share", "train.guide_window"],
+        ),
+        ({"train.guide_steps": 40, "train.guide_window": 32}, []),
     ],
 )
 def test_removed_training_options_load_named_and_round_trip_off(tmp_path, changes, on):
     """A config.json of `default` with a retired option (the warm start, cloning, init_alpha,
-    the MPC buffer, the kept policy, n-step returns, CrossQ) switched on loads for evaluation
-    with the options dropped and names exactly those that acted (resume refused naming them);
-    their inactive values, and their off values, load silently, resume, and round-trip through
-    to_json without the removed fields."""
+    the MPC buffer, the kept policy, n-step returns, CrossQ, the guide) switched on loads for
+    evaluation with the options dropped and names exactly those that acted (resume refused
+    naming them); their inactive values, and their off values, load silently, resume, and
+    round-trip through to_json without the removed fields."""
     import json
 
     from mpcpearl_jax.config import REMOVED_OPTIONS, removed_options_on

@@ -161,7 +161,7 @@ def test_probability_of_improvement_is_the_pairwise_win_rate():
 # ---------------------------------------------------------------- the screen file
 
 
-GOOD_ARMS = {"base": {"argv": []}, "guide": {"argv": ["--set", "train.guide_share=0.5"]}}
+GOOD_ARMS = {"base": {"argv": []}, "explore": {"argv": ["--set", "train.explore_start_share=0.5"]}}
 
 
 @pytest.mark.parametrize(
@@ -222,11 +222,11 @@ def test_trained_arms_become_campaign_entries(tmp_path, monkeypatch):
     s = screen.load_screen(path)
     runs = screen.campaign_runs(s)
     assert runs["base"] == []  # reused: nothing to train
-    assert [r.name for r in runs["guide"]] == ["t-guide-s0", "t-guide-s1"]
-    r = runs["guide"][1]
-    assert r.argv == ("--set", "train.guide_share=0.5", "--no-progress", "--seed", "1")
-    assert r.results == Path("res/screen/guide-s1") and r.trainer == "restaurant"
-    assert r.evaluate == (tuple(EVALUATE[0][:-1]) + ("res/screen/guide-s1/" + VAL,),)
+    assert [r.name for r in runs["explore"]] == ["t-explore-s0", "t-explore-s1"]
+    r = runs["explore"][1]
+    assert r.argv == ("--set", "train.explore_start_share=0.5", "--no-progress", "--seed", "1")
+    assert r.results == Path("res/screen/explore-s1") and r.trainer == "restaurant"
+    assert r.evaluate == (tuple(EVALUATE[0][:-1]) + ("res/screen/explore-s1/" + VAL,),)
     assert s.folder("base", 1) == Path("b") and s.validation == VAL + "/results.json"
 
 
@@ -319,14 +319,14 @@ def test_report_only_trains_nothing_and_names_the_missing_seeds(tmp_path, monkey
 def test_dry_run_lists_the_campaign_entries_with_their_seeds(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     path = write_screen(tmp_path / "s.json", GOOD_ARMS, seeds=[3, 7], baseline="base")
-    assert screen.main([str(path), "--dry-run", "--arms", "guide"]) == 0
+    assert screen.main([str(path), "--dry-run", "--arms", "explore"]) == 0
     out = capsys.readouterr().out
     assert (
-        "[screen] t-guide-s3: experiments.restaurant --set train.guide_share=0.5 --no-progress "
-        "--seed 3 -> res/screen/guide-s3" in out
+        "[screen] t-explore-s3: experiments.restaurant --set train.explore_start_share=0.5 "
+        "--no-progress --seed 3 -> res/screen/explore-s3" in out
     )
-    assert "t-guide-s7: new, 2 process(es)" in out and "t-base-" not in out
-    assert "--seed 7 --out runs/campaign/t-guide-s7" in out
+    assert "t-explore-s7: new, 2 process(es)" in out and "t-base-" not in out
+    assert "--seed 7 --out runs/campaign/t-explore-s7" in out
     assert not (tmp_path / "res").exists() and not (tmp_path / campaign.WORK).exists()
     assert screen.main([str(path), "--dry-run", "--arms", "nosuch"]) == 2
     assert "no arm named ['nosuch']" in capsys.readouterr().err
@@ -348,10 +348,10 @@ def test_a_retired_arm_is_reported_from_its_folders_and_never_trained(
     s = screen.load_screen(path)
     assert s.arms["old"].retired == "pearl.n_step" and screen.campaign_runs(s)["old"] == []
     screen.check_reused(s, ["old"])  # nothing to rebuild (its argv no longer builds a config)
-    assert screen.main([str(path), "--dry-run", "--arms", "old", "guide"]) == 0
+    assert screen.main([str(path), "--dry-run", "--arms", "old", "explore"]) == 0
     out = capsys.readouterr().out
     assert "old: retired (pearl.n_step); reported, not trained" in out
-    assert "t-old-" not in out and "t-guide-s0" in out
+    assert "t-old-" not in out and "t-explore-s0" in out
     assert screen.screen_report(s, tmp_path)["arms"]["old"]["finished"] == [0, 1]
     bad = write_screen(tmp_path / "b.json", {"old": {"argv": [], "retired": ""}})
     with pytest.raises(ValueError, match="'retired' must name the removed options"):
@@ -362,10 +362,10 @@ def test_the_queue_goes_seed_by_seed_and_takes_only_the_seeds_named(tmp_path, mo
     monkeypatch.chdir(tmp_path)
     arms = {**GOOD_ARMS, "more": {"argv": ["--set", "train.crowd_delay_max=20"]}}
     path = write_screen(tmp_path / "s.json", arms, seeds=[3, 5, 7], baseline="base")
-    argv = [str(path), "--dry-run", "--arms", "guide", "more", "--seeds", "7", "3"]
+    argv = [str(path), "--dry-run", "--arms", "explore", "more", "--seeds", "7", "3"]
     assert screen.main(argv) == 0
     names = re.findall(r"\[screen\] (t-\S+):", capsys.readouterr().out)
-    assert names == ["t-guide-s7", "t-more-s7", "t-guide-s3", "t-more-s3"]
+    assert names == ["t-explore-s7", "t-more-s7", "t-explore-s3", "t-more-s3"]
     assert screen.main([str(path), "--dry-run", "--seeds", "4"]) == 2
     assert "--seeds: [4] not among" in capsys.readouterr().err
 
@@ -401,13 +401,14 @@ def test_training_runs_the_entries_one_at_a_time_and_continues_after_ctrl_c(
     assert not (tmp_path / "res/screen/t.json").exists()  # no report of a screen cut short
     assert screen.main([str(path)]) == 0
     trained = [c for c in calls if "experiments.restaurant" in c]
-    # seed by seed: base-s0, guide-s0 (cut short, then afresh), base-s1, guide-s1
+    # seed by seed: base-s0, explore-s0 (cut short, then afresh), base-s1, explore-s1
     assert [c[c.index("--seed") + 1] for c in trained] == ["0", "0", "0", "1", "1"]
     assert "--resume" not in trained[2]  # stopped before a checkpoint: started afresh
     assert all(c[0] == sys.executable for c in calls)
     rep = json.loads((tmp_path / "res/screen/t.json").read_text())
-    assert rep["arms"]["guide"]["finished"] == [0, 1] and rep["arms"]["base"]["finished"] == [0, 1]
-    assert rep["arms"]["guide"]["runs"][1]["liftoff"]["iteration"] == 2
+    arms = rep["arms"]
+    assert arms["explore"]["finished"] == [0, 1] and arms["base"]["finished"] == [0, 1]
+    assert rep["arms"]["explore"]["runs"][1]["liftoff"]["iteration"] == 2
     n = len(calls)
     assert screen.main([str(path)]) == 0 and len(calls) == n  # all done: nothing runs
 

@@ -46,18 +46,16 @@ def make_collector(
     deterministic: bool = False,
     mesh=None,
 ) -> Callable:
-    """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R], explore=None,
-    handover=None) -> Episodes`.
+    """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R], explore=None) ->
+    Episodes`.
 
     With `bridge` (see `mpcpearl_jax.mpc.make_mpc_bridge`) and eps > 0, MPC acts on the rows where
     an event fires and a uniform draw is <= eps (paper Algorithm 1); its (normalized) actions go
     into the episodes unmarked, except for the `used_mpc` log. `explore` [S, R] bool (the
     exploring-starts extension, `TrainConfig.explore_start_share`) starts those rows at
-    `env.random_start` instead of the task's start pose. `handover` [S, R] int32 (the guide
-    extension, `TrainConfig.guide_share`): the MPC acts on every step t < handover of a row,
-    whatever the events (a Jump-Start RL roll-in; 0 = the policy from the start). `mesh`
-    (`mpcpearl_jax.distributed`): the seed axis, hence the flat rows, is split over its
-    devices; the bridge then runs per shard (`MPCBridge.on_mesh`).
+    `env.random_start` instead of the task's start pose. `mesh` (`mpcpearl_jax.distributed`):
+    the seed axis, hence the flat rows, is split over its devices; the bridge then runs per
+    shard (`MPCBridge.on_mesh`).
     """
     horizon = env.config.horizon
     use_mpc = bridge is not None
@@ -78,7 +76,6 @@ def make_collector(
         z: Array,
         tasks: TaskParams,
         explore: Array | None = None,
-        handover: Array | None = None,
     ) -> Episodes:
         s, r = z.shape[:2]
         flat = jax.tree_util.tree_map(lambda x: x.reshape((s * r, *x.shape[2:])), tasks)
@@ -92,11 +89,9 @@ def make_collector(
         # stamp of this batch of episodes: the bridge forgets plans of earlier batches
         stamp = jax.random.bits(jax.random.fold_in(key, 0x5EED), (2,), jnp.uint32)
 
-        guide_until = None if handover is None else handover.reshape(s * r)
-
         def body(carry, xs):
             obs, state, memory = carry
-            k, t = xs
+            k = xs
             k_pi, k_eps, k_mpc = jax.random.split(k, 3)
             a_pi = policy_actions(policy_params, obs.reshape(s, r, -1), z, k_pi).reshape(s * r, -1)
             fire = jax.vmap(env.event)(state, flat)
@@ -105,8 +100,6 @@ def make_collector(
                     fire = fire & (jax.random.uniform(k_eps, (s * r,)) <= eps)
                 else:
                     fire = jnp.zeros_like(fire)
-                if guide_until is not None:  # extension: the MPC's roll-in before the hand-over
-                    fire = fire | (t < guide_until)
                 if on_device:
                     memory, a_mpc, used, _ = bridge.step(memory, k_mpc, fire, state, flat, a_pi)
                 else:
@@ -131,7 +124,7 @@ def make_collector(
 
         memory0 = bridge.init_memory(s * r) if on_device else None
         (_, _, memory), (tr, pos, col, goal, ev, used) = jax.lax.scan(
-            body, (obs0, state0, memory0), (jax.random.split(key, horizon), jnp.arange(horizon))
+            body, (obs0, state0, memory0), jax.random.split(key, horizon)
         )
         if on_device:  # the counters reach the host once per batch of episodes
             jax.debug.callback(bridge.record_counts, memory.counts)

@@ -59,22 +59,6 @@ class TrainConfig:
     # delay_people), drawn afresh per visit, so no timetable of the crowd can be learned by
     # heart; the task's own paths are kept (0 = off, the paper)
     crowd_delay_max: int = 0
-    # the MPC as a guide policy (Jump-Start RL, Uchendu et al. 2023): this share of the
-    # posterior-phase rows that start at the task's start is rolled in by the MPC, which acts
-    # on every step before a hand-over step drawn uniformly from {0, ..., h}, the policy after
-    # it; h starts at guide_steps (clipped to the horizon) and shrinks by guide_decrement (to
-    # 0, where guiding ends) after each iteration whose guided rows reach the goal at a rate
-    # >= guide_success, so the policy learns to finish from ever earlier hand-over states.
-    # Needs eps > 0 (the MPC)
-    guide_share: float = 0.0
-    guide_steps: int = 80
-    guide_decrement: int = 8
-    guide_success: float = 0.5
-    # the guide's evidence window: 0 decides on each iteration's guided rows alone (one to four
-    # rows at the CPU schedules); W > 0 pools a seed's guided rows over iterations until at
-    # least W have ended, then shrinks h when the pooled rate is >= guide_success, and starts
-    # a new window either way (a tumbling window of at least W rows)
-    guide_window: int = 0
 
     def __post_init__(self) -> None:
         v.ints(
@@ -89,23 +73,18 @@ class TrainConfig:
             "checkpoint_interval",
             "keep_checkpoints",
             "eval_adapt_episodes",
-            "guide_steps",
         )
         v.ints(
             self,
             "posterior_episodes",
             "eval_interval",
             "crowd_delay_max",
-            "guide_decrement",
-            "guide_window",
             lo=0,
         )
         v.interval(
             self,
             "eps",
             "explore_start_share",
-            "guide_share",
-            "guide_success",
             lo=0.0,
             hi=1.0,
         )
@@ -124,27 +103,6 @@ class TrainConfig:
                 "explore_start_share",
                 "exploring starts apply to the posterior-phase episodes: set "
                 "posterior_episodes > 0",
-            )
-        if self.guide_share > 0:
-            v.check(self.guide_share < 1.0, self, "guide_share", "must be below 1")
-            v.check(
-                self.eps > 0,
-                self,
-                "guide_share",
-                "the guide is the MPC: set eps > 0 (eps = 0 runs no MPC)",
-            )
-            v.check(
-                self.posterior_episodes > 0,
-                self,
-                "guide_share",
-                "guided roll-ins are posterior-phase episodes: set posterior_episodes > 0",
-            )
-        else:
-            v.check(
-                self.guide_window == 0,
-                self,
-                "guide_window",
-                "is the guide's evidence window: set guide_share > 0 to guide",
             )
 
     @property
@@ -248,6 +206,11 @@ REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
         "keep_best": False,
         "keep_interval": 5,
         "keep_tasks": 16,
+        "guide_share": 0.0,
+        "guide_steps": 80,
+        "guide_decrement": 8,
+        "guide_success": 0.5,
+        "guide_window": 0,
     },
     "pearl": {
         "policy_ema": 0.0,
@@ -267,9 +230,10 @@ REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
 # its step probability and the cloning's Q filter qualified an option that had to be on, and
 # cloning read the MPC buffer's rows. The MPC buffer held MPC transitions only (eps > 0), its
 # capacity acted only with a fraction above 0, the kept policy's interval and task count only
-# with `keep_best`, the CrossQ momentum only with CrossQ. So the inactive values the presets
-# carried (step probability 0.5, no Q filter, an MPC buffer fraction with eps 0) leave a
-# committed run resumable.
+# with `keep_best`, the CrossQ momentum only with CrossQ, the guide's roll-in steps, decrement,
+# success threshold and evidence window only with a guide share. So the inactive values the
+# presets carried (step probability 0.5, no Q filter, an MPC buffer fraction with eps 0, the
+# guide's defaults) leave a committed run resumable.
 _ACTIVE_ONLY_WITH: dict[str, dict[str, Any]] = {
     "train.mpc_demo_share": {"train.mpc_demo_iterations": 0, "train.eps": 0.0},
     "train.mpc_demo_iterations": {"train.mpc_demo_share": 0.0, "train.eps": 0.0},
@@ -289,6 +253,10 @@ _ACTIVE_ONLY_WITH: dict[str, dict[str, Any]] = {
     "train.keep_interval": {"train.keep_best": False},
     "train.keep_tasks": {"train.keep_best": False},
     "pearl.crossq_momentum": {"pearl.crossq": False},
+    "train.guide_steps": {"train.guide_share": 0.0},
+    "train.guide_decrement": {"train.guide_share": 0.0},
+    "train.guide_success": {"train.guide_share": 0.0},
+    "train.guide_window": {"train.guide_share": 0.0},
 }
 
 

@@ -93,12 +93,6 @@ class TrainState(struct.PyTreeNode):
     tasks: TaskParams  # [S, N, ...] training tasks as collected (redraw_behaviours changes them)
     key: Array  # [S, 2] PRNG keys
     iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
-    # the guide's roll-in bound h [S] int32 (extension `guide_share`; None when it is off)
-    guide_h: Array | None = None
-    # the guided rows [S] float32 ended and reached the goal in the open evidence window
-    # (extension `guide_window`; None when it is 0)
-    guide_n: Array | None = None
-    guide_hits: Array | None = None
 
 
 def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
@@ -115,18 +109,15 @@ def _set_tasks(tasks: TaskParams, ids: Array, new: TaskParams) -> TaskParams:
     )
 
 
-def _episode_stats(
-    ep: collect_lib.Episodes, explore: Array | None, guided: Array | None = None
-) -> dict:
+def _episode_stats(ep: collect_lib.Episodes, explore: Array | None) -> dict:
     """Per-seed statistics [S] of episodes [S, R, T]: return, success and collision-free rate
-    over the rows the policy drives from the task's start (every row without exploring starts
-    or guided roll-ins), event and MPC shares over every step, the exploring and the guided
-    rows' shares and success apart."""
+    over the rows the policy drives from the task's start (every row without exploring
+    starts), event and MPC shares over every step, the exploring rows' share and success
+    apart."""
     success = jnp.any(ep.in_goal, -1) & ~jnp.any(ep.collision, -1)  # [S, R]
     x_rows = jnp.zeros(success.shape) if explore is None else explore.astype(jnp.float32)
-    g_rows = jnp.zeros(success.shape) if guided is None else guided.astype(jnp.float32)
     mean_over = lambda w, x: jnp.sum(w * x, -1) / jnp.maximum(jnp.sum(w, -1), 1.0)  # noqa: E731
-    on_start = lambda x: mean_over(1.0 - x_rows - g_rows, x)  # noqa: E731
+    on_start = lambda x: mean_over(1.0 - x_rows, x)  # noqa: E731
     stats = {
         "return": on_start(jnp.sum(ep.transitions.reward, axis=-1)),
         "success": on_start(success),
@@ -137,11 +128,6 @@ def _episode_stats(
         "explore_success": mean_over(x_rows, success),
         "steps": jnp.asarray(ep.transitions.reward[0].size),
     }
-    if guided is not None:
-        stats["guide_rows"] = jnp.mean(g_rows, axis=-1)
-        stats["guide_success"] = mean_over(g_rows, success)
-        stats["guide_count"] = jnp.sum(g_rows, axis=-1)
-        stats["guide_hits"] = jnp.sum(g_rows * success, axis=-1)
     return stats
 
 
@@ -161,7 +147,7 @@ def _collection_log(prior: dict, post: dict | None) -> dict:
     """The log's episode statistics, means over seeds: `train_<name>` of the posterior phase
     (of the prior phase without one) and `train_prior_return`."""
     src = post if post is not None else prior
-    names = [n for n in (*_TRAIN_STATS, "guide_rows", "guide_success") if n in src]
+    names = [n for n in _TRAIN_STATS if n in src]
     src, prior_ret = to_host(({n: src[n] for n in names}, prior["return"]))
     log = {f"train_{n}": float(np.mean(src[n])) for n in names}
     log["train_prior_return"] = float(np.mean(prior_ret))
@@ -241,15 +227,7 @@ class Trainer:
             lambda x: jnp.array(jnp.broadcast_to(x, (cfg.seeds, *x.shape))), self.train_tasks
         )
         iteration = jnp.zeros((cfg.seeds,), jnp.int32)
-        guide_h = None
-        if cfg.train.guide_share > 0:
-            h0 = min(cfg.train.guide_steps, self.horizon)
-            guide_h = jnp.full((cfg.seeds,), h0, jnp.int32)
-        guide_n = guide_hits = None
-        if cfg.train.guide_window > 0:
-            guide_n = jnp.zeros((cfg.seeds,), jnp.float32)
-            guide_hits = jnp.zeros((cfg.seeds,), jnp.float32)
-        state = TrainState(learner, rl, enc, tasks, keys, iteration, guide_h, guide_n, guide_hits)
+        state = TrainState(learner, rl, enc, tasks, keys, iteration)
         return constrain(state, self.mesh)
 
     # ------------------------------------------------------------- collection
@@ -297,23 +275,12 @@ class Trainer:
         state = state.replace(enc=enc)
         z = self._row_z(state, sub[:, 0], rows, phase.posterior)
         tasks = jax.vmap(collect_lib.rows_of)(state.tasks, rows)
-        tc = self.cfg.train
-        share = tc.explore_start_share
-        explore = guided = handover = None
+        share = self.cfg.train.explore_start_share
+        explore = None
         if share > 0 and phase.posterior and not phase.to_encoder:  # extension: exploring starts
             k_explore = jax.random.fold_in(sub[0, 1], 11)
             explore = jax.random.uniform(k_explore, rows.shape) < share
-        if tc.guide_share > 0 and phase.posterior and not phase.to_encoder:  # extension: guide
-            k_guide, k_hand = jax.random.split(jax.random.fold_in(sub[0, 1], 0x601DE))
-            guided = jax.random.uniform(k_guide, rows.shape) < tc.guide_share
-            if explore is not None:
-                guided = guided & ~explore
-            # hand-over steps uniform in {0, ..., h} of each seed
-            assert state.guide_h is not None
-            u = jax.random.uniform(k_hand, rows.shape)
-            hand = jnp.floor(u * (state.guide_h[:, None] + 1)).astype(jnp.int32)
-            handover = jnp.where(guided, hand, 0)
-        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, explore, handover)
+        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, explore)
         s, k = task_ids.shape
         to_task = lambda x: x.reshape((s, k, phase.episodes * self.horizon, *x.shape[3:]))  # noqa: E731
         per_task = jax.tree_util.tree_map(to_task, ep.transitions)
@@ -321,7 +288,7 @@ class Trainer:
         if phase.to_encoder:
             enc = jax.vmap(buffers.insert)(enc, task_ids, per_task)
         new = state.replace(rl=rl, enc=enc, key=keys)
-        return constrain(new, self.mesh), _episode_stats(ep, explore, guided)
+        return constrain(new, self.mesh), _episode_stats(ep, explore)
 
     # ------------------------------------------------------ tasks of a visit
     def _choose_tasks(self, state: TrainState, k: int) -> tuple[TrainState, Array]:
@@ -436,7 +403,7 @@ class Trainer:
         at random, then the training (lines 18-23). Every step of an episode is acted by the MPC
         when an event fires and rand <= eps (lines 8-11; `collection`), else by pi_theta (line
         13). The extensions (docs/extensions.md) hook in where named: re-drawn or delayed crowds
-        per visit, exploring-start and guided rows in the posterior phase. stop (e.g. set by
+        per visit, exploring-start rows in the posterior phase. stop (e.g. set by
         Ctrl-C) is polled before the updates and between update chunks; once true the iteration
         is abandoned with IterationAbandoned (the state passed in is consumed)."""
         t0 = time.perf_counter()
@@ -452,8 +419,6 @@ class Trainer:
         post = None
         if self.cfg.train.posterior_episodes > 0:
             state, post = self.posterior_collection(state, ids)  # lines 16-17: z ~ q_phi(z | c)
-        if state.guide_h is not None and post is not None:  # extension: the guide's curriculum
-            state = self._shrink_roll_in(state, post)
         jax.block_until_ready(state.rl.size)
         t1 = time.perf_counter()
         # training (lines 18-23): N_train gradient steps
@@ -463,34 +428,10 @@ class Trainer:
         _check_finite(losses, it + 1)
         state = state.replace(iteration=state.iteration + 1)
         log: dict[str, Any] = {"iteration": it + 1, "collect_s": t1 - t0, "update_s": t2 - t1}
-        if state.guide_h is not None:
-            log["guide_h"] = float(np.mean(to_host(state.guide_h)))
         log.update(_collection_log(prior, post))
         log.update(self._mpc_log())
         log.update({k: float(np.mean(v)) for k, v in losses.items()})
         return state, log
-
-    # ------------------------------------------------------------ extensions
-    def _shrink_roll_in(self, state: TrainState, post: dict) -> TrainState:
-        """Extension `guide_share`: each seed's roll-in bound h shrinks by guide_decrement (not
-        below 0) when this iteration's guided rows reached the goal at a rate >= guide_success
-        (seeds without a guided row keep theirs). With `guide_window` W > 0 the rows pool over
-        iterations: once a seed's window holds >= W guided rows, h shrinks if their pooled rate
-        is >= guide_success, and the window empties either way."""
-        tc = self.cfg.train
-        assert state.guide_h is not None
-        window: dict[str, Array] = {}
-        if tc.guide_window == 0:
-            passed = (post["guide_rows"] > 0) & (post["guide_success"] >= tc.guide_success)
-        else:
-            assert state.guide_n is not None and state.guide_hits is not None
-            n = state.guide_n + post["guide_count"]
-            hits = state.guide_hits + post["guide_hits"]
-            full = n >= tc.guide_window
-            passed = full & (hits >= tc.guide_success * n)
-            window = {"guide_n": jnp.where(full, 0.0, n), "guide_hits": jnp.where(full, 0.0, hits)}
-        h = jnp.where(passed, jnp.maximum(state.guide_h - tc.guide_decrement, 0), state.guide_h)
-        return state.replace(guide_h=h.astype(jnp.int32), **window)
 
     def _mpc_log(self) -> dict:
         """The MPC bridge's counters and times of this iteration, summed over processes (each
