@@ -140,9 +140,16 @@ class GrbalExperimentConfig(SerializableConfig):
         return cls(grbal=GrbalConfig(**g), **d)
 
 
-PRESETS: dict[str, GrbalConfig] = {
+# the CPU sizes of the `default` and `cpu` presets: 3 x 128 networks, 96 windows, one MPPI
+# iteration of 128 samples
+_CPU_SIZES: dict[str, Any] = dict(
+    hidden=(128, 128, 128), windows=96, num_samples=128, mppi_iterations=1
+)
+
+# each preset as its differences from GrbalConfig's defaults (the paper's GrBAL table)
+PRESET_CHANGES: dict[str, dict[str, Any]] = {
     # about a minute: the pipeline end to end
-    "smoke": GrbalConfig(
+    "smoke": dict(
         hidden=(32, 32),
         meta_batch=4,
         windows=16,
@@ -156,29 +163,27 @@ PRESETS: dict[str, GrbalConfig] = {
         checkpoint_interval=1,
     ),
     # a few minutes on a 2-core CPU
-    "default": GrbalConfig(
-        hidden=(128, 128, 128),
-        windows=96,
-        num_samples=128,
-        mppi_iterations=1,
-        iterations=6,
-        updates_per_iteration=150,
-        eval_interval=3,
-        checkpoint_interval=3,
-    ),
+    "default": {
+        **_CPU_SIZES,
+        "iterations": 6,
+        "updates_per_iteration": 150,
+        "eval_interval": 3,
+        "checkpoint_interval": 3,
+    },
     # the CPU schedule (about a minute per iteration on a 2-core CPU); stop it any time
-    "cpu": GrbalConfig(
-        hidden=(128, 128, 128),
-        windows=96,
-        num_samples=128,
-        mppi_iterations=1,
-        iterations=1000,
-        updates_per_iteration=300,
-        eval_interval=10,
-        checkpoint_interval=10,
-    ),
+    "cpu": {
+        **_CPU_SIZES,
+        "iterations": 1000,
+        "updates_per_iteration": 300,
+        "eval_interval": 10,
+        "checkpoint_interval": 10,
+    },
     # the paper's GrBAL table, with this project's schedule
-    "paper": GrbalConfig(),
+    "paper": {},
+}
+
+PRESETS: dict[str, GrbalConfig] = {
+    name: GrbalConfig(**changes) for name, changes in PRESET_CHANGES.items()
 }
 
 
