@@ -45,10 +45,8 @@ def pytest_xdist_auto_num_workers(config) -> int:
 def ref0(tmp_path_factory) -> Path:
     """The uninterrupted eps-0 run of the fault tests' small configuration (`faults_helpers`),
     trained in this process once per session: tests/test_faults_*.py only read it or copy it."""
-    from faults_helpers import small_cfg
-
-    from mpcpearl_jax.training.run import train
+    from faults_helpers import small_cfg, train_only
 
     out = tmp_path_factory.mktemp("ref") / "eps0"
-    train(small_cfg(0.0), out, progress=False)
+    train_only(small_cfg(0.0), out)
     return out

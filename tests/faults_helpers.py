@@ -52,14 +52,27 @@ ITERATIONS = 6
 TIMING = {"collect_s", "update_s", "train_s", "wall_s", "eval_s", "mpc_solve_s", "mpc_host_s"}
 
 
+def train_only(cfg, out, resume: bool = False, handle_sigint: bool = False):
+    """Train `cfg` into `out` in the training command's iterations mode without its final
+    evaluation (`open_session`, `train_iterations`): -> (trainer, state); a stop or a divergence
+    raises as `mpcpearl_jax.train` does."""
+    from mpcpearl_jax.training.run import open_session, train_iterations
+
+    with open_session(cfg, out, resume) as sess:
+        state, info = train_iterations(sess, handle_sigint=handle_sigint)
+        if "error" in info:
+            raise info["error"]
+        return sess.trainer, state
+
+
 # train only (the command line without its final evaluation), as the command line trains
 DRIVER = (
     "import sys\n"
+    f"sys.path.insert(0, {str(ROOT / 'tests')!r})\n"
     "from experiments.common import build_config, parser\n"
-    "from mpcpearl_jax.training.run import train\n"
+    "from faults_helpers import train_only\n"
     "a = parser('restaurant').parse_args(sys.argv[1:])\n"
-    "train(build_config(a, 'restaurant'), a.out, resume=a.resume, progress=False,"
-    " handle_sigint=True)\n"
+    "train_only(build_config(a, 'restaurant'), a.out, resume=a.resume, handle_sigint=True)\n"
 )
 
 

@@ -29,13 +29,14 @@ from faults_helpers import (
     small_args,
     small_cfg,
     spawn,
+    train_only,
     writing_checkpoint,
 )
 
 from experiments.common import main
 from mpcpearl_jax.runfolder import LOG_FILE, read_log
 from mpcpearl_jax.training.checkpoint import CheckpointError
-from mpcpearl_jax.training.run import open_session, train
+from mpcpearl_jax.training.run import open_session
 from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer
 
 
@@ -162,7 +163,7 @@ def test_corrupt_newest_checkpoint_and_torn_log_line_fall_back_and_resume_exactl
     with open(run / LOG_FILE, "ab") as f:
         f.write(b'{"iteration": 7, "train_ret')  # a line cut by a crash
     capsys.readouterr()
-    train(small_cfg(0.0), run, resume=True, progress=False)
+    train_only(small_cfg(0.0), run, resume=True)
     err = capsys.readouterr().err
     assert f"checkpoints/{ITERATIONS}: cannot restore" in err
     assert f"falling back to iteration {ITERATIONS - 1}" in err
@@ -257,5 +258,5 @@ def test_full_disk_while_saving_is_one_line_and_the_run_resumes_exactly(
     )
     monkeypatch.setattr(os, "write", real_write)
     assert not any("tmp" in p.name for p in (run / "checkpoints").iterdir())
-    train(small_cfg(0.0), run, resume=True, progress=False)
+    train_only(small_cfg(0.0), run, resume=True)
     assert_same_run(ref0, run)

@@ -7,12 +7,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from faults_helpers import train_only
 
 from mpcpearl_jax.config import ExperimentConfig, PearlConfig, TrainConfig, preset
 from mpcpearl_jax.deploy.policy import load_policy
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.training.checkpoint import CheckpointError
-from mpcpearl_jax.training.run import train
 from mpcpearl_jax.training.trainer import Trainer
 
 TINY = ExperimentConfig(
@@ -93,9 +93,9 @@ def test_buffers_fill_and_encoder_buffer_resets(trainer):
 @pytest.mark.slow  # (~70 s); exact resume in the fast set: test_faults_resume
 def test_resume_equals_uninterrupted(tmp_path):
     cfg = TINY
-    _, full = train(cfg, tmp_path / "full", progress=False)
+    _, full = train_only(cfg, tmp_path / "full")
     short = cfg.replace(train=TrainConfig(**{**cfg.train.__dict__, "iterations": 2}))
-    train(short, tmp_path / "cut", progress=False)
+    train_only(short, tmp_path / "cut")
     # the clocks of the kept rows, pushed 1000 s on: a resumed run's train_s and wall_s go on
     # from its last kept row (they are over the run's lifetime), they do not start again at 0
     path = tmp_path / "cut" / "metrics.jsonl"
@@ -103,7 +103,7 @@ def test_resume_equals_uninterrupted(tmp_path):
     for r in kept:
         r.update(train_s=r["train_s"] + 1000.0, wall_s=r["wall_s"] + 1000.0)
     path.write_text("".join(json.dumps(r) + "\n" for r in kept))
-    _, resumed = train(cfg, tmp_path / "cut", resume=True, progress=False)
+    _, resumed = train_only(cfg, tmp_path / "cut", resume=True)
     _leaves_equal(full, resumed)
     log = [json.loads(x) for x in path.read_text().splitlines()]
     assert [r["iteration"] for r in log] == [1, 2, 3]
@@ -116,10 +116,10 @@ def test_learned_entropy_weight_resumes_exactly(tmp_path):
     """Extension `pearl.auto_entropy`: log alpha and its optimizer state are part of the
     checkpointed learner state (resume is exact), each seed has its own, and the log has it."""
     cfg = TINY.replace(pearl=TINY.pearl.replace(auto_entropy=True, target_entropy=5.0))
-    _, full = train(cfg, tmp_path / "full", progress=False)
+    _, full = train_only(cfg, tmp_path / "full")
     short = cfg.replace(train=TrainConfig(**{**cfg.train.__dict__, "iterations": 2}))
-    train(short, tmp_path / "cut", progress=False)
-    _, resumed = train(cfg, tmp_path / "cut", resume=True, progress=False)
+    train_only(short, tmp_path / "cut")
+    _, resumed = train_only(cfg, tmp_path / "cut", resume=True)
     _leaves_equal(full, resumed)
     alpha = np.exp(np.asarray(full.learner.log_alpha))
     assert alpha.shape == (cfg.seeds,) and np.all(alpha > 1.0)  # entropy below the target 5
@@ -128,12 +128,12 @@ def test_learned_entropy_weight_resumes_exactly(tmp_path):
 
 
 def test_resume_with_other_config_is_a_clear_error(tmp_path):
-    train(TINY, tmp_path / "run", progress=False)
+    train_only(TINY, tmp_path / "run")
     other = TINY.replace(pearl=TINY.pearl.replace(lr=1e-3))
     with pytest.raises(CheckpointError, match="pearl.lr"):
-        train(other, tmp_path / "run", resume=True, progress=False)
+        train_only(other, tmp_path / "run", resume=True)
     with pytest.raises(CheckpointError, match="--resume"):
-        train(TINY, tmp_path / "run", progress=False)
+        train_only(TINY, tmp_path / "run")
 
 
 def _garble(ckpt_dir):
@@ -145,14 +145,14 @@ def _garble(ckpt_dir):
 @pytest.mark.slow  # (~14 s); checkpoint errors: test_faults_cli
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path, capsys):
     run = tmp_path / "run"
-    train(TINY, run, progress=False)
+    train_only(TINY, run)
     ckpts = sorted((run / "checkpoints").iterdir(), key=lambda p: int(p.name))
     assert len(ckpts) == TINY.train.keep_checkpoints  # keeps only the last few
     longer = TINY.replace(train=TrainConfig(**{**TINY.train.__dict__, "iterations": 5}))
     for c in ckpts:
         _garble(c)
     with pytest.raises(CheckpointError, match="no intact checkpoint"):
-        train(longer, run, resume=True, progress=False)
+        train_only(longer, run, resume=True)
     assert "cannot restore" in capsys.readouterr().err  # each one reported
     (run / "policy.msgpack").write_bytes(b"junk")
     with pytest.raises(CheckpointError, match="policy.msgpack"):
@@ -160,7 +160,7 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path, capsys):
 
 
 def test_load_policy_acts_like_training_policy(tmp_path):
-    trainer, state = train(TINY, tmp_path / "run", progress=False)
+    trainer, state = train_only(TINY, tmp_path / "run")
     pol = load_policy(tmp_path / "run", seed_index=1)
     obs = jax.random.uniform(jax.random.PRNGKey(0), (5, trainer.obs_dim), minval=-1, maxval=1)
     z = jax.random.normal(jax.random.PRNGKey(1), (5, 3))
@@ -234,8 +234,8 @@ def test_cli_rejects_bad_values(capsys):
     assert "TrainConfig.eps" in capsys.readouterr().err
     assert main("restaurant", ["--preset", "smoke", "--set", "pearl.nope=1"]) == 2
     assert "nope" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        main("restaurant", ["--preset", "nosuch"])
+    assert main("restaurant", ["--preset", "nosuch"]) == 2
+    assert "unknown preset 'nosuch'" in capsys.readouterr().err
 
 
 def test_restaurant_cli_smoke(tmp_path):
@@ -289,7 +289,7 @@ def test_short_run_improves_training_return(tmp_path):
             **{**preset("default").train.__dict__, "eps": 0.0, "iterations": 16, "eval_interval": 0}
         )
     )
-    train(cfg, tmp_path / "run", progress=False)
+    train_only(cfg, tmp_path / "run")
     rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     first = np.mean([r["train_return"] for r in rows[:5]])
     last = np.mean([r["train_return"] for r in rows[-5:]])

@@ -427,33 +427,6 @@ def check_nothing_lost(run_dir: Path) -> None:
     warn(f"{run_dir}: no checkpoint yet (stopped before its first one); starting at iteration 0")
 
 
-def train(
-    cfg: ExperimentConfig,
-    out: str | Path,
-    resume: bool = False,
-    progress: bool = True,
-    handle_sigint: bool = False,
-    tensorboard: bool = False,
-    overwrite: bool = False,
-) -> tuple[Trainer, TrainState]:
-    """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl); -> (trainer, state).
-
-    With handle_sigint, Ctrl-C abandons the current phase at its next boundary (at most one update
-    chunk, ~10 s), saves a checkpoint of the last finished iteration if it is still in memory,
-    and raises RunInterrupted. With tensorboard, every metrics row also goes to out/tensorboard
-    (`mpcpearl_jax.training.livelog`)."""
-    with open_session(cfg, out, resume, tensorboard=tensorboard, overwrite=overwrite) as sess:
-        bar = progress_bar(sess) if progress else None
-        try:
-            state, info = train_iterations(sess, bar.row if bar else None, handle_sigint)
-        finally:
-            if bar is not None:
-                bar.close()
-        if "error" in info:
-            raise info["error"]
-        return sess.trainer, state
-
-
 def train_iterations(
     sess: Session,
     on_row: Callable[[dict[str, Any]], None] | None = None,
