@@ -4,20 +4,23 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import functools
 import math
 import os
 import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import NoReturn
 
 from mpcpearl_jax.config import PRESETS, ExperimentConfig, read_config, resolve
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.budget import default_label
-from mpcpearl_jax.training.stopping import stop_exit_code, stoppable
+from mpcpearl_jax.training.stopping import (  # noqa: F401  (the commands' names for them)
+    exit_interrupted,
+    stop_exit_code,
+    stoppable,
+    stops_with,
+)
 
 
 def add_run_mode_options(p: argparse.ArgumentParser) -> None:
@@ -711,37 +714,6 @@ def fail_line(e: BaseException, code: int = 2, debug: bool = False) -> int:
         raise e
     print(f"error: {error_line(e)}", file=sys.stderr, flush=True)
     return code
-
-
-def stops_with(line: str):
-    """A command's `main` decorated: run under `stoppable`, a stop signal (Ctrl-C, SIGTERM,
-    SIGHUP) ends it with `line` and exit code 128 + the signal (`exit_interrupted`), after the
-    `finally` blocks and context managers it was in have run (a child process killed, a pool
-    shut down)."""
-
-    def decorate(main):
-        @stoppable
-        @functools.wraps(main)
-        def run(*args, **kwargs):
-            try:
-                return main(*args, **kwargs)
-            except KeyboardInterrupt:
-                exit_interrupted(line)
-
-        return run
-
-    return decorate
-
-
-def exit_interrupted(line: str) -> NoReturn:
-    """Print `line` to stderr and end the process with `stop_exit_code()`, without the
-    interpreter's teardown: a stop signal can land inside JAX's compiler, which goes on
-    compiling, and tearing the runtime down under it crashed the process at exit (a segmentation
-    fault after the line). The caller has closed what it opened; MPC pool workers end themselves
-    when this process is gone (`mpc.solver.watch_parent`)."""
-    print(line, file=sys.stderr, flush=True)
-    sys.stdout.flush()
-    os._exit(stop_exit_code())
 
 
 DEFAULT_NOTE = (

@@ -20,7 +20,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NoReturn
 
 from mpcpearl_jax.training.loop import Progress
 
@@ -144,3 +144,34 @@ def stop_flag(enabled: bool, where: Progress):
         yield lambda: flag["stop"]
     finally:
         _restore(old)
+
+
+def stops_with(line: str):
+    """A command's `main` decorated: run under `stoppable`, a stop signal (Ctrl-C, SIGTERM,
+    SIGHUP) ends it with `line` and exit code 128 + the signal (`exit_interrupted`), after the
+    `finally` blocks and context managers it was in have run (a child process killed, a pool
+    shut down)."""
+
+    def decorate(main):
+        @stoppable
+        @functools.wraps(main)
+        def run(*args, **kwargs):
+            try:
+                return main(*args, **kwargs)
+            except KeyboardInterrupt:
+                exit_interrupted(line)
+
+        return run
+
+    return decorate
+
+
+def exit_interrupted(line: str) -> NoReturn:
+    """Print `line` to stderr and end the process with `stop_exit_code()`, without the
+    interpreter's teardown: a stop signal can land inside JAX's compiler, which goes on
+    compiling, and tearing the runtime down under it crashed the process at exit (a segmentation
+    fault after the line). The caller has closed what it opened; MPC pool workers end themselves
+    when this process is gone (`mpc.solver.watch_parent`)."""
+    print(line, file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    os._exit(stop_exit_code())
