@@ -45,7 +45,12 @@ from typing import Any
 import jax
 import numpy as np
 
-from experiments.common import add_task_source_options, env_family, error_line, exit_interrupted
+from experiments.common import (
+    add_task_source_options,
+    env_family,
+    exit_interrupted,
+    one_line_errors,
+)
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.envs import SPLITS, env_names, make_env, tasks_for
 from mpcpearl_jax.envs.perturb import parse_perturbation, perturb_tasks
@@ -638,8 +643,6 @@ def main_task_seeds(args: argparse.Namespace) -> int:
     """--task-seeds: the controller on the split of each task-set seed, pooled."""
     import copy
 
-    from mpcpearl_jax.errors import CheckpointError
-
     if args.task_seed is not None:
         print("error: give --task-seed or --task-seeds, not both", file=sys.stderr)
         return 2
@@ -647,7 +650,7 @@ def main_task_seeds(args: argparse.Namespace) -> int:
         print("error: --task-seeds makes no figures (drop --figures/--animate)", file=sys.stderr)
         return 2
     records, s, out = [], None, args.out
-    try:
+    with one_line_errors(interrupted=None) as failed:
         hint = " in one command (the project's protocol uses 8: 1-8)"
         text = args.task_seeds.strip()
         seeds = sorted(_parse_ranges(text, "--task-seeds", MAX_TASK_SEEDS, "task sets", hint))
@@ -670,9 +673,8 @@ def main_task_seeds(args: argparse.Namespace) -> int:
                 f"SR {record['metrics']['SR']:.2f} CFR {record['metrics']['CFR']:.2f}",
                 flush=True,
             )
-    except (UsageError, CheckpointError, ConfigError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    if failed.code is not None:
+        return failed.code
     n_tasks = sum(len(r["tasks"]) for r in records)
     pool = pooled(records)
     protocol = records[0]["protocol"]
@@ -696,11 +698,10 @@ def main_task_seeds(args: argparse.Namespace) -> int:
         "failures": fails,
         "records": records,
     }
-    try:
+    with one_line_errors(interrupted=None) as failed:
         write_json(out / "results.json", summary)
-    except OSError as e:
-        print(f"error: {error_line(e)}", file=sys.stderr)
-        return 2
+    if failed.code is not None:
+        return failed.code
     print(f"wrote {out / 'results.json'}")
     return 0
 
@@ -721,16 +722,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = make_parser().parse_args(argv)
-    from mpcpearl_jax.errors import CheckpointError
 
     if args.task_seeds is not None:
         return main_task_seeds(args)
-    try:
+    with one_line_errors(interrupted=None) as failed:
         s = setup(args)
         probe_out(s.out, args.overwrite)  # before the evaluation, not after it
-    except (UsageError, CheckpointError, ConfigError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    if failed.code is not None:
+        return failed.code
     n_seeds = len(s.seed_ids) or 1
     source = "the paper's scenarios" if s.scenarios else f"task seed {s.task_seed}"
     if s.perturbation != "none":
@@ -744,12 +743,11 @@ def _main(argv: list[str] | None) -> int:
     print(f"{record['protocol']}; {record['wall_s']:.1f} s", flush=True)
     print(tables(record))
     print(failure_line(record["failures"]))
-    try:
+    with one_line_errors(interrupted=None) as failed:  # a full disk, or --out changed under it
         write_json(s.out / "results.json", record)
         written = write_figures(s, result, args.animate)
-    except OSError as e:  # a full disk, or --out changed under the evaluation
-        print(f"error: {error_line(e)}", file=sys.stderr)
-        return 2
+    if failed.code is not None:
+        return failed.code
     print(f"wrote {s.out / 'results.json'}" + "".join(f", {p.name}" for p in written))
     return 0
 

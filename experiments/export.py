@@ -17,7 +17,7 @@ import json
 import sys
 from pathlib import Path
 
-from experiments.common import error_line, stops_with
+from experiments.common import one_line_errors, stops_with
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -48,13 +48,13 @@ def main(argv: list[str] | None = None) -> int:
         load_exported,
         sidecar_path,
     )
-    from mpcpearl_jax.errors import CheckpointError
 
     if not args.run.is_dir():
         print(f"error: {args.run}: no such directory", file=sys.stderr)
         return 2
     platforms = tuple(p.strip() for p in args.platforms.split(",") if p.strip())
-    try:
+    # a run that does not load, or writing the export or its sidecar (a full disk, permissions)
+    with one_line_errors(interrupted=None) as failed:
         out = export_policy(args.run, args.out, args.seed_index, platforms)
         if runs_here(platforms):
             meta = load_exported(out).meta  # read back: the files are usable as written
@@ -62,12 +62,8 @@ def main(argv: list[str] | None = None) -> int:
             meta = json.loads(sidecar_path(out).read_text())
             check_format(meta, sidecar_path(out))
             check_sidecar(meta, sidecar_path(out))
-    except (CheckpointError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except OSError as e:  # writing the export or its sidecar (a full disk, permissions)
-        print(f"error: {error_line(e)}", file=sys.stderr)
-        return 2
+    if failed.code is not None:
+        return failed.code
     size = out.stat().st_size / 1024
     print(
         f"[export] {meta['label']} ({args.run.name}, seed {args.seed_index}): {out} "

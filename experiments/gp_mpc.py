@@ -22,7 +22,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from experiments.common import add_task_source_options, env_family, error_line, stops_with
+from experiments.common import add_task_source_options, env_family, one_line_errors, stops_with
 from mpcpearl_jax.config import ExperimentConfig, apply_overrides, task_source
 from mpcpearl_jax.envs import make_env, mpc_defaults, tasks_for
 from mpcpearl_jax.evaluation import metrics
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     add_task_source_options(ap)
     args = ap.parse_args(argv)
 
-    try:
+    with one_line_errors(interrupted=None) as failed:
         args.env = env_family(args.env)  # MODULE:NAME registers NAME
         env = make_env(args.env)
         # the family's MPC defaults, then --set (ConfigError naming the field)
@@ -101,9 +101,8 @@ def main(argv: list[str] | None = None) -> int:
         tasks = tasks_for(ExperimentConfig(env=args.env, **source), args.split, seed=args.seed)
         tasks, first, plot = select_tasks(tasks, args.tasks, args.max_tasks, args.plot_task)
         probe_out(args.out)  # before the rollout, not after it
-    except (ValueError, TypeError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    if failed.code is not None:
+        return failed.code
     bridge = make_mpc_bridge(env, cfg)
     t0 = time.perf_counter()
     traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(args.sample_seed), tasks)
@@ -152,14 +151,11 @@ def main(argv: list[str] | None = None) -> int:
     }
     part = f"_tasks{first}-{last + 1}" if args.tasks else ""
     path = args.out / f"{args.env}_{args.split}{part}.json"
-    try:
+    with one_line_errors(interrupted=None) as failed:
         path.write_text(json.dumps(record, indent=2))
         print(f"wrote {path}")
         _plot(args, env, tasks, traj, plot, first + plot)
-    except OSError as e:
-        print(f"error: {error_line(e)}", file=sys.stderr)
-        return 2
-    return 0
+    return failed.code or 0
 
 
 def probe_out(out: Path) -> None:
