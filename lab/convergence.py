@@ -1,0 +1,567 @@
+"""The expert's convergence curve: how far the MPC's SQP (paper eq. (4), method §6) stops from the
+optimum of its own problem, what that costs in closed loop, and what a solve costs, side by side.
+
+For each SQP setting of `SETTINGS` (iteration cap and step tolerance, extra starts, recovery):
+
+- `problems`: on the problems recorded from training (`tests/data/mpc_problems.npz`), the exact
+  SAA merit's gap to the best plan known (the SQP run to convergence with tight QPs from every
+  start of `solver.START_NAMES`, the lowest merit kept), the share of problems more than 1 % above
+  it, the share whose first input lies within 0.02 of the best plan's, and the solve time;
+- `scenarios`: GP-MPC (the MPC acting at every step) on all 205 of the authors' restaurant
+  scenarios (180 training + 25 test), SR and CFR with 95 % Wilson intervals over the tasks, the
+  solve time per row (median, p95), fallbacks and their longest run in an episode, and why each
+  SQP ended;
+- `device`: the device solver (`mpc.solver = "device"`, JAX) on the same recorded problems
+  (float32, or float64 with JAX_ENABLE_X64=1) and, with `--device-scenarios`, on the 25 test
+  scenarios on this machine's CPU;
+- `figure`: merit gap and SR against the median solve time per row.
+
+    python -m lab.convergence problems [--count 48]
+    python -m lab.convergence scenarios --scenarios ../shared/data/mpc-pearl-scenarios [--only NAME]
+    python -m lab.convergence device [--device-scenarios DIR]
+    python -m lab.convergence figure
+
+Records: results/mpc/convergence/*.json (one file per part and setting), figure convergence.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from mpcpearl_jax.training.stopping import stops_with
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "results" / "mpc" / "convergence"
+PROBLEMS = ROOT / "tests" / "data" / "mpc_problems.npz"
+
+# name -> MPCConfig fields (over the MPCConfig defaults; unsafe_recovery off unless named), in
+# the order they are measured. "converged": a step below 1e-4 or no decrease along the QP's
+# direction (the line search fails: stationary up to the QPs' accuracy), capped at 100 QPs
+SETTINGS: dict[str, dict] = {
+    "2 it": dict(sqp_iters=2, sqp_step_tol=0.05),
+    "5 it": dict(sqp_iters=5, sqp_step_tol=1e-3),
+    "10 it": dict(sqp_iters=10, sqp_step_tol=1e-3),
+    "converged": dict(sqp_iters=100, sqp_step_tol=1e-4),
+    "3 it": dict(sqp_iters=3, sqp_step_tol=1e-3),
+    "8 it": dict(sqp_iters=8, sqp_step_tol=1e-3),
+    "2 it, restart": dict(sqp_iters=2, sqp_step_tol=0.05, multi_start="on_failure"),
+    "5 it, restart": dict(sqp_iters=5, sqp_step_tol=1e-3, multi_start="on_failure"),
+    "5 it, ls 8, restart": dict(
+        sqp_iters=5, sqp_step_tol=1e-3, line_search_steps=8, multi_start="on_failure"
+    ),
+    "converged, restart": dict(sqp_iters=100, sqp_step_tol=1e-4, multi_start="on_failure"),
+    "converged, multi-start": dict(sqp_iters=100, sqp_step_tol=1e-4, multi_start="always"),
+    "converged, grid": dict(sqp_iters=100, sqp_step_tol=1e-4, unsafe_recovery=True),
+    # a longer line search (step sizes down to 1/128): fewer stalls on the nonsmooth merit
+    "converged, ls 8": dict(sqp_iters=100, sqp_step_tol=1e-4, line_search_steps=8),
+    "converged, ls 8, restart": dict(
+        sqp_iters=100, sqp_step_tol=1e-4, line_search_steps=8, multi_start="on_failure"
+    ),
+}
+# the best plan known on a recorded problem: the SQP to convergence, tight QPs, every start
+REFERENCE = dict(
+    sqp_iters=60,
+    sqp_step_tol=1e-6,
+    multi_start="always",
+    line_search_steps=8,
+    osqp_eps_abs=1e-5,
+    osqp_eps_rel=1e-5,
+    osqp_max_iter=4000,
+)
+FIRST_INPUT_TOL = 0.02
+
+
+def slug(name: str) -> str:
+    return name.replace(", ", "-").replace(" ", "")
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95 % Wilson score interval of a rate k / n."""
+    if n == 0:
+        return (math.nan, math.nan)
+    p = k / n
+    d = 1 + z * z / n
+    c = (p + z * z / (2 * n)) / d
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return (max(0.0, c - h), min(1.0, c + h))
+
+
+def _write(path: Path, record: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(record, indent=1))
+    tmp.replace(path)
+    print(f"wrote {path.relative_to(ROOT) if path.is_relative_to(ROOT) else path}", flush=True)
+
+
+# ----------------------------------------------------------------------------- recorded problems
+def _load_problems(count: int):
+    from benchmarks.record_mpc_problems import regenerate, solver_params_of
+    from mpcpearl_jax.mpc.solver import RowProblem
+
+    with np.load(PROBLEMS) as f:
+        data = {k: f[k] for k in f.files}
+    base = solver_params_of(data)
+    batch = regenerate(data, base.num_samples)
+    n = batch.x0.shape[0]
+    ids = np.linspace(0, n - 1, min(count, n)).round().astype(int)
+    rows = []
+    for i in ids:
+        row = RowProblem(
+            *(np.asarray(a[i], np.float64 if a.dtype.kind == "f" else None) for a in batch)
+        )
+        init = np.asarray(data["u_init"][i], np.float64) if data["has_init"][i] else None
+        rows.append((int(i), row, init))
+    return base, rows, data
+
+
+def _params(base, fields: dict):
+    """The recorded problems' SolverParams with MPCConfig-named fields replaced."""
+    osqp_keys = {
+        "osqp_eps_abs": "eps_abs",
+        "osqp_eps_rel": "eps_rel",
+        "osqp_max_iter": "max_iter",
+        "osqp_polish": "polishing",
+    }
+    settings = dict(base.osqp_settings)
+    plain = {"unsafe_recovery": False, "multi_start": "off"}
+    for k, v in fields.items():
+        if k in osqp_keys:
+            settings[osqp_keys[k]] = v
+        else:
+            plain[k] = v
+    return dataclasses.replace(base, osqp_settings=tuple(settings.items()), **plain)
+
+
+def part_problems(args) -> None:
+    from mpcpearl_jax.mpc.solver import SQPSolver
+
+    base, rows, _ = _load_problems(args.count)
+    ref_solver = SQPSolver(_params(base, REFERENCE))
+    t0 = time.perf_counter()
+    ref = [ref_solver.solve(row, init) for _, row, init in rows]
+    print(f"reference on {len(rows)} problems: {time.perf_counter() - t0:.1f} s", flush=True)
+    ref_merit = np.array([r.merit for r in ref])
+    ref_first = np.array([r.u[0] for r in ref])
+    out = {
+        "problems": [i for i, _, _ in rows],
+        "reference": {
+            "fields": REFERENCE,
+            "merit": ref_merit.tolist(),
+            "start": [r.start for r in ref],
+            "stop": [r.stop for r in ref],
+            "first": ref_first.tolist(),
+        },
+        "settings": {},
+    }
+    for name in _selected(args):
+        solver = SQPSolver(_params(base, SETTINGS[name]))
+        with _CPUClock() as clock:
+            res = [solver.solve(row, init) for _, row, init in rows]
+        out["settings"][name] = _problem_stats(SETTINGS[name], res, ref_merit, ref_first)
+        out["settings"][name].update(_cpu_stats(clock.cpu_s))
+        s = out["settings"][name]
+        print(
+            f"{name:24s} gap median {100 * s['gap_median']:6.2f} %  "
+            f">1 %: {s['share_gap_over_1pct']:.2f}  "
+            f"first input within {FIRST_INPUT_TOL}: {s['share_first_close']:.2f}  "
+            f"solve median {s['solve_ms_median']:.2f} ms p95 {s['solve_ms_p95']:.2f}",
+            flush=True,
+        )
+    out["count"] = len(rows)
+    path = OUT / "problems.json"
+    if args.only and path.exists():  # add to the settings measured before on the same problems
+        before = json.loads(path.read_text())
+        if before["problems"] == out["problems"]:
+            out["settings"] = {**before["settings"], **out["settings"]}
+    _write(path, out)
+
+
+def _problem_stats(fields, res, ref_merit, ref_first, solve_ms=None) -> dict:
+    merit = np.array([float(r.merit) for r in res])
+    first = np.array([np.asarray(r.u)[0] for r in res])
+    gap = (merit - ref_merit) / np.maximum(np.abs(ref_merit), 1e-9)
+    close = np.max(np.abs(first - ref_first), axis=1) <= FIRST_INPUT_TOL
+    ms = 1e3 * np.array([r.solve_time for r in res]) if solve_ms is None else np.asarray(solve_ms)
+    stops = {}
+    for r in res:
+        stop = getattr(r, "stop", None)
+        if stop is not None:
+            stops[stop] = stops.get(stop, 0) + 1
+    return {
+        "fields": fields,
+        "gap_median": float(np.median(gap)),
+        "gap_mean": float(np.mean(gap)),
+        "gap_p90": float(np.percentile(gap, 90)),
+        "share_gap_over_1pct": float(np.mean(gap > 0.01)),
+        "share_first_close": float(np.mean(close)),
+        "share_ok": float(np.mean([bool(r.ok) for r in res])),
+        "solve_ms_median": float(np.median(ms)),
+        "solve_ms_mean": float(np.mean(ms)),
+        "solve_ms_p95": float(np.percentile(ms, 95)),
+        "n_qp_mean": float(np.mean([int(r.n_qp) for r in res])),
+        "stops": stops,
+        "gap": gap.tolist(),
+    }
+
+
+# ----------------------------------------------------------------------------- the 205 scenarios
+def _scenario_tasks(env, directory: Path, splits=("train", "test")):
+    import jax
+
+    from mpcpearl_jax.envs.restaurant.scenarios import make_scenario_tasks
+
+    parts = [make_scenario_tasks(s, env.config, directory) for s in splits]
+    return jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(x) for x in a]), *parts)
+
+
+class _CPUClock:
+    """Records the CPU time of the solving thread of every `SQPSolver.solve` (time.thread_time:
+    what the solve costs, whatever else shares the machine), beside the solver's wall time."""
+
+    def __init__(self):
+        self.cpu_s: list[float] = []
+
+    def __enter__(self):
+        from mpcpearl_jax.mpc import solver
+
+        self._orig = orig = solver.SQPSolver.solve
+        clock = self
+
+        def timed(self_, *a, **kw):
+            t0 = time.thread_time()
+            res = orig(self_, *a, **kw)
+            clock.cpu_s.append(time.thread_time() - t0)
+            return res
+
+        solver.SQPSolver.solve = timed
+        return self
+
+    def __exit__(self, *exc):
+        from mpcpearl_jax.mpc import solver
+
+        solver.SQPSolver.solve = self._orig
+
+
+def _cpu_stats(cpu_s) -> dict:
+    ms = 1e3 * np.asarray(cpu_s)
+    if not ms.size:
+        return {"solve_cpu_ms_median": None, "solve_cpu_ms_mean": None, "solve_cpu_ms_p95": None}
+    return {
+        "solve_cpu_ms_median": float(np.median(ms)),
+        "solve_cpu_ms_mean": float(np.mean(ms)),
+        "solve_cpu_ms_p95": float(np.percentile(ms, 95)),
+    }
+
+
+def gp_mpc_record(env, tasks, cfg, sample_seed: int = 0) -> dict:
+    """GP-MPC on a batch of tasks with MPCConfig cfg: task-level results, solve statistics."""
+    with _CPUClock() as clock:
+        rec = _gp_mpc_record(env, tasks, cfg, sample_seed)
+    rec.update(_cpu_stats(clock.cpu_s))
+    return rec
+
+
+def _gp_mpc_record(env, tasks, cfg, sample_seed: int = 0) -> dict:
+    import jax
+
+    from mpcpearl_jax.evaluation import metrics
+    from mpcpearl_jax.mpc import (
+        FALLBACK_PLAN,
+        FALLBACK_POLICY,
+        make_gp_mpc_rollout,
+        make_mpc_bridge,
+    )
+
+    bridge = make_mpc_bridge(env, cfg)
+    t0 = time.perf_counter()
+    traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(sample_seed), tasks)
+    traj = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(traj))
+    wall = time.perf_counter() - t0
+    bridge.close()
+    stats = bridge.stats()
+    ep = metrics.episode_metrics(
+        traj["position"],
+        traj["collision"],
+        traj["in_goal"],
+        np.asarray(tasks.goal),
+        env.config.robot_radius,
+    )
+    success = np.asarray(ep.success, bool)
+    free = np.asarray(ep.collision_free, bool)
+    fb = np.isin(traj["status"], (FALLBACK_PLAN, FALLBACK_POLICY))
+    longest = [_longest_run(row) for row in fb]
+    n = success.size
+    solve_ms = 1e3 * np.asarray(stats["solve_s"])
+    return {
+        "tasks": n,
+        "SR": float(success.mean()),
+        "SR_ci95": wilson(int(success.sum()), n),
+        "CFR": float(free.mean()),
+        "CFR_ci95": wilson(int(free.sum()), n),
+        "TT": float(np.mean(ep.travel_time)),
+        "SPL": float(np.mean(ep.spl)),
+        "success": success.astype(int).tolist(),
+        "collision_free": free.astype(int).tolist(),
+        "fallback_share": float(fb.mean()),
+        "fallback_longest_run_max": int(max(longest)),
+        "fallback_longest_run": longest,
+        "solve_ms_median": float(np.median(solve_ms)) if solve_ms.size else None,
+        "solve_ms_mean": float(np.mean(solve_ms)) if solve_ms.size else None,
+        "solve_ms_p95": float(np.percentile(solve_ms, 95)) if solve_ms.size else None,
+        "n_qp_mean": float(np.mean(stats["n_qp"])) if stats["n_qp"] else None,
+        "status": stats["status"],
+        "reasons": stats["reasons"],
+        "sqp_stops": stats.get("sqp_stops", {}),
+        "starts": stats.get("starts", {}),
+        "wall_s": wall,
+    }
+
+
+def _longest_run(flags: np.ndarray) -> int:
+    best = cur = 0
+    for f in flags:
+        cur = cur + 1 if f else 0
+        best = max(best, cur)
+    return best
+
+
+def _env_and_base():
+    from mpcpearl_jax.envs import make_env, mpc_defaults
+    from mpcpearl_jax.mpc import MPCConfig
+
+    env = make_env("restaurant")
+    return env, MPCConfig(**mpc_defaults("restaurant"))
+
+
+def part_scenarios(args) -> None:
+    env, base = _env_and_base()
+    tasks = _scenario_tasks(env, args.scenarios)
+    for name in _selected(args):
+        path = OUT / f"scenarios-{slug(name)}.json"
+        if path.exists() and not args.redo:
+            print(f"{name}: {path.name} exists (--redo to measure again)")
+            continue
+        fields = {"unsafe_recovery": False, "multi_start": "off", **SETTINGS[name]}
+        cfg = base.replace(**fields)
+        rec = gp_mpc_record(env, tasks, cfg, args.sample_seed)
+        rec.update(
+            name=name,
+            fields=fields,
+            mpc=cfg.to_dict(),
+            sample_seed=args.sample_seed,
+            split="train (0-179) + test (180-204)",
+        )
+        _print_row(name, rec)
+        _write(path, rec)
+
+
+def _print_row(name, rec) -> None:
+    lo, hi = rec["SR_ci95"]
+    print(
+        f"{name:24s} SR {rec['SR']:.3f} [{lo:.2f}, {hi:.2f}]  CFR {rec['CFR']:.3f}  "
+        f"solve median {rec['solve_ms_median']:.2f} ms p95 {rec['solve_ms_p95']:.2f} "
+        f"(CPU {rec['solve_cpu_ms_median']:.2f} / {rec['solve_cpu_ms_p95']:.2f})  "
+        f"fallbacks {100 * rec['fallback_share']:.1f} % (longest {rec['fallback_longest_run_max']})"
+        f"  stops {rec['sqp_stops']}  {rec['wall_s']:.0f} s",
+        flush=True,
+    )
+
+
+# ----------------------------------------------------------------------------- device solver
+def part_device(args) -> None:
+    import jax
+    import jax.numpy as jnp
+
+    from mpcpearl_jax.mpc.device_solver import make_batch_solver
+
+    x64 = bool(jax.config.read("jax_enable_x64"))
+    dtype = np.float64 if x64 else np.float32
+    base, rows, data = _load_problems(args.count)
+    ref = json.loads((OUT / "problems.json").read_text())
+    if ref["problems"] != [i for i, _, _ in rows]:
+        raise SystemExit("problems.json was measured on other problems: run `problems` first")
+    # every k-th of those problems (the device solver on a CPU costs about 1 s per row and QP)
+    keep = np.linspace(0, len(rows) - 1, min(args.device_count, len(rows))).round().astype(int)
+    rows = [rows[j] for j in keep]
+    ids = [i for i, _, _ in rows]
+    ref_merit = np.asarray(ref["reference"]["merit"])[keep]
+    from mpcpearl_jax.mpc.solver import SQPSolver
+
+    ref_solver = SQPSolver(_params(base, REFERENCE))
+    ref_first = np.array([ref_solver.solve(row, init).u[0] for _, row, init in rows])
+    probs = jax.tree_util.tree_map(
+        lambda *a: jnp.asarray(np.stack(a), dtype if np.asarray(a[0]).dtype.kind == "f" else None),
+        *[row for _, row, _ in rows],
+    )
+    u0 = jnp.asarray(
+        np.stack([np.zeros((base.horizon, 2)) if i is None else i for _, _, i in rows]), dtype
+    )
+    has = jnp.asarray([i is not None for _, _, i in rows])
+    out = {"x64": x64, "problems": ids, "settings": {}}
+    tag = "float64" if x64 else "float32"
+    for name, fields in (
+        ("2 it", SETTINGS["2 it"]),
+        ("10 it", SETTINGS["10 it"]),
+    ):
+        p = _params(base, fields)
+        solve = jax.jit(make_batch_solver(p, args.device_qp_iters))
+        t0 = time.perf_counter()
+        jax.block_until_ready(solve(probs, u0, has))
+        compile_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        res = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(solve(probs, u0, has)))
+        per_row_ms = 1e3 * (time.perf_counter() - t0) / len(rows)
+
+        # per-row views with the host result's fields
+        views = [
+            SimpleNamespace(u=res.u[j], merit=res.merit[j], ok=res.ok[j], n_qp=res.n_qp[j])
+            for j in range(len(rows))
+        ]
+        st = _problem_stats(
+            fields,
+            views,
+            ref_merit,
+            ref_first,
+            solve_ms=np.full(len(rows), per_row_ms),
+        )
+        st.update(compile_s=compile_s, batch=len(rows), note="solve ms: one batched call / rows")
+        out["settings"][name] = st
+        print(
+            f"device {tag} {name:8s} gap median {100 * st['gap_median']:6.2f} %  "
+            f">1 %: {st['share_gap_over_1pct']:.2f}  first close {st['share_first_close']:.2f}  "
+            f"{per_row_ms:.2f} ms/row batched, compile {compile_s:.0f} s",
+            flush=True,
+        )
+    _write(OUT / f"device-problems-{tag}.json", out)
+    if args.device_scenarios:
+        env, cfg0 = _env_and_base()
+        tasks = _scenario_tasks(env, args.device_scenarios, ("test",))
+        for name in ("2 it", "10 it"):
+            fields = {
+                "unsafe_recovery": False,
+                **SETTINGS[name],
+                "solver": "device",
+                "device_qp_iters": args.device_qp_iters,
+            }
+            cfg = cfg0.replace(**fields)
+            rec = gp_mpc_record(env, tasks, cfg, args.sample_seed)
+            rec.update(name=f"device {name}", fields=fields, split="test (180-204)")
+            lo, hi = rec["SR_ci95"]
+            print(
+                f"device {name}: SR {rec['SR']:.3f} [{lo:.2f}, {hi:.2f}] CFR {rec['CFR']:.3f} "
+                f"fallbacks {100 * rec['fallback_share']:.1f} %  {rec['wall_s']:.0f} s",
+                flush=True,
+            )
+            _write(OUT / f"device-scenarios-{slug(name)}.json", rec)
+
+
+# ----------------------------------------------------------------------------- table and figure
+def part_figure(args) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    probs = json.loads((OUT / "problems.json").read_text())["settings"]
+    scen = {}
+    for name in SETTINGS:
+        p = OUT / f"scenarios-{slug(name)}.json"
+        if p.exists():
+            scen[name] = json.loads(p.read_text())
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for name, s in probs.items():
+        a.scatter(s["solve_ms_median"], 100 * s["gap_median"])
+        a.annotate(name, (s["solve_ms_median"], 100 * s["gap_median"]), fontsize=7)
+    a.set_xlabel("solve per problem, median (ms)")
+    a.set_ylabel("merit above the best plan known, median (%)")
+    a.set_title(f"{len(probs and next(iter(probs.values()))['gap'])} recorded problems")
+    for name, r in scen.items():
+        lo, hi = r["SR_ci95"]
+        b.errorbar(r["solve_ms_median"], r["SR"], yerr=[[r["SR"] - lo], [hi - r["SR"]]], fmt="o")
+        b.annotate(name, (r["solve_ms_median"], r["SR"]), fontsize=7)
+    b.set_xlabel("solve per row, median (ms)")
+    b.set_ylabel("GP-MPC SR (95 % interval)")
+    b.set_title("GP-MPC on the 205 restaurant scenarios")
+    fig.tight_layout()
+    fig.savefig(OUT / "convergence.png", dpi=120)
+    print(f"wrote {OUT / 'convergence.png'}")
+    print(table(probs, scen))
+
+
+def table(probs: dict, scen: dict) -> str:
+    head = (
+        "| SQP | merit gap, median | gap > 1 % | first input within 0.02 | SR (95 %) | CFR (95 %) "
+        "| fallbacks | solve median / p95 ms |"
+    )
+    lines = [head, "|" + "---|" * 8]
+    for name in SETTINGS:
+        p, r = probs.get(name), scen.get(name)
+        cells = [name]
+        cells += (
+            [
+                f"{100 * p['gap_median']:.1f} %",
+                f"{p['share_gap_over_1pct']:.2f}",
+                f"{p['share_first_close']:.2f}",
+            ]
+            if p
+            else ["-"] * 3
+        )
+        if r:
+            cells += [
+                f"{r['SR']:.3f} [{r['SR_ci95'][0]:.2f}, {r['SR_ci95'][1]:.2f}]",
+                f"{r['CFR']:.3f} [{r['CFR_ci95'][0]:.2f}, {r['CFR_ci95'][1]:.2f}]",
+                f"{100 * r['fallback_share']:.1f} %",
+                f"{r['solve_ms_median']:.1f} / {r['solve_ms_p95']:.1f}",
+            ]
+        else:
+            cells += ["-"] * 4
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _selected(args) -> list[str]:
+    names = args.only or list(SETTINGS)
+    unknown = [n for n in names if n not in SETTINGS]
+    if unknown:
+        raise SystemExit(f"error: --only {unknown[0]!r}: unknown setting; known: {list(SETTINGS)}")
+    return names
+
+
+@stops_with("stopped: the parts already measured are saved (one file each)")
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m lab.convergence", description=__doc__.split("\n")[0]
+    )
+    ap.add_argument("part", choices=("problems", "scenarios", "device", "figure"))
+    ap.add_argument("--count", type=int, default=48, help="recorded problems, evenly spread")
+    ap.add_argument(
+        "--scenarios", type=Path, default=ROOT.parent / "shared" / "data" / "mpc-pearl-scenarios"
+    )
+    ap.add_argument("--device-scenarios", type=Path)
+    ap.add_argument("--device-qp-iters", type=int, default=30)
+    ap.add_argument("--device-count", type=int, default=16, help="recorded problems (device)")
+    ap.add_argument("--sample-seed", type=int, default=0)
+    ap.add_argument("--only", action="append", help="one setting of SETTINGS (repeatable)")
+    ap.add_argument("--redo", action="store_true", help="measure settings already recorded again")
+    args = ap.parse_args(argv)
+    {
+        "problems": part_problems,
+        "scenarios": part_scenarios,
+        "device": part_device,
+        "figure": part_figure,
+    }[args.part](args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,122 @@
+"""Why the host SQP stays in runs of fallbacks: GP-MPC on chosen scenarios, and at every step the
+same problem also solved from the other starts (cold, standing still), which the controller does
+not use, so the closed loop is the setting's own.
+
+Per step it records the row's status and reason, the age of its warm start (steps since the last
+safe plan: a fallback keeps the previous plan shifted, and the next solve starts from it again),
+the first-stage violation of the warm start itself, and whether the SQP from each other start
+would have given a safe plan. A run of fallbacks that a cold start or a stop would have ended is a
+warm-start trap; one that no start ends is a problem with no safe first move the SQP can find.
+
+    python -m lab.diagnostics.fallback_runs --scenarios DIR --tasks 150 36 91 [--set sqp_iters=2]
+
+Record: results/mpc/convergence/fallback-runs.json (and a summary printed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from lab.convergence import OUT, ROOT, _scenario_tasks
+from mpcpearl_jax.training.stopping import stops_with
+
+
+@stops_with("stopped: nothing written")
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m lab.diagnostics.fallback_runs")
+    ap.add_argument(
+        "--scenarios", type=Path, default=ROOT.parent / "shared" / "data" / "mpc-pearl-scenarios"
+    )
+    ap.add_argument("--tasks", type=int, nargs="+", required=True, help="indices 0-204 (180+ test)")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
+    ap.add_argument("--out", type=Path, default=OUT / "fallback-runs.json")
+    args = ap.parse_args(argv)
+
+    import jax
+
+    from mpcpearl_jax.config import apply_overrides
+    from mpcpearl_jax.envs import make_env, mpc_defaults
+    from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout
+    from mpcpearl_jax.mpc.bridge import FALLBACK_PLAN, FALLBACK_POLICY, MPCBridge
+    from mpcpearl_jax.mpc.solver import SQPSolver, solver_params, starts
+
+    env = make_env("restaurant")
+    cfg = apply_overrides(MPCConfig(**mpc_defaults("restaurant")), args.set)
+    tasks = _scenario_tasks(env, args.scenarios)
+    tasks = jax.tree_util.tree_map(lambda a: a[np.asarray(args.tasks)], tasks)
+    log: list[list[dict]] = []
+
+    class Probe(MPCBridge):
+        def _solve_rows(self, probs, inits, num_static):
+            results = super()._solve_rows(probs, inits, num_static)
+            params = solver_params(self.cfg, self.env.config, num_static)
+            solver = SQPSolver(params)
+            step = []
+            for prob, u0, res in zip(probs, inits, results, strict=True):
+                others = {}
+                for name, u in starts(params, prob, u0)[1:]:
+                    others[name] = solver._sqp(prob, u)[5] == "solved"
+                warm_viol = None
+                if u0 is not None:
+                    from mpcpearl_jax.mpc import model
+
+                    xs = model.rollout(prob.x0, u0, params.dt, params.wheelbase)
+                    warm_viol = solver._first_violation(prob, xs)
+                step.append(
+                    dict(
+                        reason=res.reason,
+                        start=res.start,
+                        warm=u0 is not None,
+                        warm_violation=warm_viol,
+                        others_safe=others,
+                    )
+                )
+            log.append(step)
+            return results
+
+    bridge = Probe(env, cfg)
+    traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(0), tasks)
+    traj = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(traj))
+    status = traj["status"]
+    out = {"mpc": cfg.to_dict(), "tasks": args.tasks, "per_task": []}
+    for j, task in enumerate(args.tasks):
+        fb = np.isin(status[j], (FALLBACK_PLAN, FALLBACK_POLICY))
+        steps = [log[t][j] for t in range(len(log))]
+        in_run = [s for s, f in zip(steps, fb, strict=False) if f]
+        cold_ok = sum(bool(s["others_safe"].get("cold")) for s in in_run)
+        stop_ok = sum(bool(s["others_safe"].get("stop")) for s in in_run)
+        any_ok = sum(any(s["others_safe"].values()) for s in in_run)
+        first_collision = (
+            int(np.argmax(traj["collision"][j])) if traj["collision"][j].any() else None
+        )
+        rec = dict(
+            task=task,
+            fallbacks=int(fb.sum()),
+            first_collision=first_collision,
+            fallback_steps_where_cold_is_safe=cold_ok,
+            fallback_steps_where_stop_is_safe=stop_ok,
+            fallback_steps_where_some_start_is_safe=any_ok,
+            status=status[j].tolist(),
+            steps=steps,
+        )
+        out["per_task"].append(rec)
+        print(
+            f"task {task}: {rec['fallbacks']} fallbacks, first collision at step "
+            f"{first_collision}; "
+            f"on those steps a cold start is safe on {cold_ok}, standing still on {stop_ok}, "
+            f"some start on {any_ok}",
+            flush=True,
+        )
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=1, default=float))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
