@@ -16,6 +16,7 @@ import pytest
 from faults_helpers import _make_unwritable
 
 import experiments.evaluate as evaluate
+import mpcpearl_jax.evaluation.command as evaluation_command
 from experiments import export, gp_mpc
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,8 +32,9 @@ def _one_line(capsys) -> str:
 
 @pytest.fixture
 def bounded_range(monkeypatch):
-    """`range` in experiments.evaluate refuses to be expanded past a million values (a range
-    expanded before its bound is checked fails here instead of filling the memory)."""
+    """`range` in experiments.evaluate and the library behind it (mpcpearl_jax.evaluation.command)
+    refuses to be expanded past a million values (a range expanded before its bound is checked
+    fails here instead of filling the memory)."""
 
     def guarded(*args):
         r = builtins.range(*args)
@@ -40,6 +42,7 @@ def bounded_range(monkeypatch):
         return r
 
     monkeypatch.setattr(evaluate, "range", guarded, raising=False)
+    monkeypatch.setattr(evaluation_command, "range", guarded, raising=False)
 
 
 def test_q2_a_huge_tasks_range_is_refused_before_it_is_expanded(bounded_range, capsys, tmp_path):
