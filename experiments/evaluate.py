@@ -38,6 +38,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 import jax
 import numpy as np
@@ -52,15 +53,15 @@ from mpcpearl_jax.envs import SPLITS, env_names, make_env
 from mpcpearl_jax.evaluation.command import (
     FIGURES,
     UsageError,
-    _default_out,
-    _mpc_overrides,
-    _parse_ranges,
-    _task_setup,
     check_eval_seed,
+    default_out,
     evaluate,
+    mpc_overrides,
     parse_indices,
+    parse_ranges,
     probe_out,
     tables,
+    task_setup,
     write_figures,
 )
 from mpcpearl_jax.evaluation.evaluate import EVAL_SEED
@@ -162,6 +163,23 @@ def make_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _task_setup(args: argparse.Namespace, cfg: Any, env: Any, env_name: str, data: str | None):
+    """`task_setup` with the options of the command line `args`."""
+    return task_setup(
+        cfg,
+        env,
+        env_name,
+        data,
+        args.split,
+        task_seed=args.task_seed,
+        task_seeds=args.task_seeds,
+        scenarios=args.scenarios,
+        tasks=args.tasks,
+        figures=args.figures,
+        perturb=args.perturb,
+    )
+
+
 def _grbal_setup(args: argparse.Namespace) -> Setup:
     """A GrBAL run (`experiments.grbal`): its own controller, the learned model adapted as it
     acts, planned with MPPI (the protocol of its results.json)."""
@@ -199,7 +217,9 @@ def _grbal_setup(args: argparse.Namespace) -> Setup:
     task_seed, scenarios, tasks, task_ids, figure_ids, perturbation = _task_setup(
         args, cfg, trainer.env, cfg.env, cfg.data
     )
-    out = args.out or _default_out(args, "grbal", scenarios, perturbation)
+    out = args.out or default_out(
+        args.run, "grbal", args.split, args.online, scenarios, perturbation
+    )
     return Setup(
         controller="grbal",
         env_name=cfg.env,
@@ -291,7 +311,7 @@ def setup(args: argparse.Namespace) -> Setup:
     )
 
     base_mpc = cfg.mpc.to_dict() if cfg else mpc_defaults(env_name)
-    mpc = _mpc_overrides(args.set, base_mpc) if ctrl != "policy" else {}
+    mpc = mpc_overrides(args.set, base_mpc) if ctrl != "policy" else {}
     policies, seed_ids, label, eps = [], [], "GP-MPC", None
     if ctrl != "gp-mpc":
         seeds = cfg.seeds
@@ -315,7 +335,7 @@ def setup(args: argparse.Namespace) -> Setup:
     out = args.out
     if out is None and args.run is not None:
         name = f"{ctrl}-shield" if shield is not None else ctrl
-        out = _default_out(args, name, scenarios, perturbation)
+        out = default_out(args.run, name, args.split, args.online, scenarios, perturbation)
     elif out is None:
         split_name = f"scenarios-{args.split}" if scenarios is not None else args.split
         out = Path("runs") / "eval" / f"gp-mpc-{env_name}-{split_name}{perturbation.folder_suffix}"
@@ -357,7 +377,7 @@ def main_task_seeds(args: argparse.Namespace) -> int:
     with one_line_errors(interrupted=None) as failed:
         hint = " in one command (the project's protocol uses 8: 1-8)"
         text = args.task_seeds.strip()
-        seeds = sorted(_parse_ranges(text, "--task-seeds", MAX_TASK_SEEDS, "task sets", hint))
+        seeds = sorted(parse_ranges(text, "--task-seeds", MAX_TASK_SEEDS, "task sets", hint))
         span = (
             f"{seeds[0]}-{seeds[-1]}"
             if seeds == list(range(seeds[0], seeds[-1] + 1))
@@ -370,7 +390,7 @@ def main_task_seeds(args: argparse.Namespace) -> int:
             if ts == seeds[0]:  # the output folder, checked before the first evaluation
                 out = out or s.out.parent / f"{s.out.name}-seeds{span.replace(',', '_')}"
                 probe_out(out, args.overwrite)
-            record, _ = evaluate(a, s)
+            record, _ = evaluate(s, a.eval_seed, a.episodes, a.online)
             records.append(record)
             print(
                 f"[evaluate] task seed {ts}: {len(s.task_ids)} task(s), "
@@ -443,7 +463,7 @@ def _main(argv: list[str] | None) -> int:
         f"{len(s.task_ids)} task(s), {n_seeds} seed(s), controller {s.controller}",
         flush=True,
     )
-    record, result = evaluate(args, s)
+    record, result = evaluate(s, args.eval_seed, args.episodes, args.online)
     print(f"{record['protocol']}; {record['wall_s']:.1f} s", flush=True)
     print(tables(record))
     print(failure_line(record["failures"]))

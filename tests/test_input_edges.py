@@ -62,7 +62,7 @@ def test_q3_a_huge_task_seeds_range_is_refused_before_it_is_expanded(
     err = _one_line(capsys)
     assert f"3000000001 task sets; at most {evaluate.MAX_TASK_SEEDS}" in err
     # overlapping spans count once
-    assert evaluate._parse_ranges("1-8,3-5,8", "--task-seeds", 8) == set(range(1, 9))
+    assert evaluation_command.parse_ranges("1-8,3-5,8", "--task-seeds", 8) == set(range(1, 9))
 
 
 def test_q4_an_export_into_a_read_only_folder_is_one_line(tmp_path, capsys):

@@ -7,7 +7,6 @@ an error here is a `UsageError` (a bad command line or input file, one line, exi
 
 from __future__ import annotations
 
-import argparse
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -67,7 +66,7 @@ def _count(spans: list[tuple[int, int]]) -> int:
     return sum(hi - lo + 1 for lo, hi in spans)
 
 
-def _parse_ranges(
+def parse_ranges(
     text: str, what: str, cap: int | None = None, unit: str = "values", hint: str = ""
 ) -> set[int]:
     """The integers of '0,3,5' | '0-3' | a mix (`_parse_spans`); with `cap`, UsageError when
@@ -129,7 +128,7 @@ def parse_indices(text: str, n: int, what: str) -> list[int]:
     return sorted(i for lo, hi in spans for i in range(lo, hi + 1))
 
 
-def _mpc_overrides(items: list[str], base: dict) -> dict:
+def mpc_overrides(items: list[str], base: dict) -> dict:
     """The MPCConfig fields `base` with the --set FIELD=VALUE `items` on top (read by each
     field's type, `mpcpearl_jax.config.parse_override`), checked; UsageError in one line."""
     from mpcpearl_jax.config import mpc_config, parse_override
@@ -149,73 +148,98 @@ def _mpc_overrides(items: list[str], base: dict) -> dict:
     return out
 
 
-def _task_setup(args: argparse.Namespace, cfg: Any, env: Any, env_name: str, data: str | None):
-    """The evaluated tasks of `args` for a run config: (task seed, scenario source, tasks, task
-    ids, figure ids, perturbation)."""
-    task_seed = args.task_seed if args.task_seed is not None else (cfg.task_seed if cfg else 0)
+def task_setup(
+    cfg: Any,
+    env: Any,
+    env_name: str,
+    data: str | None,
+    split: str,
+    *,
+    task_seed: int | None = None,
+    task_seeds: str | None = None,
+    scenarios: Path | None = None,
+    tasks: str = "all",
+    figures: str | None = None,
+    perturb: str = "none",
+):
+    """The evaluated tasks of a split for a run config `cfg` (None: `env_name`'s defaults), as
+    the options name them (--task-seed, --task-seeds, --scenarios, --tasks, --figures,
+    --perturb): (task seed, scenario source, tasks, task ids, figure ids, perturbation)."""
+    seed = task_seed if task_seed is not None else (cfg.task_seed if cfg else 0)
     source = (cfg or ExperimentConfig(env=env_name)).replace(data=data)
-    scenarios = _scenario_source(args, cfg, env_name, source.task_options)
+    scenarios = scenario_source(
+        cfg, env_name, source.task_options, split, scenarios, task_seed, task_seeds
+    )
     if scenarios is not None:  # the paper's scenarios, in place of the run's task source
         source = source.replace(data=None, task_options=scenarios)
     try:
-        all_tasks = tasks_for(source, args.split, config=env.config, seed=task_seed)
+        all_tasks = tasks_for(source, split, config=env.config, seed=seed)
     except (ValueError, TypeError, OSError) as e:
         if isinstance(e, OSError) and scenarios is None:
             raise
-        raise UsageError(f"{env_name} --split {args.split}: {e}") from e
+        raise UsageError(f"{env_name} --split {split}: {e}") from e
     n = all_tasks.num_tasks
-    task_ids = parse_indices(args.tasks, n, "--tasks")
+    task_ids = parse_indices(tasks, n, "--tasks")
     if not task_ids:
         raise UsageError("--tasks: no task selected")
-    if args.figures is None:
+    if figures is None:
         figure_ids = task_ids[:FIGURES]
     else:
-        figure_ids = parse_indices(args.figures, n, "--figures")
+        figure_ids = parse_indices(figures, n, "--figures")
         missing = sorted(set(figure_ids) - set(task_ids))
         if missing:
             raise UsageError(f"--figures: task(s) {missing} are not evaluated (see --tasks)")
-    tasks = jax.tree_util.tree_map(lambda x: x[np.asarray(task_ids)], all_tasks)
+    chosen = jax.tree_util.tree_map(lambda x: x[np.asarray(task_ids)], all_tasks)
     try:
-        perturbation = parse_perturbation(args.perturb)
+        perturbation = parse_perturbation(perturb)
     except ValueError as e:
         raise UsageError(str(e)) from e
     return (
-        task_seed,
+        seed,
         scenarios,
-        perturb_tasks(tasks, perturbation),
+        perturb_tasks(chosen, perturbation),
         task_ids,
         figure_ids,
         perturbation,
     )
 
 
-def _default_out(args: argparse.Namespace, name: str, scenarios: Any, perturbation: Any) -> Path:
-    split_name = f"scenarios-{args.split}" if scenarios is not None else args.split
+def default_out(
+    run: Path, name: str, split: str, online: bool, scenarios: Any, perturbation: Any
+) -> Path:
+    """The default output folder of an evaluation of `run`: RUN/eval/NAME-SPLIT[-online]."""
+    split_name = f"scenarios-{split}" if scenarios is not None else split
     split_name += perturbation.folder_suffix
-    return args.run / "eval" / (f"{name}-{split_name}" + ("-online" if args.online else ""))
+    return run / "eval" / (f"{name}-{split_name}" + ("-online" if online else ""))
 
 
-def _scenario_source(
-    args: argparse.Namespace, cfg: Any, env_name: str, task_options: dict
+def scenario_source(
+    cfg: Any,
+    env_name: str,
+    task_options: dict,
+    split: str,
+    scenarios: Path | None = None,
+    task_seed: int | None = None,
+    task_seeds: str | None = None,
 ) -> dict | None:
     """The task options of the paper's scenarios when they are the task source (--scenarios, or
     the run trained on them), else None. A run that trained on every training scenario is not
     scored on the val split (its tasks 150-179 were training tasks)."""
     from mpcpearl_jax.envs.restaurant.scenarios import check_val_split, scenario_options
 
-    if args.scenarios is None and not task_options.get("scenarios"):
+    if scenarios is None and not task_options.get("scenarios"):
         return None
     if env_name != "restaurant":
         raise UsageError(f"--scenarios: the paper's scenarios are restaurant tasks, not {env_name}")
-    if args.task_seed is not None or args.task_seeds is not None:
+    if task_seed is not None or task_seeds is not None:
         raise UsageError("--task-seed(s): the paper's scenarios are one fixed set of tasks")
     trained = dict(cfg.task_options) if cfg else {}
     try:
-        if args.scenarios is not None:
-            out = scenario_options(args.scenarios)
+        if scenarios is not None:
+            out = scenario_options(scenarios)
         else:  # the run's own scenarios: the same files it recorded
             out = {k: v for k, v in task_options.items() if k in ("scenarios", "scenario_sha256")}
-        check_val_split(trained, args.split)
+        check_val_split(trained, split)
     except (ValueError, OSError) as e:
         raise UsageError(f"--scenarios: {e}") from e
     return out
@@ -268,28 +292,30 @@ def write_figures(s: Setup, result: dict, animate: bool) -> list[Path]:
     return written
 
 
-def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
-    """Run the controller on the tasks; -> (record for results.json, raw arrays [S, N, ...])."""
+def evaluate(
+    s: Setup, eval_seed: int, episodes: int | None = None, online: bool = False
+) -> tuple[dict, dict]:
+    """Run the controller on the tasks with the PRNG seed `eval_seed` (`episodes` adaptation
+    episodes, None: the run's; or `online`); -> (record for results.json, raw arrays [S, N,
+    ...])."""
     from mpcpearl_jax.evaluation import evaluate as eval_lib
 
-    key = jax.random.PRNGKey(args.eval_seed)
+    key = jax.random.PRNGKey(eval_seed)
     stats = None
     t0 = time.perf_counter()
     if s.controller == "policy":
-        episodes = (
-            s.run_config.train.eval_adapt_episodes if args.episodes is None else args.episodes
-        )
-        protocol = "online" if args.online else f"after {episodes} adaptation episode(s)"
-        result = run_policy(s, key, episodes, args.online)
+        episodes = s.run_config.train.eval_adapt_episodes if episodes is None else episodes
+        protocol = "online" if online else f"after {episodes} adaptation episode(s)"
+        result = run_policy(s, key, episodes, online)
     elif s.controller == "gp-mpc":
         protocol = "MPC at every step"
         result, stats = run_gp_mpc(s, key)
     elif s.controller == "grbal":
         trainer, saved = s.grbal
         episodes = s.run_config.grbal.eval_adapt_episodes
-        protocol = "online" if args.online else f"after {episodes} adaptation episode(s)"
+        protocol = "online" if online else f"after {episodes} adaptation episode(s)"
         raw = trainer.rollouts(saved["model"], saved["norm"], s.tasks, key)
-        result = raw["online" if args.online else "adapt"]
+        result = raw["online" if online else "adapt"]
     else:
         protocol = f"training-style episode: prior z, MPC on an event with probability {s.eps:g}"
         result, stats = run_policy_mpc(s, key, s.eps)
@@ -306,7 +332,7 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
         "scenarios": s.scenarios,
         "perturbation": s.perturbation,
         "protocol": protocol,
-        "eval_seed": args.eval_seed,
+        "eval_seed": eval_seed,
         "seeds": s.seed_ids or [0],
         "tasks": s.task_ids,
         "metrics": {k: v for k, v in summary.items() if not k.endswith("_per_seed")},
@@ -324,7 +350,7 @@ def evaluate(args: argparse.Namespace, s: Setup) -> tuple[dict, dict]:
         record["mpc_status"] = dict(stats["status"])
         record["mpc_reasons"] = dict(stats["reasons"])
     if s.controller in ("policy", "grbal"):
-        record["episodes"] = 1 if args.online else episodes + 1
+        record["episodes"] = 1 if online else episodes + 1
         if s.shield is not None:
             record["shield"] = asdict(s.shield)
             record["shield_rate"] = float(np.mean(result["shielded"]))
