@@ -112,10 +112,42 @@ def main(argv: list[str] | None = None) -> int:
             f"some start on {any_ok}",
             flush=True,
         )
+    out["summary"] = _summary(out["per_task"])
+    print(json.dumps(out["summary"], indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1, default=float))
     print(f"wrote {args.out}")
     return 0
+
+
+def _summary(per_task: list[dict], window: int = 3) -> dict:
+    """Over the tasks: episodes with a collision; fallback steps before and after the first
+    collision; collisions with a fallback in the `window` steps before them, and among those the
+    ones where a cold start or standing still would have given a safe plan on that step."""
+    fallback = (2, 3)  # mpc.bridge FALLBACK_PLAN, FALLBACK_POLICY
+    s = dict(
+        tasks=len(per_task),
+        collided=0,
+        fallback_steps_before=0,
+        fallback_steps_after=0,
+        collisions_after_a_fallback=0,
+        collisions_after_an_avoidable_fallback=0,
+    )
+    for r in per_task:
+        fc = r["first_collision"]
+        steps = [i for i, st in enumerate(r["status"]) if st in fallback]
+        if fc is None:
+            s["fallback_steps_before"] += len(steps)
+            continue
+        s["collided"] += 1
+        s["fallback_steps_before"] += sum(i < fc for i in steps)
+        s["fallback_steps_after"] += sum(i >= fc for i in steps)
+        near = [i for i in steps if fc - window <= i < fc]
+        if near:
+            s["collisions_after_a_fallback"] += 1
+            if any(any(r["steps"][i]["others_safe"].values()) for i in near):
+                s["collisions_after_an_avoidable_fallback"] += 1
+    return s
 
 
 if __name__ == "__main__":
