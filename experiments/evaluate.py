@@ -59,6 +59,7 @@ from mpcpearl_jax.evaluation.command import (
     mpc_overrides,
     parse_indices,
     parse_ranges,
+    pooled_record,
     probe_out,
     tables,
     task_setup,
@@ -66,7 +67,7 @@ from mpcpearl_jax.evaluation.command import (
 )
 from mpcpearl_jax.evaluation.evaluate import EVAL_SEED
 from mpcpearl_jax.evaluation.runners import Setup
-from mpcpearl_jax.evaluation.scoring import failure_line, failures, pooled
+from mpcpearl_jax.evaluation.scoring import failure_line
 from mpcpearl_jax.mpc.shield import ShieldConfig
 from mpcpearl_jax.runfolder import write_json
 from mpcpearl_jax.training.stopping import stoppable
@@ -399,8 +400,8 @@ def main_task_seeds(args: argparse.Namespace) -> int:
             )
     if failed.code is not None:
         return failed.code
-    n_tasks = sum(len(r["tasks"]) for r in records)
-    pool = pooled(records)
+    summary = pooled_record(s, seeds, records)
+    n_tasks, pool, fails = summary["num_tasks"], summary["pooled"], summary["failures"]
     protocol = records[0]["protocol"]
     crowd = "" if s.perturbation == "none" else f", crowd perturbed {s.perturbation}"
     print(
@@ -410,18 +411,7 @@ def main_task_seeds(args: argparse.Namespace) -> int:
     for k, v in pool.items():
         per = " ".join(f"{x:.2f}" for x in v["per_task_seed"])
         print(f"| {k} | {v['mean']:.2f} | {v['se']:.2f} | {per} |")
-    fails = failures([r["per_task"] for r in records])
     print(failure_line(fails))
-    summary = {
-        "label": s.label,
-        "split": s.split,
-        "perturbation": s.perturbation,
-        "task_seeds": seeds,
-        "num_tasks": n_tasks,
-        "pooled": pool,
-        "failures": fails,
-        "records": records,
-    }
     with one_line_errors(interrupted=None) as failed:
         write_json(out / "results.json", summary)
     if failed.code is not None:

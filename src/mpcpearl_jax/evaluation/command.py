@@ -26,7 +26,7 @@ from mpcpearl_jax.evaluation.runners import (
     run_policy,
     run_policy_mpc,
 )
-from mpcpearl_jax.evaluation.scoring import failures, per_task_metrics
+from mpcpearl_jax.evaluation.scoring import failures, per_task_metrics, pooled
 from mpcpearl_jax.runfolder import RUN_RECORDS
 from mpcpearl_jax.validate import unwritable_folder
 
@@ -356,3 +356,19 @@ def evaluate(
             record["shield_rate"] = float(np.mean(result["shielded"]))
     record["failures"] = failures([record["per_task"]])
     return record, result
+
+
+def pooled_record(s: Setup, task_seeds: list[int], records: list[dict]) -> dict:
+    """The results.json of --task-seeds: the `records` of `evaluate` on the split of each
+    task-set seed (`s`: the last one's setup), pooled (`scoring.pooled`: mean and standard error
+    over all their tasks, the mean of each set) with their failures."""
+    return {
+        "label": s.label,
+        "split": s.split,
+        "perturbation": s.perturbation,
+        "task_seeds": task_seeds,
+        "num_tasks": sum(len(r["tasks"]) for r in records),
+        "pooled": pooled(records),
+        "failures": failures([r["per_task"] for r in records]),
+        "records": records,
+    }
