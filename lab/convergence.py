@@ -61,6 +61,12 @@ SETTINGS: dict[str, dict] = {
     "converged, restart": dict(sqp_iters=100, sqp_step_tol=1e-4, multi_start="on_failure"),
     "converged, multi-start": dict(sqp_iters=100, sqp_step_tol=1e-4, multi_start="always"),
     "converged, grid": dict(sqp_iters=100, sqp_step_tol=1e-4, unsafe_recovery=True),
+    # the grid recovery (`unsafe_recovery`, the learned presets' MPC) at fewer QPs
+    "2 it, grid": dict(sqp_iters=2, sqp_step_tol=0.05, unsafe_recovery=True),
+    "5 it, grid": dict(sqp_iters=5, sqp_step_tol=1e-3, unsafe_recovery=True),
+    "5 it, restart, grid": dict(
+        sqp_iters=5, sqp_step_tol=1e-3, multi_start="on_failure", unsafe_recovery=True
+    ),
     # a longer line search (step sizes down to 1/128): fewer stalls on the nonsmooth merit
     "converged, ls 8": dict(sqp_iters=100, sqp_step_tol=1e-4, line_search_steps=8),
     "converged, ls 8, restart": dict(

@@ -92,12 +92,13 @@ def render_summary(rec: Records) -> str:
         "standard error over its five seeds (worst seed), each trained by `python -m "
         "experiments.restaurant --preset recipe --eps 0.2 --minutes 24 --seed S` with the "
         "expert of that time, 2 QPs per solve (add `--set mpc.sqp_iters=2 --set "
-        "mpc.sqp_step_tol=0.05 --set mpc.multi_start=off` to rebuild it; records, the "
+        "mpc.sqp_step_tol=0.05` to rebuild it; records, the "
         "folders under `results/` these numbers are read from: "
         + ", ".join(f"`{r}`" for r in RECIPE.runs)
         + "); GP-MPC: the MPC alone at every step, `python -m experiments.gp_mpc --scenarios DIR "
         "--split test`, its SQP run to convergence (the `paper` preset's expert), and with 2 QPs "
-        "per solve (the expert the learned rows trained with); the paper: its published table.",
+        "per solve (the earlier default; the learned rows' MPC had the unsafe-plan recovery too, "
+        "docs/method.md §6); the paper: its published table.",
         "",
         _main_command_line(rec),
     ]

@@ -389,16 +389,16 @@ _OBSERVATION: dict[str, Any] = dict(
     observe_relative=True,
     observe_sorted=True,
 )
-# the expert of every preset but `paper`, chosen on the convergence curve (docs/method.md §6,
-# `python -m lab.convergence`): at most 5 QPs (step tolerance 1e-3, 3 line-search steps) and,
-# where that plan is unsafe, the SQP again from a cold start and from standing still; on the
-# authors' 180 training scenarios GP-MPC with it cannot be told apart from the best setting
-# measured at less than half its mean solve time
+# the expert of every preset with the extensions (`smoke`, like `paper`, has none), chosen on the convergence curve (docs/method.md §6,
+# `python -m lab.convergence`): at most 5 QPs (step tolerance 1e-3, 3 line-search steps) and the
+# unsafe-plan recovery; on the authors' 180 training scenarios GP-MPC with it cannot be told
+# apart from the best setting measured (the SQP to convergence from three starts) at a seventh
+# of its mean solve time
 _EXPERT: dict[str, Any] = dict(
-    sqp_iters=5, sqp_step_tol=1e-3, line_search_steps=3, multi_start="on_failure"
+    sqp_iters=5, sqp_step_tol=1e-3, line_search_steps=3, unsafe_recovery=True
 )
-# the expert, unsafe-plan recovery, and two host processes for the MPC solves
-_MPC_RECOVERY: dict[str, Any] = dict(_EXPERT, unsafe_recovery=True, n_workers=2)
+# the expert and two host processes for the MPC solves
+_MPC_RECOVERY: dict[str, Any] = dict(_EXPERT, n_workers=2)
 
 # name -> {section: {field: value}}: the differences from `paper`
 PRESET_CHANGES: dict[str, dict[str, dict[str, Any]]] = {
@@ -420,7 +420,6 @@ PRESET_CHANGES: dict[str, dict[str, dict[str, Any]]] = {
             eval_interval=2,
             checkpoint_interval=2,
         ),
-        "mpc": _EXPERT,
     },
     # the CPU schedule and networks with the options chosen on the validation split (results/
     # README.md): the paper's event-triggered infusion, LayerNorm critics, re-drawn crowds, the
