@@ -85,9 +85,10 @@ def test_five_presets_and_cpu_explore_is_cpu_paper_with_the_documented_extension
     assert explore.pearl == paper.pearl.replace(layer_norm=True)
     changed = {k: v for k, v in explore.train.__dict__.items() if paper.train.__dict__[k] != v}
     assert changed == {"redraw_behaviours": True, "explore_start_share": 0.5}
-    # the MPC: two workers and the expert chosen on the convergence curve, with the unsafe-plan
-    # recovery (the committed run predates it: 2 QPs, step tolerance 0.05)
-    expert = dict(sqp_iters=5, sqp_step_tol=1e-3, line_search_steps=3, unsafe_recovery=True)
+    # the MPC: two workers and the expert chosen on the convergence curve and the expert screen,
+    # 2 QPs with the unsafe-plan recovery (the committed run's SQP settings: 2 QPs, step
+    # tolerance 0.05, 3 line-search steps)
+    expert = dict(sqp_iters=2, sqp_step_tol=0.05, line_search_steps=3, unsafe_recovery=True)
     assert explore.mpc == paper.mpc.replace(n_workers=2, **expert)
     assert preset("smoke").mpc == MPCConfig()  # smoke: the paper's algorithm, small
     # the paper preset runs the SQP to convergence, as the paper's NLP solver
@@ -110,11 +111,6 @@ def test_five_presets_and_cpu_explore_is_cpu_paper_with_the_documented_extension
     )
     assert default.train == dataclasses.replace(explore.train, iterations=75)
     assert default.mpc == explore.mpc and default.env_overrides == explore.env_overrides
-
-
-# the expert the committed runs were trained with, before the one chosen on the convergence
-# curve: 2 QPs, step tolerance 0.05 (docs/method.md §6)
-EARLIER_EXPERT = ("mpc.sqp_iters=2", "mpc.sqp_step_tol=0.05")
 
 
 @pytest.mark.parametrize(
@@ -140,17 +136,16 @@ EARLIER_EXPERT = ("mpc.sqp_iters=2", "mpc.sqp_step_tol=0.05")
 def test_cpu_explore_and_recipe_build_the_committed_restaurant_runs(
     tmp_path, capsys, name, sets, eps, algo, folder
 ):
-    """`--preset cpu-explore|recipe --eps E [--set ...]` with the earlier expert's four `--set`
-    (`EARLIER_EXPERT`) builds exactly the committed run's config.json (the run wrote the
-    iterations it finished; options since removed are dropped at their inactive values), so one
-    short command reproduces it; the sidewalk, which cannot re-draw its crowds, is refused before
-    anything is written."""
+    """`--preset cpu-explore|recipe --eps E [--set ...]` builds exactly the committed run's
+    config.json (the run wrote the iterations it finished; options since removed are dropped at
+    their inactive values; fields added since at the values that compute what the run did), so
+    one short command reproduces it; the sidewalk, which cannot re-draw its crowds, is refused
+    before anything is written."""
     import json
 
     from experiments.common import build_config, main, parse_args
 
     argv = ["--preset", name, "--eps", eps, "--algo", algo, "--minutes", "60"]
-    sets = (*sets, *EARLIER_EXPERT)
     args = parse_args("restaurant", [*argv, *(x for item in sets for x in ("--set", item))])
     cfg = build_config(args, "restaurant")
     head = Path(__file__).parents[1] / "results/restaurant" / folder / "config.json"

@@ -37,7 +37,7 @@ _GP_MPC = Entry(
         ("scen_ood", "gp_mpc/scenarios/restaurant_ood.json"),
     ),
 )
-GP_MPC = _GP_MPC  # the GP-MPC's records with the earlier expert (2 QPs: docs/method.md §6)
+GP_MPC = _GP_MPC  # the GP-MPC's records with 2 QPs, the learned presets' SQP (docs/method.md §6)
 # the GP-MPC of the `paper` preset's expert, the SQP to convergence (`python -m experiments.gp_mpc`
 # with the MPCConfig defaults): README's summary and the paper's table side by side
 GP_MPC_CONVERGED = Entry(
@@ -49,7 +49,7 @@ GP_MPC_CONVERGED = Entry(
     absent=frozenset({"test", "val8"}),
 )
 _GP_MPC_TEACHER = Entry(
-    "GP-MPC with unsafe-plan recovery (the learned agents' MPC until the expert was chosen)",
+    "GP-MPC with unsafe-plan recovery (the learned agents' MPC)",
     files=(
         ("test", "gp_mpc/restaurant_test_unsafe-recovery.json"),
         ("val8", "gp_mpc/restaurant_val_seeds1-8_unsafe-recovery.json"),
@@ -195,7 +195,7 @@ RESTAURANT: tuple[Entry, ...] = (
     ),
     _r("MPC-PEARL 0.2, extended (`cpu`) + mpc.r_safe 0.4", "ablation/cpu-rsafe0.4", absent=_NO_VAL),
     Entry(
-        "GP-MPC, the paper's MPC at every step (no learning), the earlier expert (2 QPs)",
+        "GP-MPC, the paper's MPC at every step (no learning), 2 QPs",
         files=_GP_MPC.files,
     ),
     _GP_MPC_TEACHER,

@@ -77,7 +77,7 @@ def render_summary(rec: Records) -> str:
         (RECIPE, run_budget(rec, RECIPE)),
         (Entry("GP-MPC, the paper", paper="GP-MPC"), _paper_budget("GP-MPC")),
         (Entry("GP-MPC, this project", files=GP_MPC_CONVERGED.files), "no training"),
-        (Entry("GP-MPC, this project, 2 QPs (earlier)", files=GP_MPC.files), "no training"),
+        (Entry("GP-MPC, this project, 2 QPs", files=GP_MPC.files), "no training"),
     ]
     head = ["", *SUMMARY_METRICS, "training"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -90,15 +90,13 @@ def render_summary(rec: Records) -> str:
         "experiments.evaluate RUN --scenarios DIR`; SR, CFR, SPL: higher is better; TT: steps "
         "of the episode not spent at the goal, lower is better); this project's recipe: mean +- "
         "standard error over its five seeds (worst seed), each trained by `python -m "
-        "experiments.restaurant --preset recipe --eps 0.2 --minutes 24 --seed S` with the "
-        "expert of that time, 2 QPs per solve (add `--set mpc.sqp_iters=2 --set "
-        "mpc.sqp_step_tol=0.05` to rebuild it; records, the "
+        "experiments.restaurant --preset recipe --eps 0.2 --minutes 24 --seed S` (records, the "
         "folders under `results/` these numbers are read from: "
         + ", ".join(f"`{r}`" for r in RECIPE.runs)
         + "); GP-MPC: the MPC alone at every step, `python -m experiments.gp_mpc --scenarios DIR "
         "--split test`, its SQP run to convergence (the `paper` preset's expert), and with 2 QPs "
-        "per solve (the earlier default; the learned rows' MPC had the unsafe-plan recovery too, "
-        "docs/method.md §6); the paper: its published table.",
+        "per solve (the learned presets' SQP, which adds the unsafe-plan recovery: docs/method.md "
+        "§6); the paper: its published table.",
         "",
         _main_command_line(rec),
     ]
@@ -122,8 +120,7 @@ def _main_command_line(rec: Records) -> str:
     per_seed = " ".join(f"{t.value:.2f}" for t in test)
     return (
         f"The main command, `python -m experiments.restaurant` (preset `default`, 75 "
-        f"iterations), over seeds 0-{len(runs) - 1} (`--seed S`, with the expert of that time, "
-        f"2 QPs per solve) on a 2-core CPU: training took "
+        f"iterations), over seeds 0-{len(runs) - 1} (`--seed S`) on a 2-core CPU: training took "
         f"{budget} min, of which the first iteration, which compiles, {first[0]:.0f}-"
         f"{first[-1]:.0f} s (start-up and the final evaluation come on top); test SR "
         f"{fmt_metric(test, 'SR')} (per seed: {per_seed}) on the 24 test tasks and "
@@ -169,7 +166,7 @@ def render_paper(rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEE
             rows.append(("the paper", None, "not in the paper's table"))
         if ours is None:
             rows.append(("this project", Entry(name, files=GP_MPC_CONVERGED.files), "no training"))
-            rows.append(("this project, 2 QPs (earlier)", Entry(name, files=GP_MPC.files), "-"))
+            rows.append(("this project, 2 QPs", Entry(name, files=GP_MPC.files), "-"))
         else:
             rows.append(("this project", seeds[ours], run_budget(rec, seeds[ours])))
         for source, runs in SIDE_BY_SIDE_MORE.get(name, ()):
