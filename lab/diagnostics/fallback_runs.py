@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
             for prob, u0, res in zip(probs, inits, results, strict=True):
                 others = {}
                 for name, u in starts(params, prob, u0)[1:]:
-                    others[name] = solver._sqp(prob, u)[5] == "solved"
+                    others[name] = solver._sqp(prob, u).reason == "solved"
                 warm_viol = None
                 if u0 is not None:
                     from mpcpearl_jax.mpc import model

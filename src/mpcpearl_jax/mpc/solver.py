@@ -173,6 +173,19 @@ SQP_STOPS = ("converged", "stalled", "capped", "qp_failed")
 START_NAMES = ("warm", "cold", "stop")
 
 
+class SQPRun(NamedTuple):
+    """One SQP from one start: plan u [K, 2], poses xs [K + 1, 3], its exact merit, QP
+    iterations, QPs, reason (as `SolveResult.reason`) and stop (`SQP_STOPS`)."""
+
+    u: np.ndarray
+    xs: np.ndarray
+    merit: float
+    qp_iters: int
+    n_qp: int
+    reason: str
+    stop: str
+
+
 class _Layout:
     """Variable and row offsets of the QP (see module docstring)."""
 
@@ -479,26 +492,28 @@ class SQPSolver:
         p = self.p
         plan = starts(p, prob, u_init)
         name, u0 = plan[0]
-        u, xs, cur, iters, n_qp, reason, stop = self._sqp(prob, clip_inputs(p, u0))
-        if p.multi_start == "always" or (p.multi_start == "on_failure" and reason != "solved"):
-            best = (u, xs, cur, reason, stop, name) if reason == "solved" else None
+        run = self._sqp(prob, clip_inputs(p, u0))
+        iters, n_qp = run.qp_iters, run.n_qp
+        if p.multi_start == "always" or (p.multi_start == "on_failure" and run.reason != "solved"):
+            best = (run, name) if run.reason == "solved" else None
             for other, u_other in plan[1:]:
-                u2, xs2, cur2, it2, nq2, reason2, stop2 = self._sqp(prob, clip_inputs(p, u_other))
-                iters, n_qp = iters + it2, n_qp + nq2
-                if reason2 == "solved" and (best is None or cur2 < best[2]):
-                    best = (u2, xs2, cur2, reason2, stop2, other)
+                alt = self._sqp(prob, clip_inputs(p, u_other))
+                iters, n_qp = iters + alt.qp_iters, n_qp + alt.n_qp
+                if alt.reason == "solved" and (best is None or alt.merit < best[0].merit):
+                    best = (alt, other)
             if best is not None:
-                u, xs, cur, reason, stop, name = best
+                run, name = best
+        u, xs, cur, reason, stop = run.u, run.xs, run.merit, run.reason, run.stop
         if reason == "unsafe" and p.unsafe_recovery:
-            best, best_u = self._grid_first_moves(prob, u)
-            u2, xs2, cur2, it2, nq2, reason2, stop2 = self._sqp(prob, best_u)
-            iters, n_qp = iters + it2, n_qp + nq2
-            if reason2 == "solved":
-                u, xs, cur, reason, stop = u2, xs2, cur2, reason2, stop2
+            least, least_u = self._grid_first_moves(prob, u)
+            again = self._sqp(prob, least_u)
+            iters, n_qp = iters + again.qp_iters, n_qp + again.n_qp
+            if again.reason == "solved":
+                u, xs, cur, reason, stop = again.u, again.xs, again.merit, again.reason, again.stop
             else:
-                for cand in ((u, xs, cur), (u2, xs2, cur2)):
+                for cand in ((u, xs, cur), (again.u, again.xs, again.merit)):
                     if np.all(np.isfinite(cand[0])) and self._first_violation(prob, cand[1]) <= (
-                        best + p.unsafe_tol
+                        least + p.unsafe_tol
                     ):
                         u, xs, cur = cand
                         reason = "least_violation"
@@ -507,10 +522,10 @@ class SQPSolver:
         elapsed = time.perf_counter() - t0
         return SolveResult(u, xs, ok, reason, iters, n_qp, elapsed, cur, stop, name)
 
-    def _sqp(self, prob: RowProblem, u: np.ndarray):
-        """SQP iterations from u, at most `sqp_iters` QPs; -> (u, xs, merit, qp iterations, QPs,
-        reason, stop). Every accepted step lowers the exact merit, so the plan returned is the
-        best iterate whatever ends the loop (`SolveResult.stop` says what did)."""
+    def _sqp(self, prob: RowProblem, u: np.ndarray) -> SQPRun:
+        """SQP iterations from u, at most `sqp_iters` QPs. Every accepted step lowers the exact
+        merit, so the plan returned is the best iterate whatever ends the loop (`stop` says
+        what did)."""
         p = self.p
         xs = model.rollout(prob.x0, u, p.dt, p.wheelbase)
         cur = merit(p, prob, u, xs)
@@ -534,7 +549,7 @@ class SQPSolver:
             reason = "nonfinite"
         if reason == "solved" and not self.first_stage_safe(prob, xs):
             reason = "unsafe"
-        return u, xs, cur, iters, n_qp, reason, stop
+        return SQPRun(u, xs, cur, iters, n_qp, reason, stop)
 
     def _first_violation(self, prob: RowProblem, xs: np.ndarray) -> float:
         """The larger first-stage violation of eq. (4c) and eq. (4b) (>= 0)."""
