@@ -58,7 +58,9 @@ def make_collector(
     shard (`MPCBridge.on_mesh`).
     """
     horizon = env.config.horizon
-    use_mpc = bridge is not None
+    # eps = 0 never calls the MPC: its guard and callback stay out of the program (on a GPU each
+    # guard sends its predicate to the host every step)
+    use_mpc = bridge is not None and eps > 0
     # the device solver (`mpc.solver = "device"`): the bridge's per-row memory rides in the scan
     on_device = use_mpc and getattr(bridge, "on_device", False)
     if use_mpc and mesh is not None:
