@@ -59,6 +59,11 @@ class TrainConfig:
     # delay_people), drawn afresh per visit, so no timetable of the crowd can be learned by
     # heart; the task's own paths are kept (0 = off, the paper)
     crowd_delay_max: int = 0
+    # ---- a schedule of the work, not of the algorithm's values (off in `paper`: Algorithm 1 as
+    # printed; docs/usage.md, "Pipelined iterations"): the episodes of iteration k + 1 are
+    # collected while the gradient steps of iteration k run, by the policy and encoder as they
+    # were before those steps, so the acting policy lags one iteration behind the learner
+    pipeline: bool = False
 
     def __post_init__(self) -> None:
         v.ints(
@@ -88,7 +93,7 @@ class TrainConfig:
             lo=0.0,
             hi=1.0,
         )
-        v.flags(self, "redraw_behaviours")
+        v.flags(self, "redraw_behaviours", "pipeline")
         v.check(
             self.explore_start_share < 1.0,
             self,

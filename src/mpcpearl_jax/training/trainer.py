@@ -18,6 +18,7 @@ pytree, checkpointed by `mpcpearl_jax.training.checkpoint`.
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -195,6 +196,11 @@ class Trainer:
         )
         self._update_body = make_update(self.nets, jit=False)
         self.collect_phase = jax.jit(self._collect_phase, static_argnums=2, donate_argnums=0)
+        # the pipelined iteration (`train.pipeline`): collection beside the updates reads the
+        # buffers the updates read, so it gathers without donating and stores after them
+        self._gather_jit = jax.jit(self._gather, static_argnums=5)
+        self._store_jit = jax.jit(self._store, donate_argnums=0)
+        self._copy_jit = jax.jit(lambda tree: jax.tree_util.tree_map(jnp.copy, tree))
         self.update_chunk = UPDATE_CHUNK
         self._init_state_jit = jax.jit(self._init_state)
         self._update_steps_jit = jax.jit(self._update_steps, donate_argnums=0)
@@ -248,47 +254,59 @@ class Trainer:
         the encoder buffer, z^i ~ q_phi(z | c^i), `posterior_episodes` episodes into H^i only."""
         return self.collect_phase(state, ids, posterior_phase(self.cfg.train.posterior_episodes))
 
-    def _row_z(self, state: TrainState, keys: Array, rows: Array, posterior: bool) -> Array:
-        """z [S, R, L] per collection row: prior samples, or posterior of sampled context."""
+    def _row_z(self, encoder, enc, keys: Array, rows: Array, posterior: bool) -> Array:
+        """z [S, R, L] per collection row: prior samples, or posterior of sampled context
+        (encoder: the encoder's parameters [S], enc: the encoder buffers [S])."""
         cfg = self.cfg.pearl
 
-        def per_seed(learner, enc, key, rows_s):
+        def per_seed(encoder, enc, key, rows_s):
             k_c, k_z = jax.random.split(key)
             if not posterior:  # the prior N(0, I) (z = 0 without an encoder)
                 shape = (rows_s.shape[0], cfg.latent_dim)
                 return jax.random.normal(k_z, shape) if cfg.use_context else jnp.zeros(shape)
             ctx = context_from(buffers.sample(enc, k_c, rows_s, cfg.context_size))
-            return self.nets.sample_z(learner.params["encoder"], ctx, k_z)
+            return self.nets.sample_z(encoder, ctx, k_z)
 
-        return jax.vmap(per_seed)(state.learner, state.enc, keys, rows)
+        return jax.vmap(per_seed)(encoder, enc, keys, rows)
 
     def _collect_phase(
         self, state: TrainState, task_ids: Array, phase: Phase
     ) -> tuple[TrainState, dict]:
         """Collect `phase.episodes` per task of task_ids [S, k] (`collection`, event-triggered MPC
         included) and store them. Returns (state, stats [S])."""
-        keys, sub = _split_keys(state.key, 2)
+        enc, key, per_task, stats = self._gather(
+            state.learner.params, state.enc, state.tasks, state.key, task_ids, phase
+        )
+        rl = jax.vmap(buffers.insert)(state.rl, task_ids, per_task)
+        new = state.replace(rl=rl, enc=enc, key=key)
+        return constrain(new, self.mesh), stats
+
+    def _gather(
+        self, params, enc, tasks: TaskParams, key: Array, task_ids: Array, phase: Phase
+    ) -> tuple[Any, Array, Any, dict]:
+        """The episodes of one phase on the tasks task_ids [S, k], acted by `params` (the policy
+        and encoder, [S]), with the encoder buffers `enc` cleared and refilled as the phase says:
+        -> (enc, the carried keys [S, 2], the transitions per task [S, k, E * T, ...] for the
+        replay buffers, stats [S])."""
+        keys, sub = _split_keys(key, 2)
         rows = jnp.repeat(task_ids, phase.episodes, axis=1)  # [S, k * E]
-        enc = state.enc
         if phase.clear_encoder:
             enc = jax.vmap(buffers.clear)(enc, task_ids)
-        state = state.replace(enc=enc)
-        z = self._row_z(state, sub[:, 0], rows, phase.posterior)
-        tasks = jax.vmap(collect_lib.rows_of)(state.tasks, rows)
+        z = self._row_z(params["encoder"], enc, sub[:, 0], rows, phase.posterior)
+        row_tasks = jax.vmap(collect_lib.rows_of)(tasks, rows)
         share = self.cfg.train.explore_start_share
         explore = None
         if share > 0 and phase.posterior and not phase.to_encoder:  # extension: exploring starts
             k_explore = jax.random.fold_in(sub[0, 1], 11)
             explore = jax.random.uniform(k_explore, rows.shape) < share
-        ep = self._collector(sub[0, 1], state.learner.params["policy"], z, tasks, explore)
+        ep = self._collector(sub[0, 1], params["policy"], z, row_tasks, explore)
         s, k = task_ids.shape
         to_task = lambda x: x.reshape((s, k, phase.episodes * self.horizon, *x.shape[3:]))  # noqa: E731
         per_task = jax.tree_util.tree_map(to_task, ep.transitions)
-        rl = jax.vmap(buffers.insert)(state.rl, task_ids, per_task)
         if phase.to_encoder:
             enc = jax.vmap(buffers.insert)(enc, task_ids, per_task)
-        new = state.replace(rl=rl, enc=enc, key=keys)
-        return constrain(new, self.mesh), _episode_stats(ep, explore)
+        enc, keys, per_task = constrain((enc, keys, per_task), self.mesh)
+        return enc, keys, per_task, _episode_stats(ep, explore)
 
     # ------------------------------------------------------ tasks of a visit
     def _choose_tasks(self, state: TrainState, k: int) -> tuple[TrainState, Array]:
@@ -406,6 +424,8 @@ class Trainer:
         per visit, exploring-start rows in the posterior phase. stop (e.g. set by
         Ctrl-C) is polled before the updates and between update chunks; once true the iteration
         is abandoned with IterationAbandoned (the state passed in is consumed)."""
+        if self.cfg.train.pipeline:
+            return self._pipelined_iteration(state, stop)
         t0 = time.perf_counter()
         if self.bridge is not None:
             self.bridge.reset_stats()
@@ -413,25 +433,114 @@ class Trainer:
         if it == 0:
             state, _ = self.initial_collection(state)
         # data collection (lines 4-17)
-        state, ids = self._choose_tasks(state, self.cfg.train.tasks_per_iteration)
-        state = self._visit_tasks(state, ids, it + 1)
-        state, prior = self.prior_collection(state, ids)  # lines 5-15: z ~ N(0, I)
-        post = None
-        if self.cfg.train.posterior_episodes > 0:
-            state, post = self.posterior_collection(state, ids)  # lines 16-17: z ~ q_phi(z | c)
+        state, prior, post = self._collect_visit(state, it + 1)
         jax.block_until_ready(state.rl.size)
         t1 = time.perf_counter()
         # training (lines 18-23): N_train gradient steps
         state, losses = self.update_phase(state, stop)
         losses = to_host(losses)
         t2 = time.perf_counter()
+        return self._finish_iteration(state, it, losses, prior, post, t1 - t0, t2 - t1)
+
+    def _collect_visit(self, state: TrainState, visit: int) -> tuple[TrainState, dict, Any]:
+        """Algorithm 1 lines 4-17 for every seed: `tasks_per_iteration` training tasks drawn at
+        random, visited (`visit` numbers the visit for the extensions that change a task), their
+        prior-phase then posterior-phase episodes stored -> (state, prior stats, posterior stats
+        or None)."""
+        state, ids = self._choose_tasks(state, self.cfg.train.tasks_per_iteration)
+        state = self._visit_tasks(state, ids, visit)
+        state, prior = self.prior_collection(state, ids)  # lines 5-15: z ~ N(0, I)
+        post = None
+        if self.cfg.train.posterior_episodes > 0:
+            state, post = self.posterior_collection(state, ids)  # lines 16-17: z ~ q_phi(z | c)
+        return state, prior, post
+
+    def _finish_iteration(self, state, it, losses, prior, post, collect_s, update_s):
         _check_finite(losses, it + 1)
         state = state.replace(iteration=state.iteration + 1)
-        log: dict[str, Any] = {"iteration": it + 1, "collect_s": t1 - t0, "update_s": t2 - t1}
+        log: dict[str, Any] = {"iteration": it + 1, "collect_s": collect_s, "update_s": update_s}
         log.update(_collection_log(prior, post))
         log.update(self._mpc_log())
         log.update({k: float(np.mean(v)) for k, v in losses.items()})
         return state, log
+
+    # --------------------------------------------------------- pipelined iteration
+    def _pipelined_iteration(
+        self, state: TrainState, stop: Callable[[], bool] | None = None
+    ) -> tuple[TrainState, dict]:
+        """One iteration with `train.pipeline` (docs/usage.md, "Pipelined iterations"): the
+        gradient steps of iteration k (lines 18-23) run on the buffers as they are, while a
+        second thread collects the episodes of iteration k + 1 (lines 4-17) with the policy and
+        encoder from before those steps; the episodes are stored once both are done. The acting
+        policy therefore lags one iteration behind Algorithm 1's (the first iteration collects
+        its own episodes first, with the initial policy). At the end of an iteration the state
+        is whole (the buffers hold the next iteration's episodes), so checkpoints and resume
+        are exact as without the pipeline. The log's collection statistics are those of the
+        episodes collected during the iteration (for iteration k + 1); `collect_s` and
+        `update_s` are the two threads' own times, which overlap."""
+        t0 = time.perf_counter()
+        if self.bridge is not None:
+            self.bridge.reset_stats()
+        it = int(first_local(state.iteration))
+        if it == 0:  # the first iteration's episodes, acted by the initial policy
+            state, _ = self.initial_collection(state)
+            state, _, _ = self._collect_visit(state, 1)
+        keys, sub = _split_keys(state.key, 1)  # the collection's own key stream
+        state = state.replace(key=keys)
+        acting = self._copy_jit(
+            {"policy": state.learner.params["policy"], "encoder": state.learner.params["encoder"]}
+        )
+        side = TrainState(None, None, state.enc, state.tasks, sub[:, 0], state.iteration)
+        jax.block_until_ready((acting, side))  # the updates donate the learner's buffers
+        box: dict[str, Any] = {}
+
+        def collect() -> None:
+            try:
+                tc = time.perf_counter()
+                box["out"] = jax.block_until_ready(self._collect_ahead(side, acting, it + 2))
+                box["collect_s"] = time.perf_counter() - tc
+            except BaseException as e:  # noqa: BLE001 (re-raised in the training's thread)
+                box["error"] = e
+
+        thread = threading.Thread(target=collect, name="pipelined-collection", daemon=True)
+        thread.start()
+        try:
+            t1 = time.perf_counter()
+            state, losses = self.update_phase(state, stop)
+            losses = to_host(losses)
+            update_s = time.perf_counter() - t1
+        finally:
+            thread.join()
+        if "error" in box:
+            raise box["error"]
+        enc, tasks, ids, per_task, prior, post = box["out"]
+        state = state.replace(rl=self._store_jit(state.rl, ids, per_task), enc=enc, tasks=tasks)
+        collect_s = box["collect_s"] + (t1 - t0)
+        return self._finish_iteration(state, it, losses, prior, post, collect_s, update_s)
+
+    def _collect_ahead(self, side: TrainState, acting, visit: int):
+        """The collection of the pipelined iteration on `side` (the encoder buffers, tasks and
+        keys; no learner, no replay buffers), acted by `acting` -> (encoder buffers, tasks, task
+        ids [S, k], the transitions of each phase per task, prior stats, posterior stats or
+        None). Nothing it reads is donated, so the updates may read the same buffers."""
+        tc = self.cfg.train
+        side, ids = self._choose_tasks(side, tc.tasks_per_iteration)
+        side = self._visit_tasks(side, ids, visit)
+        enc, key, per_prior, prior = self._gather_jit(
+            acting, side.enc, side.tasks, side.key, ids, prior_phase(tc.prior_episodes)
+        )
+        per_task, post = [per_prior], None
+        if tc.posterior_episodes > 0:
+            phase = posterior_phase(tc.posterior_episodes)
+            enc, key, per_post, post = self._gather_jit(acting, enc, side.tasks, key, ids, phase)
+            per_task.append(per_post)
+        return enc, side.tasks, ids, tuple(per_task), prior, post
+
+    def _store(self, rl, ids: Array, per_task: tuple) -> Any:
+        """The replay buffers with each phase's transitions per task inserted, in order."""
+        for part in per_task:
+            rl = jax.vmap(buffers.insert)(rl, ids, part)
+        return constrain(rl, self.mesh)
 
     def _mpc_log(self) -> dict:
         """The MPC bridge's counters and times of this iteration, summed over processes (each
