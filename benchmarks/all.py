@@ -25,6 +25,7 @@ from mpcpearl_jax.training.stopping import stops_with
 # Run order: cheap and independent first. mpc_latency.py belongs to the MPC module.
 SCRIPTS = (
     "env_throughput",
+    "collection",
     "pearl_step",
     "learner_sizes",
     "policy_latency",

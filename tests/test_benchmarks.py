@@ -15,6 +15,7 @@ import pytest
 
 SCRIPTS = [
     "env_throughput",
+    "collection",
     "pearl_step",
     "policy_latency",
     "memory",
