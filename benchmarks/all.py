@@ -32,6 +32,7 @@ SCRIPTS = (
     "mpc_latency",
     "memory",
     "iteration",
+    "pipeline",
     "grbal_planner",
 )
 

@@ -20,6 +20,7 @@ SCRIPTS = [
     "policy_latency",
     "memory",
     "iteration",
+    "pipeline",
     "grbal_planner",
     "learner_sizes",
 ]
