@@ -423,7 +423,9 @@ class Trainer:
         13). The extensions (docs/extensions.md) hook in where named: re-drawn or delayed crowds
         per visit, exploring-start rows in the posterior phase. stop (e.g. set by
         Ctrl-C) is polled before the updates and between update chunks; once true the iteration
-        is abandoned with IterationAbandoned (the state passed in is consumed)."""
+        is abandoned with IterationAbandoned (the state passed in is consumed). With
+        `train.pipeline` the collection runs beside the updates instead, one iteration ahead
+        (`_pipelined_iteration`)."""
         if self.cfg.train.pipeline:
             return self._pipelined_iteration(state, stop)
         t0 = time.perf_counter()
