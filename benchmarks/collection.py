@@ -208,7 +208,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "seeds": args.seeds,
         "horizon": env.config.horizon,
         "hidden": cfg.pearl.hidden,
-        "mpc_solver": cfg.mpc.solver,
         "eps": 0.0,
     }
     name = "collection" if args.seeds == 1 else f"collection-seeds{args.seeds}"

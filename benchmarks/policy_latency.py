@@ -105,7 +105,8 @@ def mpc_timings(policy, cfg: dict[str, Any]) -> dict[str, Any]:
     env = make_env(policy.config.env)
     tasks = _test_tasks(policy.config.env)
     bridge = make_mpc_bridge(env, policy.config.mpc)
-    call = jax.jit(bridge.__call__)
+    call = jax.jit(bridge.step)
+    carry = bridge.init(1)  # no episode stamp: the plans are forgotten by reset_memory below
     act = jax.jit(policy.act)
     step = jax.jit(env.step)
     z = jnp.zeros((1, policy.latent_dim))
@@ -123,7 +124,7 @@ def mpc_timings(policy, cfg: dict[str, Any]) -> dict[str, Any]:
             a_pi = act(obs[None], z)
             jax.block_until_ready(a_pi)
             t0 = time.perf_counter()
-            actions, _, _ = call(k, fire, states, batched, a_pi)
+            carry, actions, _, _ = call(carry, k, fire, states, batched, a_pi)
             jax.block_until_ready(actions)
             dt = time.perf_counter() - t0
             if compile_s is None:

@@ -1,4 +1,5 @@
-"""Record MPC problems from fired rows of real training, as the data of the solver gate.
+"""Record MPC problems from fired rows of real training: the data of the SQP's convergence curve
+(`lab.convergence`), its tests (`tests/test_mpc_sqp_convergence.py`) and `benchmarks.mpc_solvers`.
 
 Runs the `cpu-explore` preset on the restaurant tasks (one seed, eps 0.2 unless set) for at most
 `--seconds`, and records every SQP problem the bridge hands to its host solver (`RowProblem`)
@@ -7,7 +8,7 @@ problem, the pose, goal, static obstacles, the GP prediction's per-stage mean an
 person (estimated from the row's M samples) and the warm-start plan, all float32; the samples are
 regenerated from them with a stored per-problem key (`regenerate`, `gp.sample_predictions`). The
 host solver on OSQP then solves every regenerated problem, and its first input, reason and
-decision are stored too: the reference of `tests/test_mpc_device_solver.py`.
+decision are stored too.
 
     python -m benchmarks.record_mpc_problems [--seconds 90] [--count 1200]
         [--out tests/data/mpc_problems.npz]
@@ -30,8 +31,8 @@ DEFAULT_OUT = ROOT / "tests" / "data" / "mpc_problems.npz"
 def record(seconds: float, count: int, eps: float) -> tuple[list, list, dict]:
     """(problems, warm-start plans or None, solver params as a dict) from a training run."""
     from mpcpearl_jax.config import resolve
-    from mpcpearl_jax.mpc.bridge import MPCBridge
-    from mpcpearl_jax.mpc.solver import solver_params
+    from mpcpearl_jax.mpc.host import HostSolver
+    from mpcpearl_jax.mpc.problem import solver_params
     from mpcpearl_jax.training.trainer import Trainer
 
     cfg = resolve("cpu-explore", env="restaurant")
@@ -40,7 +41,7 @@ def record(seconds: float, count: int, eps: float) -> tuple[list, list, dict]:
         mpc=cfg.mpc.replace(n_workers=1),
     )
     probs, inits, sizes = [], [], []
-    original = MPCBridge._solve_rows
+    original = HostSolver.solve_rows
 
     def recording(self, rows, warm, num_static):
         probs.extend(rows)
@@ -48,7 +49,7 @@ def record(seconds: float, count: int, eps: float) -> tuple[list, list, dict]:
         sizes.append(num_static)
         return original(self, rows, warm, num_static)
 
-    MPCBridge._solve_rows = recording
+    HostSolver.solve_rows = recording  # type: ignore[method-assign]
     try:
         tr = Trainer(cfg)
         state = tr.init_state()
@@ -59,7 +60,7 @@ def record(seconds: float, count: int, eps: float) -> tuple[list, list, dict]:
         params = solver_params(cfg.mpc, tr.env.config, sizes[0])
         tr.close()
     finally:
-        MPCBridge._solve_rows = original
+        HostSolver.solve_rows = original  # type: ignore[method-assign]
     return probs, inits, dataclasses.asdict(params)
 
 
@@ -87,7 +88,7 @@ def compress(probs: list, inits: list, params: dict) -> dict[str, np.ndarray]:
 
 def solver_params_of(data) -> object:
     """The SolverParams stored in a problem file (fields added since: the MPCConfig default)."""
-    from mpcpearl_jax.mpc.solver import SolverParams
+    from mpcpearl_jax.mpc.problem import SolverParams
 
     d = {"multi_start": "off", **json.loads(str(data["params"]))}
     d["osqp_settings"] = tuple(tuple(x) for x in d["osqp_settings"])
@@ -100,7 +101,7 @@ def regenerate(data, num_samples: int):
     import jax
 
     from mpcpearl_jax.mpc.gp import sample_predictions
-    from mpcpearl_jax.mpc.solver import RowProblem
+    from mpcpearl_jax.mpc.problem import RowProblem
 
     keys = jax.vmap(jax.random.PRNGKey)(np.asarray(data["seed"]))
     draw = jax.vmap(lambda k, m, v: sample_predictions(k, m, v, num_samples))
@@ -118,7 +119,8 @@ def regenerate(data, num_samples: int):
 
 def solve_reference(data) -> dict[str, np.ndarray]:
     """The host solver on OSQP on every regenerated problem: first input, reason, ok."""
-    from mpcpearl_jax.mpc.solver import RowProblem, SQPSolver
+    from mpcpearl_jax.mpc.host import SQPSolver
+    from mpcpearl_jax.mpc.problem import RowProblem
 
     params = solver_params_of(data)
     solver = SQPSolver(params)

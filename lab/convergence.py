@@ -5,23 +5,21 @@ For each SQP setting of `SETTINGS` (iteration cap and step tolerance, extra star
 
 - `problems`: on the problems recorded from training (`tests/data/mpc_problems.npz`), the exact
   SAA merit's gap to the best plan known (the SQP run to convergence with tight QPs from every
-  start of `solver.START_NAMES`, the lowest merit kept), the share of problems more than 1 % above
+  start of `problem.START_NAMES`, the lowest merit kept), the share of problems more than 1 % above
   it, the share whose first input lies within 0.02 of the best plan's, and the solve time;
 - `scenarios`: GP-MPC (the MPC acting at every step) on all 205 of the authors' restaurant
   scenarios (180 training + 25 test), SR and CFR with 95 % Wilson intervals over the tasks, the
   solve time per row (median, p95), fallbacks and their longest run in an episode, and why each
   SQP ended;
-- `device`: the device solver (`mpc.solver = "device"`, JAX) on the same recorded problems
-  (float32, or float64 with JAX_ENABLE_X64=1) and, with `--device-scenarios`, on the 25 test
-  scenarios on this machine's CPU;
 - `figure`: merit gap and SR against the median solve time per row.
 
     python -m lab.convergence problems [--count 48]
     python -m lab.convergence scenarios --scenarios ../shared/data/mpc-pearl-scenarios [--only NAME]
-    python -m lab.convergence device [--device-scenarios DIR]
     python -m lab.convergence figure
 
 Records: results/mpc/convergence/*.json (one file per part and setting), figure convergence.png.
+The records `device-problems-*.json` are those of the device solver, since removed (docs/method.md
+§6).
 """
 
 from __future__ import annotations
@@ -33,7 +31,6 @@ import math
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -112,7 +109,7 @@ def _write(path: Path, record: dict) -> None:
 # ----------------------------------------------------------------------------- recorded problems
 def _load_problems(count: int):
     from benchmarks.record_mpc_problems import regenerate, solver_params_of
-    from mpcpearl_jax.mpc.solver import RowProblem
+    from mpcpearl_jax.mpc.problem import RowProblem
 
     with np.load(PROBLEMS) as f:
         data = {k: f[k] for k in f.files}
@@ -149,7 +146,7 @@ def _params(base, fields: dict):
 
 
 def part_problems(args) -> None:
-    from mpcpearl_jax.mpc.solver import SQPSolver
+    from mpcpearl_jax.mpc.host import SQPSolver
 
     base, rows, _ = _load_problems(args.count)
     ref_solver = SQPSolver(_params(base, REFERENCE))
@@ -192,17 +189,15 @@ def part_problems(args) -> None:
     _write(path, out)
 
 
-def _problem_stats(fields, res, ref_merit, ref_first, solve_ms=None) -> dict:
+def _problem_stats(fields, res, ref_merit, ref_first) -> dict:
     merit = np.array([float(r.merit) for r in res])
     first = np.array([np.asarray(r.u)[0] for r in res])
     gap = (merit - ref_merit) / np.maximum(np.abs(ref_merit), 1e-9)
     close = np.max(np.abs(first - ref_first), axis=1) <= FIRST_INPUT_TOL
-    ms = 1e3 * np.array([r.solve_time for r in res]) if solve_ms is None else np.asarray(solve_ms)
-    stops = {}
+    ms = 1e3 * np.array([r.solve_time for r in res])
+    stops: dict[str, int] = {}
     for r in res:
-        stop = getattr(r, "stop", None)
-        if stop is not None:
-            stops[stop] = stops.get(stop, 0) + 1
+        stops[r.stop] = stops.get(r.stop, 0) + 1
     return {
         "fields": fields,
         "gap_median": float(np.median(gap)),
@@ -238,9 +233,9 @@ class _CPUClock:
         self.cpu_s: list[float] = []
 
     def __enter__(self):
-        from mpcpearl_jax.mpc import solver
+        from mpcpearl_jax.mpc import host
 
-        self._orig = orig = solver.SQPSolver.solve
+        self._orig = orig = host.SQPSolver.solve
         clock = self
 
         def timed(self_, *a, **kw):
@@ -249,13 +244,13 @@ class _CPUClock:
             clock.cpu_s.append(time.thread_time() - t0)
             return res
 
-        solver.SQPSolver.solve = timed
+        host.SQPSolver.solve = timed
         return self
 
     def __exit__(self, *exc):
-        from mpcpearl_jax.mpc import solver
+        from mpcpearl_jax.mpc import host
 
-        solver.SQPSolver.solve = self._orig
+        host.SQPSolver.solve = self._orig
 
 
 def _cpu_stats(cpu_s) -> dict:
@@ -383,91 +378,6 @@ def _print_row(name, rec) -> None:
     )
 
 
-# ----------------------------------------------------------------------------- device solver
-def part_device(args) -> None:
-    import jax
-    import jax.numpy as jnp
-
-    from mpcpearl_jax.mpc.device_solver import make_batch_solver
-
-    x64 = bool(jax.config.read("jax_enable_x64"))
-    dtype = np.float64 if x64 else np.float32
-    base, rows, data = _load_problems(args.count)
-    ref = json.loads((OUT / "problems.json").read_text())
-    if ref["problems"] != [i for i, _, _ in rows]:
-        raise SystemExit("problems.json was measured on other problems: run `problems` first")
-    # every k-th of those problems (the device solver on a CPU costs about 1 s per row and QP)
-    keep = np.linspace(0, len(rows) - 1, min(args.device_count, len(rows))).round().astype(int)
-    rows = [rows[j] for j in keep]
-    ids = [i for i, _, _ in rows]
-    ref_merit = np.asarray(ref["reference"]["merit"])[keep]
-    ref_first = np.asarray(ref["reference"]["first"])[keep]  # the best plans' first inputs
-    probs = jax.tree_util.tree_map(
-        lambda *a: jnp.asarray(np.stack(a), dtype if np.asarray(a[0]).dtype.kind == "f" else None),
-        *[row for _, row, _ in rows],
-    )
-    u0 = jnp.asarray(
-        np.stack([np.zeros((base.horizon, 2)) if i is None else i for _, _, i in rows]), dtype
-    )
-    has = jnp.asarray([i is not None for _, _, i in rows])
-    out = {"x64": x64, "problems": ids, "settings": {}}
-    tag = "float64" if x64 else "float32"
-    for name, fields in (
-        ("2 it", SETTINGS["2 it"]),
-        ("10 it", SETTINGS["10 it"]),
-    ):
-        p = _params(base, fields)
-        solve = jax.jit(make_batch_solver(p, args.device_qp_iters))
-        t0 = time.perf_counter()
-        jax.block_until_ready(solve(probs, u0, has))
-        compile_s = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        res = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(solve(probs, u0, has)))
-        per_row_ms = 1e3 * (time.perf_counter() - t0) / len(rows)
-
-        # per-row views with the host result's fields
-        views = [
-            SimpleNamespace(u=res.u[j], merit=res.merit[j], ok=res.ok[j], n_qp=res.n_qp[j])
-            for j in range(len(rows))
-        ]
-        st = _problem_stats(
-            fields,
-            views,
-            ref_merit,
-            ref_first,
-            solve_ms=np.full(len(rows), per_row_ms),
-        )
-        st.update(compile_s=compile_s, batch=len(rows), note="solve ms: one batched call / rows")
-        out["settings"][name] = st
-        print(
-            f"device {tag} {name:8s} gap median {100 * st['gap_median']:6.2f} %  "
-            f">1 %: {st['share_gap_over_1pct']:.2f}  first close {st['share_first_close']:.2f}  "
-            f"{per_row_ms:.2f} ms/row batched, compile {compile_s:.0f} s",
-            flush=True,
-        )
-    _write(OUT / f"device-problems-{tag}.json", out)
-    if args.device_scenarios:
-        env, cfg0 = _env_and_base()
-        tasks = _scenario_tasks(env, args.device_scenarios, ("test",))
-        for name in ("2 it", "10 it"):
-            fields = {
-                "unsafe_recovery": False,
-                **SETTINGS[name],
-                "solver": "device",
-                "device_qp_iters": args.device_qp_iters,
-            }
-            cfg = cfg0.replace(**fields)
-            rec = gp_mpc_record(env, tasks, cfg, args.sample_seed)
-            rec.update(name=f"device {name}", fields=fields, split="test (180-204)")
-            lo, hi = rec["SR_ci95"]
-            print(
-                f"device {name}: SR {rec['SR']:.3f} [{lo:.2f}, {hi:.2f}] CFR {rec['CFR']:.3f} "
-                f"fallbacks {100 * rec['fallback_share']:.1f} %  {rec['wall_s']:.0f} s",
-                flush=True,
-            )
-            _write(OUT / f"device-scenarios-{slug(name)}.json", rec)
-
-
 # ----------------------------------------------------------------------------- table and figure
 def part_figure(args) -> None:
     import matplotlib
@@ -575,14 +485,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m lab.convergence", description=__doc__.split("\n")[0]
     )
-    ap.add_argument("part", choices=("problems", "scenarios", "device", "figure"))
+    ap.add_argument("part", choices=("problems", "scenarios", "figure"))
     ap.add_argument("--count", type=int, default=48, help="recorded problems, evenly spread")
     ap.add_argument(
         "--scenarios", type=Path, default=ROOT.parent / "shared" / "data" / "mpc-pearl-scenarios"
     )
-    ap.add_argument("--device-scenarios", type=Path)
-    ap.add_argument("--device-qp-iters", type=int, default=30)
-    ap.add_argument("--device-count", type=int, default=16, help="recorded problems (device)")
     ap.add_argument("--sample-seed", type=int, default=0)
     ap.add_argument("--only", action="append", help="one setting of SETTINGS (repeatable)")
     ap.add_argument("--redo", action="store_true", help="measure settings already recorded again")
@@ -590,7 +497,6 @@ def main(argv: list[str] | None = None) -> int:
     {
         "problems": part_problems,
         "scenarios": part_scenarios,
-        "device": part_device,
         "figure": part_figure,
     }[args.part](args)
     return 0

@@ -91,13 +91,12 @@ def test_the_guard_sees_reads_of_device_arrays():
         jax.jit(lambda a: a * 2)(np.arange(3.0))  # host-to-device
 
 
-@pytest.mark.parametrize("solver", ["osqp", "device"])
-def test_eps0_collection_holds_no_mpc_guard_or_callback(trainer, solver):
+def test_eps0_collection_holds_no_mpc_guard_or_callback(trainer):
     """With a bridge but eps = 0 the program is that of no bridge: no MPC guard, no callback."""
     from mpcpearl_jax.mpc import make_mpc_bridge
 
     env, nets = trainer.env, trainer.nets
-    bridge = make_mpc_bridge(env, trainer.cfg.mpc.replace(solver=solver))
+    bridge = make_mpc_bridge(env, trainer.cfg.mpc)
     args = _inputs(trainer)
     trace = lambda b, eps: _primitives(  # noqa: E731
         jax.make_jaxpr(collect_lib.make_collector(env, nets, b, eps))(*args).jaxpr
@@ -105,9 +104,8 @@ def test_eps0_collection_holds_no_mpc_guard_or_callback(trainer, solver):
     with_bridge, without = trace(bridge, 0.0), trace(None, 0.0)
     assert not any(with_bridge[p] for p in HOST_WAITS), with_bridge
     assert with_bridge == without
-    if solver == "osqp":  # the MPC's own guard and callback are seen where eps > 0
-        mpc = trace(bridge, 0.2)
-        assert mpc["cond"] > 0 and mpc["pure_callback"] == 1
+    mpc = trace(bridge, 0.2)  # the MPC's own guard and callback are seen where eps > 0
+    assert mpc["cond"] > 0 and mpc["pure_callback"] == 1
 
 
 def test_eps0_collection_runs_without_host_transfers(trainer):

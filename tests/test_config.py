@@ -465,16 +465,39 @@ def test_config_option_refuses_what_it_cannot_repeat(tmp_path, capsys):
         parser("restaurant").parse_args(["--preset", "smoke", "--config", str(side)])
 
 
-def test_mpc_solver_choice_is_checked_and_old_configs_load():
-    from mpcpearl_jax.mpc.config import MPCConfig
+def test_the_removed_mpc_solver_option_loads_old_configs_and_is_a_one_line_error(tmp_path):
+    """`mpc.solver` and `mpc.device_qp_iters` (the device solver, removed): a config.json that
+    has them loads with them dropped, resumable at the host solver ("osqp") or where the MPC
+    never acted (eps 0); a run that trained with the device solver loads for evaluation and is
+    refused for resuming; setting either is a one-line error naming the removal."""
+    import json
 
-    assert MPCConfig().solver == "osqp"
-    assert MPCConfig(solver="device").solver == "device"
-    with pytest.raises(ConfigError, match=r"MPCConfig.solver: must be one of \('osqp', 'device'\)"):
-        MPCConfig(solver="cuda")
-    old = preset("default").to_dict()  # a config.json written before the option
-    del old["mpc"]["solver"], old["mpc"]["device_qp_iters"]
-    assert ExperimentConfig.from_dict(old).mpc.solver == "osqp"
+    from mpcpearl_jax.config import removed_options_on, resolve
+    from mpcpearl_jax.errors import CheckpointError
+    from mpcpearl_jax.runfolder import load_config
+
+    base = preset("default")
+    old = json.loads(base.to_json())  # a config.json written with the option
+    old["mpc"].update(solver="osqp", device_qp_iters=30)
+    assert removed_options_on(old) == [] and ExperimentConfig.from_dict(old) == base
+    old["mpc"]["device_qp_iters"] = 10  # acted only with the device solver
+    assert removed_options_on(old) == []
+    old["mpc"]["solver"] = "device"
+    assert removed_options_on(old) == ["mpc.solver", "mpc.device_qp_iters"]
+    assert ExperimentConfig.from_dict(old) == base
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    assert load_config(tmp_path) == base
+    with pytest.raises(CheckpointError, match="mpc.solver, mpc.device_qp_iters"):
+        load_config(tmp_path, resume=True)
+    old["train"]["eps"] = 0.0  # PEARL: the MPC never acted
+    assert removed_options_on(old) == []
+    for item in ("mpc.solver=device", "mpc.solver=osqp", "mpc.device_qp_iters=30"):
+        with pytest.raises(ConfigError) as e:
+            resolve("default", overrides=[item])
+        msg = str(e.value)
+        assert "removed" in msg and "Removed options" in msg and "\n" not in msg
+    with pytest.raises(TypeError):
+        MPCConfig(solver="device")  # type: ignore[call-arg]
 
 
 def test_a_seed_beyond_64_bits_or_negative_is_one_line_before_anything_runs(capsys):

@@ -34,7 +34,7 @@ def test_mpc_collection_does_not_depend_on_earlier_iterations():
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
         np.testing.assert_array_equal(x, y)
     assert logs_a == logs_b and logs_a[0]["mpc_rows"] > 0
-    assert tr.bridge._episode is not None  # the collector stamps its batches of episodes
+    assert tr.bridge.host.memory(0).episode is not None  # the collector stamps its batches
 
 
 def test_osqp_solver_state_does_not_carry_between_solves():
@@ -68,20 +68,89 @@ def test_bridge_forgets_plans_of_an_earlier_episode_batch():
     z = np.zeros
 
     def host(stamp):  # a call where no row fires: only the memory bookkeeping runs
-        bridge._host(
-            z(b, bool), z((b, 3)), np.full(b, 6), z((b, 2)), z((b, s, 2)), z((b, s, 2)),
-            z((b, s)), z((b, k, 2, 4, 2)), z((b, 2), bool), np.asarray(stamp), np.asarray(0),
+        bridge.host(
+            b, np.arange(b), z(b, bool), z((b, 3)), np.full(b, 6), z((b, 2)), z((b, s, 2)),
+            z((b, s, 2)), z((b, s)), z((b, k, 2, 4, 2)), z((b, 2), bool), np.asarray(stamp),
+            np.asarray(0),
         )  # fmt: skip
 
+    memory = bridge.host.memory
     host([1, 10, 20])
-    bridge._plan_t[:] = 5  # plans made at t = 5 in this batch of episodes
+    memory(0).plan_t[:] = 5  # plans made at t = 5 in this batch of episodes
     host([1, 10, 20])
-    assert bridge._warm_plan(0, 6) is not None  # same episodes: warm start
+    assert memory(0).warm(0, 6) is not None  # same episodes: warm start
     host([1, 10, 21])
-    assert bridge._warm_plan(0, 6) is None  # new episodes: the old plans are gone
-    bridge._plan_t[:] = 5
+    assert memory(0).warm(0, 6) is None  # new episodes: the old plans are gone
+    memory(0).plan_t[:] = 5
     host([0, 0, 0])  # no stamp (callers that run one batch): memory kept
-    assert bridge._warm_plan(0, 6) is not None
+    assert memory(0).warm(0, 6) is not None
+
+
+def _host_call(host, goal_x, t):
+    """One host call on 4 fired rows at step t (row 1's goal at x = goal_x), no people, one
+    table off the path: (inputs, status)."""
+    from mpcpearl_jax.mpc import MPCConfig
+
+    k, n = MPCConfig().horizon, 4
+    goal = np.tile([4.0, 0.0], (n, 1))
+    goal[1, 0] = goal_x
+    pose = np.column_stack([np.linspace(-4, -3, n), np.zeros(n), np.zeros(n)])
+    box = np.tile([[3.0, 3.5]], (n, 1, 1))
+    return host(
+        n, np.arange(n), np.ones(n, bool), pose, np.full(n, t), goal, box, box, np.ones((n, 1)),
+        np.zeros((n, k, 2, 100, 2)), np.zeros((n, 2), bool), np.array([1, 7, 7]), np.asarray(0),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("fault, goal_x", [("killed", 1000.0), ("hung", -1000.0)])
+def test_a_lost_mpc_worker_costs_its_rows_a_fallback_and_the_pool_is_replaced(fault, goal_x):
+    """mpc.n_workers > 1: a pool worker killed during a call (SIGKILL), or hung past
+    `worker_timeout_s`, makes its row fall back (no plan yet: the policy acts), counted with the
+    reason "worker_lost"; the pool is dropped (a hung worker killed) and the next call solves on
+    a new one."""
+    import multiprocessing
+    import os
+    import signal
+    import time
+
+    from mpc_worker_faults import faulty_solve
+
+    from mpcpearl_jax.envs import make_env
+    from mpcpearl_jax.mpc import FALLBACK_POLICY, SOLVED, HostSolver, MPCConfig
+
+    class FaultyHost(HostSolver):
+        worker_solve = staticmethod(faulty_solve)
+
+    timeout = 120.0 if fault == "killed" else 10.0
+    cfg = MPCConfig(n_workers=2, worker_timeout_s=timeout)
+    host = FaultyHost(make_env("restaurant").config, cfg)
+    try:
+        _, status = _host_call(host, goal_x, t=0)
+        st = host.stats()
+        assert status[1] == FALLBACK_POLICY
+        assert st["reasons"].get("worker_lost", 0) >= 1 and st["fallbacks"] >= 1
+        assert st["status"]["fallback_policy"] == st["reasons"]["worker_lost"]
+        assert host._pool is None  # dropped: the next call starts a new one
+        deadline = time.time() + 30
+        while multiprocessing.active_children() and time.time() < deadline:
+            time.sleep(0.1)  # the lost pool's workers end (a hung one is killed)
+        assert not multiprocessing.active_children()
+        host.reset_stats()
+        host.cfg = cfg.replace(worker_timeout_s=120.0)  # the new pool's start-up is not timed
+        _, status = _host_call(host, 4.0, t=1)
+        assert np.all(status == SOLVED), status
+        assert "worker_lost" not in host.stats()["reasons"] and host._pool is not None
+        if fault == "killed":  # a worker killed between calls costs no row
+            pool = host._pool
+            os.kill(next(iter(pool._processes.values())).pid, signal.SIGKILL)
+            deadline = time.time() + 30
+            while not pool._broken and time.time() < deadline:
+                time.sleep(0.05)
+            assert pool._broken
+            _, status = _host_call(host, 4.0, t=2)
+            assert np.all(status == SOLVED) and host._pool is not pool
+    finally:
+        host.close()
 
 
 def test_mpc_pool_workers_exit_when_the_training_process_is_killed(tmp_path):
@@ -91,7 +160,7 @@ def test_mpc_pool_workers_exit_when_the_training_process_is_killed(tmp_path):
         "import os, time\n"
         "from concurrent.futures import ProcessPoolExecutor\n"
         "from multiprocessing import get_context\n"
-        "from mpcpearl_jax.mpc.solver import watch_parent\n"
+        "from mpcpearl_jax.mpc.host import watch_parent\n"
         "if __name__ == '__main__':\n"
         "    pool = ProcessPoolExecutor(2, mp_context=get_context('spawn'),\n"
         "                               initializer=watch_parent, initargs=(os.getpid(), 0.2))\n"

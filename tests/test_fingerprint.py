@@ -33,8 +33,8 @@ import numpy as np
 import pytest
 
 from mpcpearl_jax.config import preset
-from mpcpearl_jax.mpc.bridge import MPCBridge
-from mpcpearl_jax.mpc.solver import SolveResult
+from mpcpearl_jax.mpc.host import HostSolver
+from mpcpearl_jax.mpc.problem import SolveResult
 
 FILE = Path(__file__).parent / "data" / "fingerprint.json"
 PRESETS = ("paper", "cpu-explore", "default")
@@ -70,7 +70,7 @@ def tiny(name: str):
 
 
 def stand_in_solve_rows(self, probs, inits, num_static):
-    """In place of `MPCBridge._solve_rows`: for each fired row a constant plan towards the goal
+    """In place of `HostSolver.solve_rows`: for each fired row a constant plan towards the goal
     (speed min(2, distance), steering the heading error clipped to 0.35 rad, both rounded to
     0.01), safe except on every third warm-started call, which falls back to the shifted plan
     (exercising the bridge's fallback path); deterministic in the rows' poses and goals."""
@@ -122,7 +122,7 @@ def fingerprint(name: str) -> dict:
     [PRESETS[0], *(pytest.param(n, marks=pytest.mark.slow) for n in PRESETS[1:])],
 )
 def test_training_computes_what_it_computed(name, monkeypatch):
-    monkeypatch.setattr(MPCBridge, "_solve_rows", stand_in_solve_rows)
+    monkeypatch.setattr(HostSolver, "solve_rows", stand_in_solve_rows)
     got = fingerprint(name)
     if os.environ.get("MPCPEARL_WRITE_FINGERPRINT") == "1":
         data = json.loads(FILE.read_text()) if FILE.exists() else {}

@@ -12,6 +12,7 @@ from mpcpearl_jax.mpc import (
     FALLBACK_POLICY,
     NOT_FIRED,
     SOLVED,
+    HostSolver,
     MPCBridge,
     MPCConfig,
     RowProblem,
@@ -139,8 +140,8 @@ def test_start_inside_table_margin_gives_counted_fallback():
     params = stack_params([task])
     state = EnvState(pose=params.start, t=jnp.zeros(1, jnp.int32))
     policy = jnp.array([[0.25, -0.5]])
-    act, used, status = jax.jit(bridge)(
-        jax.random.PRNGKey(0), jnp.array([True]), state, params, policy
+    _, act, used, status = jax.jit(bridge.step)(
+        bridge.init(1), jax.random.PRNGKey(0), jnp.array([True]), state, params, policy
     )
     assert int(status[0]) == FALLBACK_POLICY and not bool(used[0])
     np.testing.assert_allclose(act, policy)
@@ -148,15 +149,15 @@ def test_start_inside_table_margin_gives_counted_fallback():
     assert stats["fallbacks"] == 1 and stats["reasons"] == {"unsafe": 1}
 
 
-class RecordingBridge(MPCBridge):
+class RecordingHost(HostSolver):
     """Records the MPC action of every merged row to check the merge."""
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
         self.log = []
 
-    def _merge_row(self, b, t, res):
-        code, act = super()._merge_row(b, t, res)
+    def merge_row(self, mem, b, t, res):
+        code, act = super().merge_row(mem, b, t, res)
         self.log.append((int(t), int(b), code, None if act is None else act.copy()))
         return code, act
 
@@ -169,15 +170,17 @@ def test_callback_runs_only_on_steps_with_a_fire_and_merges_actions():
     fire_tb[[2, 5, 9]] = False  # some steps with no fire at all
     fire_tb[0] = [True, False, True]
     policy_tb = rng.uniform(-1, 1, (steps, batch, 2)).astype(np.float32)
-    bridge = RecordingBridge(ENV, MPCConfig())
+    host = RecordingHost(ENV.config, MPCConfig())
+    bridge = MPCBridge(ENV, MPCConfig(), host=host)
 
     @jax.jit
     def run(key):
         _, s0 = jax.vmap(ENV.reset)(jax.random.split(key, batch), tasks)
+        carry = bridge.init(batch)
 
         def body(state, xs):
             k, fire, pol = xs
-            act, used, status = bridge(k, fire, state, tasks, pol)
+            _, act, used, status = bridge.step(carry, k, fire, state, tasks, pol)
             _, ns, _, _, _ = jax.vmap(ENV.step)(jax.random.split(k, batch), state, act, tasks)
             return ns, (act, used, status)
 
@@ -191,8 +194,8 @@ def test_callback_runs_only_on_steps_with_a_fire_and_merges_actions():
     np.testing.assert_array_equal(act[~fire_tb], policy_tb[~fire_tb])
     assert np.all(status[~fire_tb] == NOT_FIRED) and np.all(status[fire_tb] != NOT_FIRED)
     np.testing.assert_array_equal(used, status == SOLVED)
-    assert len(bridge.log) == fire_tb.sum()
-    for t, b, code, mpc_u in bridge.log:  # the MPC's physical input, or None: the policy acts
+    assert len(host.log) == fire_tb.sum()
+    for t, b, code, mpc_u in host.log:  # the MPC's physical input, or None: the policy acts
         assert fire_tb[t, b] and code == status[t, b]
         if mpc_u is None:
             np.testing.assert_array_equal(act[t, b], policy_tb[t, b])
@@ -211,8 +214,8 @@ def test_unsafe_recovery_uses_the_least_violating_move_instead_of_falling_back()
     state = EnvState(pose=params.start, t=jnp.zeros(1, jnp.int32))
     policy = jnp.array([[0.25, -0.5]])
     bridge = make_mpc_bridge(ENV, MPCConfig(unsafe_recovery=True))
-    act, used, status = jax.jit(bridge)(
-        jax.random.PRNGKey(0), jnp.array([True]), state, params, policy
+    _, act, used, status = jax.jit(bridge.step)(
+        bridge.init(1), jax.random.PRNGKey(0), jnp.array([True]), state, params, policy
     )
     assert int(status[0]) == SOLVED and bool(used[0])
     assert bridge.stats()["reasons"] == {"least_violation": 1}

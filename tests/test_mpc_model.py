@@ -6,7 +6,7 @@ import numpy as np
 from mpcpearl_jax.envs import make_env
 from mpcpearl_jax.envs.dynamics import bicycle_step as jax_step
 from mpcpearl_jax.mpc import MPCConfig, RowProblem, model, solver_params
-from mpcpearl_jax.mpc.solver import linearize_problem
+from mpcpearl_jax.mpc.problem import linearize_problem
 
 RNG = np.random.default_rng(0)
 

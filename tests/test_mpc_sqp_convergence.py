@@ -12,7 +12,7 @@ import pytest
 from benchmarks.record_mpc_problems import regenerate, solver_params_of
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.mpc import MPCConfig, RowProblem, SQPSolver
-from mpcpearl_jax.mpc.solver import SQP_STOPS, START_NAMES, merit, starts
+from mpcpearl_jax.mpc.problem import SQP_STOPS, START_NAMES, merit, starts
 from tests.test_mpc_model import _row_problem
 
 PICK = (3, 150, 420, 700, 1010)  # recorded problems, spread over the recording
@@ -127,7 +127,6 @@ def _params(**fields):
         ({"sqp_step_tol": float("inf")}, "sqp_step_tol"),
         ({"sqp_step_tol": 3.0}, "sqp_step_tol"),
         ({"multi_start": "sometimes"}, "multi_start"),
-        ({"multi_start": "always", "solver": "device"}, "multi_start"),
     ],
 )
 def test_out_of_range_sqp_settings_are_one_line_errors(fields, name):

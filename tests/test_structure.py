@@ -155,9 +155,9 @@ def test_trainer_close_shuts_the_bridge_worker_pool():
         def shutdown(self):
             shut.append(True)
 
-    trainer.bridge._pool = Pool()
+    trainer.bridge.host._pool = Pool()
     trainer.close()
-    assert shut == [True] and trainer.bridge._pool is None
+    assert shut == [True] and trainer.bridge.host._pool is None
 
 
 def test_load_exported_imports_neither_flax_nor_orbax():

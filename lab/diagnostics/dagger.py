@@ -47,7 +47,7 @@ def make_rollout(env, bridge, net):
     import jax
     import jax.numpy as jnp
 
-    from mpcpearl_jax.mpc.bridge import SOLVED
+    from mpcpearl_jax.mpc import SOLVED
 
     horizon = env.config.horizon
 
@@ -57,20 +57,21 @@ def make_rollout(env, bridge, net):
         fire = jnp.ones(b, bool)
 
         def body(carry, k):
-            obs, state, dead = carry
+            obs, state, dead, mpc = carry
             k_mpc, k_mix, k_noise = jax.random.split(k, 3)
             a_pi = net.apply(params, obs)
             a_pi = jnp.clip(a_pi + NOISE * jax.random.normal(k_noise, a_pi.shape), -1, 1)
-            a_mpc, _, status = bridge(k_mpc, fire, state, tasks, a_pi)
+            mpc, a_mpc, _, status = bridge.step(mpc, k_mpc, fire, state, tasks, a_pi)
             use = jax.random.uniform(k_mix, (b,)) < beta
             act = jnp.where(use[:, None], a_mpc, a_pi)
             nobs, nstate, _, _, info = jax.vmap(env.step)(jax.random.split(k, b), state, act, tasks)
             label = (status == SOLVED) & ~dead
             dead = dead | info.collision | info.in_goal
-            return (nobs, nstate, dead), (obs, a_mpc, label, info.collision, info.in_goal)
+            return (nobs, nstate, dead, mpc), (obs, a_mpc, label, info.collision, info.in_goal)
 
-        carry = (obs0, state0, jnp.zeros(b, bool))
-        _, out = jax.lax.scan(body, carry, jax.random.split(key, horizon))
+        carry = (obs0, state0, jnp.zeros(b, bool), bridge.init(b))
+        (*_, mpc), out = jax.lax.scan(body, carry, jax.random.split(key, horizon))
+        bridge.finish(mpc)
         return out
 
     return jax.jit(rollout)

@@ -41,9 +41,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from mpcpearl_jax.config import apply_overrides
     from mpcpearl_jax.envs import make_env, mpc_defaults
-    from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout
-    from mpcpearl_jax.mpc.bridge import FALLBACK_PLAN, FALLBACK_POLICY, MPCBridge
-    from mpcpearl_jax.mpc.solver import SQPSolver, solver_params, starts
+    from mpcpearl_jax.mpc import HostSolver, MPCBridge, MPCConfig, SQPSolver, make_gp_mpc_rollout
+    from mpcpearl_jax.mpc.problem import solver_params, starts
+    from mpcpearl_jax.mpc.rows import FALLBACK_PLAN, FALLBACK_POLICY
 
     env = make_env("restaurant")
     cfg = apply_overrides(MPCConfig(**mpc_defaults("restaurant")), args.set)
@@ -51,10 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     tasks = jax.tree_util.tree_map(lambda a: a[np.asarray(args.tasks)], tasks)
     log: list[list[dict]] = []
 
-    class Probe(MPCBridge):
-        def _solve_rows(self, probs, inits, num_static):
-            results = super()._solve_rows(probs, inits, num_static)
-            params = solver_params(self.cfg, self.env.config, num_static)
+    class Probe(HostSolver):
+        def solve_rows(self, probs, inits, num_static):
+            results = super().solve_rows(probs, inits, num_static)
+            params = solver_params(self.cfg, self.nav, num_static)
             solver = SQPSolver(params)
             step = []
             for prob, u0, res in zip(probs, inits, results, strict=True):
@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
             log.append(step)
             return results
 
-    bridge = Probe(env, cfg)
+    bridge = MPCBridge(env, cfg, host=Probe(env.config, cfg))
     traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(0), tasks)
     traj = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(traj))
     status = traj["status"]
@@ -124,7 +124,7 @@ def _summary(per_task: list[dict], window: int = 3) -> dict:
     """Over the tasks: episodes with a collision; fallback steps before and after the first
     collision; collisions with a fallback in the `window` steps before them, and among those the
     ones where a cold start or standing still would have given a safe plan on that step."""
-    fallback = (2, 3)  # mpc.bridge FALLBACK_PLAN, FALLBACK_POLICY
+    fallback = (2, 3)  # mpc.rows FALLBACK_PLAN, FALLBACK_POLICY
     s = dict(
         tasks=len(per_task),
         collided=0,

@@ -2,15 +2,15 @@
 event-triggered MPC infusion (Algorithm 1, lines 4-17; method §5).
 
 The env batch is one explicit flat axis R_all = seeds x rows so that the MPC bridge sees the whole
-batch at once (method §6): in one `pure_callback` per step to the host solver, or inside the scan
-with the device solver (`mpc.solver = "device"`, whose per-row memory rides in the scan's
-carry); the policy is evaluated per seed with `vmap` over the seed axis of the parameters.
+batch at once (method §6: one host callback per step with the fired rows; the bridge's carry rides
+in the scan's); the policy is evaluated per seed with `vmap` over the seed axis of the
+parameters.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -20,6 +20,9 @@ from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import TaskParams
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import Transitions
+
+if TYPE_CHECKING:
+    from mpcpearl_jax.mpc.bridge import Bridge
 
 
 class Episodes(NamedTuple):
@@ -41,7 +44,7 @@ def rows_of(tasks: TaskParams, task_ids: Array) -> TaskParams:
 def make_collector(
     env: NavEnv,
     nets: Networks,
-    bridge: Callable | None = None,
+    bridge: Bridge | None = None,
     eps: float = 0.0,
     deterministic: bool = False,
     mesh=None,
@@ -60,11 +63,9 @@ def make_collector(
     horizon = env.config.horizon
     # eps = 0 never calls the MPC: its guard and callback stay out of the program (on a GPU each
     # guard sends its predicate to the host every step)
-    use_mpc = bridge is not None and eps > 0
-    # the device solver (`mpc.solver = "device"`): the bridge's per-row memory rides in the scan
-    on_device = use_mpc and getattr(bridge, "on_device", False)
-    if use_mpc and mesh is not None:
-        bridge = bridge.on_mesh(mesh)  # type: ignore[union-attr]
+    bridge = bridge if eps > 0 else None
+    if bridge is not None and mesh is not None:
+        bridge = bridge.on_mesh(mesh)  # type: ignore[attr-defined]
 
     def policy_actions(policy_params, obs, z, key):
         # obs [S, R, O], z [S, R, L] -> [S, R, A]
@@ -92,20 +93,14 @@ def make_collector(
         stamp = jax.random.bits(jax.random.fold_in(key, 0x5EED), (2,), jnp.uint32)
 
         def body(carry, xs):
-            obs, state, memory = carry
+            obs, state, mpc = carry
             k = xs
             k_pi, k_eps, k_mpc = jax.random.split(k, 3)
             a_pi = policy_actions(policy_params, obs.reshape(s, r, -1), z, k_pi).reshape(s * r, -1)
             fire = jax.vmap(env.event)(state, flat)
-            if use_mpc:
-                if eps > 0:
-                    fire = fire & (jax.random.uniform(k_eps, (s * r,)) <= eps)
-                else:
-                    fire = jnp.zeros_like(fire)
-                if on_device:
-                    memory, a_mpc, used, _ = bridge.step(memory, k_mpc, fire, state, flat, a_pi)
-                else:
-                    a_mpc, used, _ = bridge(k_mpc, fire, state, flat, a_pi, stamp)
+            if bridge is not None:  # eps > 0
+                fire = fire & (jax.random.uniform(k_eps, (s * r,)) <= eps)
+                mpc, a_mpc, used, _ = bridge.step(mpc, k_mpc, fire, state, flat, a_pi)
                 action = jnp.where(fire[:, None], a_mpc, a_pi)
                 used = used & fire
             else:
@@ -122,14 +117,14 @@ def make_collector(
                 info.event,
                 used,
             )
-            return (nobs, nstate, memory), out
+            return (nobs, nstate, mpc), out
 
-        memory0 = bridge.init_memory(s * r) if on_device else None
-        (_, _, memory), (tr, pos, col, goal, ev, used) = jax.lax.scan(
-            body, (obs0, state0, memory0), jax.random.split(key, horizon)
+        mpc0 = bridge.init(s * r, stamp) if bridge is not None else None
+        (_, _, mpc), (tr, pos, col, goal, ev, used) = jax.lax.scan(
+            body, (obs0, state0, mpc0), jax.random.split(key, horizon)
         )
-        if on_device:  # the counters reach the host once per batch of episodes
-            jax.debug.callback(bridge.record_counts, memory.counts)
+        if bridge is not None:
+            bridge.finish(mpc)
         pos = jnp.concatenate([state0.pose[None, :, :2], pos], axis=0)
         to_rows = lambda x: jnp.swapaxes(x, 0, 1).reshape((s, r, *x.shape[:1], *x.shape[2:]))
         return Episodes(

@@ -198,8 +198,8 @@ class ExperimentConfig(SerializableConfig):
 
 # Options removed after they measured no gain (docs/extensions.md, "Removed options"), with
 # their off value: section -> {field: off value}. Every one of them acted on training only
-# (what the critics learned, or, `keep_best`, which of the trained policies was saved), never
-# on the policy's inputs or networks.
+# (what the critics learned; `keep_best`, which of the trained policies was saved; the MPC's
+# `solver`, where the MPC's plans were solved), never on the policy's inputs or networks.
 REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
     "train": {
         "mpc_dagger_labels": False,
@@ -228,6 +228,8 @@ REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
         "crossq_momentum": 0.99,
     },
     "env_overrides": {"w_collision": 0.0},
+    # the SQP in JAX on the device ("device"), beside the host's OSQP ("osqp", what remains)
+    "mpc": {"solver": "osqp", "device_qp_iters": 30},
 }
 # Removed options that acted only together with others: 'section.field' -> the options, with
 # their off value, that must all differ from it for this one to have changed training. The MPC
@@ -238,7 +240,8 @@ REMOVED_OPTIONS: dict[str, dict[str, Any]] = {
 # with `keep_best`, the CrossQ momentum only with CrossQ, the guide's roll-in steps, decrement,
 # success threshold and evidence window only with a guide share. So the inactive values the
 # presets carried (step probability 0.5, no Q filter, an MPC buffer fraction with eps 0, the
-# guide's defaults) leave a committed run resumable.
+# guide's defaults) leave a committed run resumable. The MPC's solver acted only where the MPC
+# did (eps > 0), the device solver's QP iterations only with the device solver.
 _ACTIVE_ONLY_WITH: dict[str, dict[str, Any]] = {
     "train.mpc_demo_share": {"train.mpc_demo_iterations": 0, "train.eps": 0.0},
     "train.mpc_demo_iterations": {"train.mpc_demo_share": 0.0, "train.eps": 0.0},
@@ -262,6 +265,8 @@ _ACTIVE_ONLY_WITH: dict[str, dict[str, Any]] = {
     "train.guide_decrement": {"train.guide_share": 0.0},
     "train.guide_success": {"train.guide_share": 0.0},
     "train.guide_window": {"train.guide_share": 0.0},
+    "mpc.solver": {"train.eps": 0.0},
+    "mpc.device_qp_iters": {"mpc.solver": "osqp", "train.eps": 0.0},
 }
 
 
@@ -291,7 +296,7 @@ def _recorded(d: dict, name: str) -> Any:
         return part[field]
     if field in REMOVED_OPTIONS.get(section, {}):
         return REMOVED_OPTIONS[section][field]
-    defaults = {"train": TrainConfig(), "pearl": PearlConfig()}[section]
+    defaults = {"train": TrainConfig(), "pearl": PearlConfig(), "mpc": MPCConfig()}[section]
     return getattr(defaults, field)
 
 
@@ -345,8 +350,25 @@ def known_fields(cls: type, fields: dict) -> dict:
     the words of `--set`."""
     unknown = sorted(set(fields) - {f.name for f in dataclasses.fields(cls)})
     if unknown:
-        raise ConfigError(f"{cls.__name__} has no field(s) {unknown}")
+        raise ConfigError(f"{cls.__name__} has no field(s) {unknown}{_removed_note(cls, unknown)}")
     return fields
+
+
+def _removed_note(cls: type, fields: Iterable[str]) -> str:
+    """' (removed; see ...)' where one of `cls`'s fields is a removed option
+    (`REMOVED_OPTIONS`), else ''."""
+    sections = {
+        TrainConfig: "train",
+        PearlConfig: "pearl",
+        MPCConfig: "mpc",
+        NavConfig: "env_overrides",
+    }
+    fields = list(fields)
+    gone = [f for f in fields if f in REMOVED_OPTIONS.get(sections.get(cls, ""), {})]
+    if not gone:
+        return ""
+    names = "" if gone == fields else f"{', '.join(gone)}: "
+    return f" ({names}removed; see docs/extensions.md, Removed options)"
 
 
 def mpc_config(fields: dict) -> MPCConfig:
@@ -529,7 +551,8 @@ def field_value(item: str, cls: type, field: str, text: str) -> Any:
     naming the field."""
     hints = typing.get_type_hints(cls)
     if field not in hints or field not in {f.name for f in dataclasses.fields(cls)}:
-        raise ConfigError(f"--set {item}: {cls.__name__} has no field(s) {[field]}")
+        note = _removed_note(cls, [field])
+        raise ConfigError(f"--set {item}: {cls.__name__} has no field(s) {[field]}{note}")
     hint = hints[field]
     name = f"{cls.__name__}.{field}"
     args = typing.get_args(hint)
@@ -582,7 +605,8 @@ def apply_overrides(
         cls = sections.get(section)
         if cls is None or field not in {f.name for f in dataclasses.fields(cls)}:
             owner = cls.__name__ if cls else f"section {section!r} of {type(cfg).__name__}"
-            raise ConfigError(f"{owner} has no field(s) {[field]}")
+            note = _removed_note(cls, [field]) if cls else ""
+            raise ConfigError(f"{owner} has no field(s) {[field]}{note}")
         triples.append((section, field, value))
     triples += [parse_override(item, sections) for item in items]
     grouped: dict[str, dict[str, Any]] = {}

@@ -9,10 +9,7 @@ from typing import Any
 from mpcpearl_jax import validate as v
 
 GP_MODES = ("fit", "fixed")
-# "osqp": the SQP on OSQP on the host, through a callback (the reference); "device": the same SQP
-# in JAX (`mpcpearl_jax.mpc.device_solver`), inside the jitted step
-SOLVERS = ("osqp", "device")
-# the SQP's extra starts (`solver.starts`): none, only when the first start's plan is unsafe or
+# the SQP's extra starts (`problem.starts`): none, only when the first start's plan is unsafe or
 # its QP failed, or always (the safe plan of lowest exact merit is kept)
 MULTI_STARTS = ("off", "on_failure", "always")
 SQP_ITERS_MAX = 1000
@@ -41,7 +38,7 @@ class MPCConfig:
     v_max: float | None = 5.0
     steer_max: float = 1.5  # |delta| cap of the MPC (< pi/2, where tan(delta) diverges)
     terminal_weight: float = 20.0  # Q_f = terminal_weight * Q
-    # SQP (host side on OSQP, or on the device: `solver`). The defaults run it to convergence, as
+    # SQP (on the host, on OSQP: `mpc.host`). The defaults run it to convergence, as
     # the paper's NLP solver: it ends on a step below `sqp_step_tol` or where the line search
     # finds no decrease, median 0.03 % above the best plan known on problems recorded from
     # training (docs/method.md §6); the presets other than `paper` cap it at 5 QPs
@@ -78,9 +75,10 @@ class MPCConfig:
     gp_noise_std: float = 0.01  # m per step
     gp_static_tol: float = 1e-4  # a person who moved less than this in the last step is static
     # execution
-    n_workers: int = 1  # >1: solve fired rows in a process pool (solver "osqp")
-    solver: str = "osqp"  # SOLVERS: OSQP on the host, or the same SQP in JAX on the device
-    device_qp_iters: int = 30  # interior-point iterations per QP of the "device" solver
+    n_workers: int = 1  # >1: solve fired rows in a process pool
+    # with the pool: seconds a call waits for its rows; a row whose worker dies or is not done by
+    # then falls back (reason "worker_lost") and the pool is replaced (`mpc.host`)
+    worker_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
         v.ints(
@@ -93,7 +91,6 @@ class MPCConfig:
             "n_gp",
             "qp_tail_samples",
             "n_workers",
-            "device_qp_iters",
         )
         v.ints(
             self,
@@ -129,6 +126,7 @@ class MPCConfig:
             "gp_signal_std",
             "gp_noise_std",
             "cold_speed",
+            "worker_timeout_s",
         )
         v.nonnegative(
             self, "delta_cvar", "terminal_weight", "sqp_step_tol", "unsafe_tol", "gp_static_tol"
@@ -136,7 +134,6 @@ class MPCConfig:
         v.nonnegative(self, "r_safe", none_ok=True)
         v.positive(self, "v_max", none_ok=True)
         v.one_of(self, "gp_mode", GP_MODES)
-        v.one_of(self, "solver", SOLVERS)
         v.one_of(self, "multi_start", MULTI_STARTS)
         v.check(
             self.sqp_iters <= SQP_ITERS_MAX,
@@ -150,12 +147,6 @@ class MPCConfig:
             "sqp_step_tol",
             f"must lie in [0, trust_v = {self.trust_v}] (a step is at most the trust region), "
             f"got {self.sqp_step_tol!r}",
-        )
-        v.check(
-            self.multi_start == "off" or self.solver == "osqp",
-            self,
-            "multi_start",
-            f"needs solver 'osqp' (the device solver has one start), got solver {self.solver!r}",
         )
         v.check(
             self.num_samples * (1.0 - self.alpha) >= 1.0,

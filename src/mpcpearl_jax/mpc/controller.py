@@ -11,14 +11,14 @@ from jax import Array
 
 from mpcpearl_jax.envs.navigation import NavEnv
 from mpcpearl_jax.envs.types import TaskParams
-from mpcpearl_jax.mpc.bridge import MPCBridge
+from mpcpearl_jax.mpc.bridge import Bridge
 
 # normalized action for zero speed, straight wheels (NumPy: importing starts no JAX backend)
 BRAKE = np.array([-1.0, 0.0], np.float32)
 
 
 def make_gp_mpc_rollout(
-    env: NavEnv, bridge: MPCBridge, num_steps: int | None = None
+    env: NavEnv, bridge: Bridge, num_steps: int | None = None
 ) -> Callable[[Array, TaskParams], dict[str, Array]]:
     """`rollout(key, params) -> traj` for a flat batch of tasks params [B] (jittable).
 
@@ -35,11 +35,8 @@ def make_gp_mpc_rollout(
         brake = jnp.broadcast_to(BRAKE, (batch, 2))
 
         def body(carry, k):
-            state, memory = carry
-            if bridge.on_device:
-                memory, action, used, status = bridge.step(memory, k, fire, state, params, brake)
-            else:
-                action, used, status = bridge(k, fire, state, params, brake)
+            state, mpc = carry
+            mpc, action, used, status = bridge.step(mpc, k, fire, state, params, brake)
             _, nstate, r, _, info = jax.vmap(env.step)(
                 jax.random.split(k, batch), state, action, params
             )
@@ -53,12 +50,11 @@ def make_gp_mpc_rollout(
                 used_mpc=used,
                 status=status,
             )
-            return (nstate, memory), out
+            return (nstate, mpc), out
 
-        memory0 = bridge.init_memory(batch) if bridge.on_device else None
-        (_, memory), traj = jax.lax.scan(body, (state0, memory0), jax.random.split(key, steps))
-        if bridge.on_device:  # the counters reach the host once per rollout
-            jax.debug.callback(bridge.record_counts, memory.counts)
+        carry0 = (state0, bridge.init(batch))
+        (_, mpc), traj = jax.lax.scan(body, carry0, jax.random.split(key, steps))
+        bridge.finish(mpc)
         traj = jax.tree_util.tree_map(lambda a: jnp.swapaxes(a, 0, 1), traj)
         traj["position"] = jnp.concatenate([state0.pose[:, None, :2], traj["position"]], axis=1)
         traj["heading"] = jnp.concatenate([state0.pose[:, None, 2], traj["heading"]], axis=1)

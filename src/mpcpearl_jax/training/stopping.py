@@ -6,7 +6,7 @@ signal raises KeyboardInterrupt, as Ctrl-C does, and is recorded, so the command
 `stop_exit_code()` (128 + the signal: 130 for Ctrl-C). While `Session.train` trains, `_stop_flag`
 replaces that: the first signal asks the loop to save and stop (`loop.train_loop`), a second
 one stops at once. The MPC's worker processes leave the process group and ignore these signals
-(`mpc.solver.pool_worker_init`): the training process ends them. Outside a command's own handling
+(`mpc.host.pool_worker_init`): the training process ends them. Outside a command's own handling
 (its module imports, a command with none, the interpreter's exit after it returned),
 `guard_program` ends the process with one line.
 """
@@ -171,7 +171,7 @@ def exit_interrupted(line: str) -> NoReturn:
     interpreter's teardown: a stop signal can land inside JAX's compiler, which goes on
     compiling, and tearing the runtime down under it crashed the process at exit (a segmentation
     fault after the line). The caller has closed what it opened; MPC pool workers end themselves
-    when this process is gone (`mpc.solver.watch_parent`)."""
+    when this process is gone (`mpc.host.watch_parent`)."""
     print(line, file=sys.stderr, flush=True)
     sys.stdout.flush()
     os._exit(stop_exit_code())

@@ -4,7 +4,7 @@
   * collection (a `Phase`: the initial, prior-z and posterior-z collections of Algorithm 1)
     over a flat batch of seeds x tasks x episodes (`mpcpearl_jax.collection`), with
     event-triggered MPC: the host solver through one `pure_callback` per step where an event
-    fires, or the device solver inside the scan (`mpc.solver = "device"`);
+    fires (`mpc.bridge`);
   * the N_train gradient steps as one `lax.scan` (run in chunks), vmapped over seeds, buffers
     donated;
   * meta-test evaluation (Algorithm 2), vmapped over seeds and tasks.
