@@ -220,3 +220,97 @@ def test_pearl_step_takes_the_seed_counts_it_is_given(tmp_path: Path, clean_envi
     assert record["config"]["seeds"] == [3]
     with pytest.raises(SystemExit, match="--seeds"):
         pearl_step.main(["--tiny", "--seeds", "0", "--out", str(tmp_path)])
+
+
+def _metrics(folder: Path, steps: list[float], extra: str = "") -> None:
+    """A run folder's metrics.jsonl with one row per iteration taking `steps[i]` seconds
+    (train_s is their running sum; wall_s adds 5 s of evaluation per row), collect_s and
+    update_s of 60 % and 40 % of each step, an evaluation row without collect_s first, and
+    `extra` appended (e.g. a line cut off by a stop)."""
+    folder.mkdir(parents=True)
+    rows, train, wall = [{"iteration": 0, "test_SR": 0.0}], 0.0, 0.0
+    for i, s in enumerate(steps, 1):
+        train, wall = train + s, wall + s + 5.0
+        rows.append(
+            {
+                "iteration": i,
+                "collect_s": 0.6 * s,
+                "update_s": 0.4 * s,
+                "train_s": train,
+                "wall_s": wall,
+            }
+        )
+    text = "".join(json.dumps(r) + "\n" for r in rows)
+    (folder / "metrics.jsonl").write_text(text + extra)
+
+
+def test_gpu_summary_medians_and_targets(tmp_path: Path) -> None:
+    """`benchmarks.gpu_summary` on a fabricated session: medians over iterations 3 to the last
+    (the last alone for a run of two iterations, none for one), the faster recipe run, the
+    default's GPU speed-up and each target's verdict; the README's GPU lines from its record,
+    and "not yet measured" without one; a run of other seeds than the target's does not count."""
+    from benchmarks import gpu_summary
+    from lab.tables.statistics import Records
+    from lab.tables.summary import render_gpu_session
+
+    (tmp_path / "results").mkdir()
+    out = tmp_path / "benchmarks" / "results" / "gpu-test"
+    _metrics(out / "recipe", [10.0, 2.0, 1.0, 1.2, 1.0], extra='{"iteration": 6, "coll')
+    _metrics(out / "recipe-pipeline", [20.0, 3.0, 0.5, 0.5])  # 2 seeds: not the target's
+    (out / "recipe-pipeline" / "config.json").write_text('{"seeds": 2, "train": {"pipeline": 1}}')
+    _metrics(out / "default-gpu", [30.0, 1.0, 0.5, 0.7, 0.6])
+    _metrics(out / "default-cpu", [40.0, 3.0, 1.5, 1.5, 1.8])
+    _metrics(out / "paper", [50.0, 2.0])
+    (out / "machine.txt").write_text("name, memory.total [MiB]\nNVIDIA H200, 143771 MiB\n")
+    summary = gpu_summary.main([str(out)])
+    assert json.loads((out / "summary.json").read_text())["targets"] == summary["targets"]
+    runs = summary["runs"]
+    assert runs["recipe"]["iterations"] == 5 and runs["recipe"]["timed"] == 3
+    assert runs["recipe"]["median_iteration_s"] == pytest.approx(1.0)
+    assert runs["recipe"]["median_collect_s"] == pytest.approx(0.6)
+    assert runs["recipe"]["median_update_s"] == pytest.approx(0.4)
+    assert runs["recipe"]["median_wall_step_s"] == pytest.approx(6.0)
+    assert runs["recipe"]["first_iteration_s"] == pytest.approx(10.0)
+    assert runs["recipe-pipeline"]["median_iteration_s"] == pytest.approx(0.5)
+    assert runs["recipe-pipeline"]["seeds"] == 2 and "seeds" not in runs["recipe"]
+    assert runs["paper"]["timed_from"] == 2 and runs["paper"]["median_iteration_s"] == 2.0
+    t = {x["name"]: x for x in summary["targets"]}
+    assert (t["recipe_s"]["figure"], t["recipe_s"]["run"], t["recipe_s"]["met"]) == (
+        pytest.approx(1.0),
+        "recipe",
+        True,
+    )
+    assert t["default_speedup"]["figure"] == pytest.approx(2.5) and t["default_speedup"]["met"]
+    assert t["paper_s"]["figure"] == pytest.approx(2.0) and t["paper_s"]["met"] is False
+    assert summary["machine"]["gpu"] == "NVIDIA H200"
+    text = "\n".join(gpu_summary.lines(summary))
+    assert "target paper_s" in text and "NOT met" in text
+
+    one = gpu_summary.run_summary(gpu_summary.read_rows(out / "paper" / "metrics.jsonl")[:1])
+    assert one["timed"] == 0 and one["median_iteration_s"] is None
+    assert gpu_summary.targets({})[0]["figure"] is None
+
+    rec = Records(tmp_path / "results")
+    lines = "\n".join(render_gpu_session(rec))
+    assert "Training on NVIDIA H200" in lines and "`benchmarks/results/gpu-test/`" in lines
+    assert "| 1.00 s (without `train.pipeline`) | <= 1.5 s: met |" in lines
+    assert "| 2.50x (GPU 0.600 s, CPU 1.50 s) | >= 2x: met |" in lines
+    assert "| 2.00 s | <= 1.5 s: not met |" in lines
+    assert not rec.missing
+    (tmp_path / "elsewhere" / "results").mkdir(parents=True)
+    rec = Records(tmp_path / "elsewhere" / "results")
+    lines = "\n".join(render_gpu_session(rec))
+    assert lines.count("not yet measured") == 3 and not rec.missing
+
+
+def test_gpu_session_script_parses() -> None:
+    """benchmarks/gpu_session.sh is valid bash and calls only what exists."""
+    import subprocess
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_session.sh"
+    subprocess.run(["bash", "-n", str(script)], check=True)
+    text = script.read_text()
+    for module in ("experiments.restaurant", "benchmarks.pipeline", "benchmarks.collection",
+                   "benchmarks.gpu_summary"):  # fmt: skip
+        assert f"-m {module}" in text
+        assert importlib.util.find_spec(module) is not None

@@ -271,8 +271,78 @@ SPEED_ROWS = (
 )
 
 
+# the GPU session's training figures (`bash benchmarks/gpu_session.sh`, summarised by
+# `benchmarks.gpu_summary`): the newest committed benchmarks/results/gpu-*/summary.json that has
+# them; "not yet measured" while none is committed
+GPU_SESSION = "gpu-*/summary.json"
+GPU_SESSION_ROWS = {  # target name in the summary -> the row's label
+    "recipe_s": "`recipe` preset, 8 seeds, eps 0.2: seconds per iteration (the faster of the "
+    "runs with and without `train.pipeline`)",
+    "default_speedup": "`default` preset (the main command's), one seed: the GPU's speed-up per "
+    "iteration over the same machine's CPU",
+    "paper_s": "`paper` preset, one seed, eps 0.2: seconds per iteration",
+}
+GPU_SESSION_TARGETS = {"recipe_s": "<= 1.5 s", "default_speedup": ">= 2x", "paper_s": "<= 1.5 s"}
+NOT_MEASURED = "not yet measured"
+
+
+def gpu_session_record(rec: Records) -> tuple[str, dict] | None:
+    """(folder under benchmarks/results, summary) of the newest GPU session record, or None."""
+    found = []
+    for path in (rec.results / BENCH["cpu"]).glob(GPU_SESSION):
+        summary = rec.read(f"{BENCH['cpu']}/{path.parent.name}/summary.json")
+        if isinstance(summary, dict) and summary.get("targets"):
+            found.append((summary.get("written", ""), path.parent.name, summary))
+    if not found:
+        return None
+    _, folder, summary = max(found, key=lambda f: f[:2])
+    return folder, summary
+
+
+def _gpu_session_cells(target: dict) -> tuple[str, str]:
+    """(figure, target) cells of one of the GPU session's targets."""
+    fig = target.get("figure")
+    if fig is None:
+        return NOT_MEASURED, target["target"]
+    verdict = f"{target['target']}: {'met' if target['met'] else 'not met'}"
+    if target["name"] == "default_speedup":
+        return (
+            f"{fig:.2f}x (GPU {_duration(target['gpu_s'])}, CPU {_duration(target['cpu_s'])})",
+            verdict,
+        )
+    run = {"recipe-pipeline": " (with `train.pipeline`)", "recipe": " (without `train.pipeline`)"}
+    return f"{_duration(fig)}{run.get(target.get('run') or '', '')}", verdict
+
+
+def render_gpu_session(rec: Records) -> list[str]:
+    """The lines of the GPU session's training figures against their targets."""
+    found = gpu_session_record(rec)
+    targets = {t["name"]: t for t in (found[1]["targets"] if found else [])}
+    gpu = ((found[1].get("machine") or {}).get("gpu") if found else None) or "one GPU"
+    lines = [
+        "",
+        f"Training on {gpu} (`bash benchmarks/gpu_session.sh`; the median over iterations 3 to "
+        "the last, as `python -m benchmarks.gpu_summary` computes it):",
+        "",
+        "| what | figure | target |",
+        "|---|---|---|",
+    ]
+    for name, what in GPU_SESSION_ROWS.items():
+        t = targets.get(name)
+        figure, target = _gpu_session_cells(t) if t else (NOT_MEASURED, GPU_SESSION_TARGETS[name])
+        lines.append(f"| {what} | {figure} | {target} |")
+    lines += [
+        "",
+        f"Record: `benchmarks/results/{found[0]}/`."
+        if found
+        else "No GPU session is recorded yet (records go to `benchmarks/results/gpu-*/`).",
+    ]
+    return lines
+
+
 def render_speed(rec: Records) -> str:
-    """The speed of one 2-core CPU and one GPU, from the benchmark records."""
+    """The speed of one 2-core CPU and one GPU, from the benchmark records, and the GPU
+    session's training figures."""
     cpu, gpu = _speed_cells(rec, "cpu"), _speed_cells(rec, "gpu")
     machines = []
     for where in ("cpu", "gpu"):
@@ -296,4 +366,5 @@ def render_speed(rec: Records) -> str:
         "MPC's solves run on the host CPU in both (OSQP), so on the GPU they take most of an "
         "iteration.",
     ]
+    lines += render_gpu_session(rec)
     return "\n".join(lines)
