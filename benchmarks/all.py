@@ -1,6 +1,6 @@
 """Run every benchmark script, each in its own process, and collect their JSON records.
 
-    python -m benchmarks.all            # about 10 minutes on a 2-core CPU
+    python -m benchmarks.all            # about 13 minutes on a 2-core CPU
     python -m benchmarks.all --full     # the paper's sizes (hours)
     python -m benchmarks.all --tiny     # seconds per script (smoke test)
     options: --out DIR (default benchmarks/results), --threads N, --only NAME [NAME ...]
@@ -30,6 +30,7 @@ SCRIPTS = (
     "learner_sizes",
     "policy_latency",
     "mpc_latency",
+    "mpc_bridge",
     "memory",
     "iteration",
     "pipeline",

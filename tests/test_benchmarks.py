@@ -23,6 +23,7 @@ SCRIPTS = [
     "pipeline",
     "grbal_planner",
     "learner_sizes",
+    "mpc_bridge",
 ]
 
 

@@ -10,8 +10,8 @@ with a flat batch B (seeds x tasks x envs folded into one axis; an outer vmap wo
 guard below and is refused). Each step, one batch-level `lax.cond(jnp.any(fire))` guards the GP
 prediction (JAX) and a single `jax.pure_callback` to the host solver (`mpc.host`). Only the fired
 rows travel: up to a static cap (`fired_cap`) they are gathered on the device, predicted, sent
-with their row indices, and their results scattered back; where more rows fire, the whole batch
-is sent with the fire mask.
+with their row indices (packed into one float and one int array: `pack_rows`), and their results
+scattered back; where more rows fire, the whole batch is sent with the fire mask.
 
 Per-row memory on the host (previous plan and the step it was made at) gives warm starts: a row
 whose t is the previous t + 1 starts from the shifted plan, otherwise from a cold start. The carry
@@ -27,6 +27,7 @@ plan memory kept per shard (docs/distributed.md).
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from typing import Any, Protocol
 
 import jax
@@ -84,6 +85,32 @@ def _shard_callback(fn, out_shapes, *args):
     return tuple(_SHARD_CALLBACK.bind(*args, fn=fn, result_avals=avals))
 
 
+def pack_rows(arrays: Sequence[Array]) -> tuple[Array, Array, tuple]:
+    """Arrays with a leading row axis [n, ...] packed into (floats [n, F], ints [n, I], layout):
+    the float arrays side by side in their common dtype, the others (ints, bools) in a common
+    int dtype; `host.unpack_rows(layout, floats, ints)` gives back each array, in order, with
+    its values and dtype."""
+    n = arrays[0].shape[0]
+    is_float = [jnp.issubdtype(a.dtype, jnp.floating) for a in arrays]
+    f_dtype = jnp.result_type(*(a for a, f in zip(arrays, is_float, strict=True) if f))
+    i_dtype = jnp.result_type(
+        *(a for a, f in zip(arrays, is_float, strict=True) if not f), jnp.int32
+    )
+
+    def side_by_side(flag, dtype):
+        parts = [
+            jnp.reshape(a, (n, -1)).astype(dtype)
+            for a, f in zip(arrays, is_float, strict=True)
+            if f == flag
+        ]
+        return jnp.concatenate(parts, axis=1)
+
+    layout = tuple(
+        (f, a.shape[1:], np.dtype(a.dtype).str) for a, f in zip(arrays, is_float, strict=True)
+    )
+    return side_by_side(True, f_dtype), side_by_side(False, i_dtype), layout
+
+
 def fired_cap(batch: int) -> int:
     """How many fired rows of a batch are gathered and sent alone (static); beyond it the whole
     batch is sent."""
@@ -139,7 +166,12 @@ class MPCBridge:
 
     # ---------------------------------------------------------------- the interface
     def init(self, batch: int, episode: Array | None = None) -> Array:
-        """The carry of a batch of `batch` rows: the stamp [3] uint32 (given flag, episode)."""
+        """The carry of a batch of `batch` rows: the stamp [3] uint32 (given flag, episode).
+        Also starts the host's worker pool (`HostSolver.start`): called where a rollout is
+        traced, its processes start while the rollout compiles."""
+        start = getattr(self.host, "start", None)
+        if start is not None:
+            start()
         if episode is None:  # no stamp: the memory is never reset by a call
             return jnp.zeros((3,), jnp.uint32)
         stamp = jnp.concatenate([jnp.ones((1,), jnp.uint32), jnp.ravel(episode)[:2]])
@@ -190,7 +222,6 @@ class MPCBridge:
         `fired_cap`, the whole batch with the fire mask beyond it."""
         batch = fire.shape[0]
         call = jax.pure_callback if row0 is None else _shard_callback
-        host = functools.partial(self.host, batch)
 
         def on_rows(idx, fired):  # rows idx [n] of the batch, those to solve fired [n]
             take = lambda x: jnp.take(x, idx, axis=0, mode="clip")  # noqa: E731
@@ -202,22 +233,14 @@ class MPCBridge:
                 jax.ShapeDtypeStruct((n, 2), jnp.float32),
                 jax.ShapeDtypeStruct((n,), jnp.int32),
             )
-            u, status = call(
-                host,
-                shapes,
-                idx,
-                fired,
-                sub_s.pose,
-                sub_s.t,
-                sub_p.goal,
-                sub_p.static_lo,
-                sub_p.static_hi,
-                sub_p.static_radius,
-                samples,
-                valid,
-                stamp,
-                shard,
+            # the host call's operands (`HostSolver`) packed into one float and one int array:
+            # each operand is its own copy from the device (benchmarks/README.md, `mpc_bridge`)
+            floats, ints, layout = pack_rows(
+                (idx, fired, sub_s.pose, sub_s.t, sub_p.goal, sub_p.static_lo, sub_p.static_hi)
+                + (sub_p.static_radius, samples, valid)
             )
+            host = functools.partial(self.host.packed_call, layout, batch)
+            u, status = call(host, shapes, floats, ints, stamp, shard)
 
             def put(part):  # back to the batch's rows (the padding, idx = batch, is dropped)
                 full = jnp.zeros((batch, *part.shape[1:]), part.dtype)

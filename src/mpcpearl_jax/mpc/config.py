@@ -75,7 +75,10 @@ class MPCConfig:
     gp_noise_std: float = 0.01  # m per step
     gp_static_tol: float = 1e-4  # a person who moved less than this in the last step is static
     # execution
-    n_workers: int = 1  # >1: solve fired rows in a process pool
+    # worker processes that solve a call's fired rows side by side (`mpc.host.pool_size`): 1, in
+    # the calling process; N > 1, a pool of N, at most one per core this process may use; 0, one
+    # per core, at most 8. A call with one fired row solves it in the calling process
+    n_workers: int = 1
     # with the pool: seconds a call waits for its rows; a row whose worker dies or is not done by
     # then falls back (reason "worker_lost") and the pool is replaced (`mpc.host`)
     worker_timeout_s: float = 60.0
@@ -90,10 +93,10 @@ class MPCConfig:
             "osqp_max_iter",
             "n_gp",
             "qp_tail_samples",
-            "n_workers",
         )
         v.ints(
             self,
+            "n_workers",
             "line_search_steps",
             "gp_fit_steps",
             "osqp_check_termination",

@@ -9,10 +9,14 @@ slack_penalty * violations).
 
 `HostSolver` is what the bridge's callback calls (`mpc.bridge`): it keeps each row's previous
 plan and the step it was made at (per shard of a sharded batch), solves the fired rows in this
-process or, with `mpc.n_workers > 1`, in a pool of worker processes (OSQP holds the GIL), applies
-the fallback rule (`mpc.rows`) and counts what happened (`stats`). A pool worker that dies during
-a call, or runs past `mpc.worker_timeout_s`, costs its rows a fallback (reason "worker_lost"),
-not the training: the pool is replaced before the next call.
+process or, with `mpc.n_workers` other than 1 and at least two fired rows, in a pool of worker
+processes (`pool_size`: at most one per core), one task per row, applies the fallback rule
+(`mpc.rows`) and counts what happened (`stats`). Processes, not threads: OSQP releases the GIL
+only inside its QP solve, about half of a row's SQP; the linearization and the line search in
+NumPy hold it, and threads solving rows side by side gain at most 1.4x where processes gain 2-5x
+(benchmarks/README.md, `mpc_bridge`). A pool worker that dies during a call, or runs past
+`mpc.worker_timeout_s`, costs its rows a fallback (reason "worker_lost"), not the training: the
+pool is replaced before the next call.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import osqp
@@ -283,11 +287,44 @@ _WORKER_SOLVERS: dict[SolverParams, SQPSolver] = {}
 def solve_in_worker(
     params: SolverParams, prob: RowProblem, u_init: np.ndarray | None
 ) -> SolveResult:
-    """Entry point for process-pool workers: one cached solver per problem size."""
+    """One row in a pool worker: one cached solver per problem size."""
     solver = _WORKER_SOLVERS.get(params)
     if solver is None:
         solver = _WORKER_SOLVERS[params] = SQPSolver(params)
     return solver.solve(prob, u_init)
+
+
+class Stamped(NamedTuple):
+    """A pool task's row: its result, the worker's process id, and when the solve started and
+    ended (`time.perf_counter`, a clock that all processes of a machine share)."""
+
+    result: SolveResult
+    worker: int
+    start: float
+    end: float
+
+
+def solve_stamped(solve, params: SolverParams, prob: RowProblem, u_init) -> Stamped:
+    """Entry point of a pool task: one row solved by `solve` (`HostSolver.worker_solve`)."""
+    start = time.perf_counter()
+    res = solve(params, prob, u_init)
+    return Stamped(res, os.getpid(), start, time.perf_counter())
+
+
+MAX_AUTO_WORKERS = 8  # `mpc.n_workers` 0: one worker per core, at most this many
+
+
+def pool_size(n_workers: int, cores: int | None = None) -> int:
+    """The worker processes of the MPC's pool for `mpc.n_workers` on `cores` cores (default:
+    those this process may use): never more than the cores (a larger pool solves no faster
+    and costs a process start and ~200 MB per worker); 0 takes one per core, at most
+    `MAX_AUTO_WORKERS`. 1: no pool, the rows are solved in the calling process."""
+    if cores is None:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # not Linux
+            cores = os.cpu_count() or 1
+    return min(n_workers, cores) if n_workers > 0 else min(cores, MAX_AUTO_WORKERS)
 
 
 # the signals a user stops a training with: Ctrl-C (to the terminal's whole process group), a closed
@@ -397,6 +434,18 @@ class PlanMemory:
         return shifted(self.plans[b])
 
 
+def unpack_rows(layout: tuple, floats: np.ndarray, ints: np.ndarray) -> list[np.ndarray]:
+    """The arrays `bridge.pack_rows` packed (NumPy views where the dtype is the packed one)."""
+    out, at = [], {True: 0, False: 0}
+    for is_float, shape, dtype in layout:
+        src = floats if is_float else ints
+        width = int(np.prod(shape, dtype=np.int64))
+        part = src[:, at[is_float] : at[is_float] + width].reshape((src.shape[0], *shape))
+        at[is_float] += width
+        out.append(part.astype(dtype, copy=False))
+    return out
+
+
 class HostSolver:
     """The bridge's host side: `host(batch, idx, fired, pose, t, goal, static_lo, static_hi,
     static_radius, samples, valid, stamp, shard) -> (inputs [n, 2] float32, status [n] int32)`.
@@ -430,6 +479,12 @@ class HostSolver:
         *rows, shard = [np.asarray(a) for a in args]
         with self._lock:
             return self._solve_call(self.memory(int(shard), batch), *rows)
+
+    def packed_call(self, layout: tuple, batch: int, floats, ints, stamp, shard):
+        """The call with its row operands packed by the bridge (`bridge.pack_rows`: idx, fired,
+        pose, t, goal, static_lo, static_hi, static_radius, samples, valid)."""
+        rows = unpack_rows(layout, np.asarray(floats), np.asarray(ints))
+        return self(batch, *rows, stamp, shard)
 
     def memory(self, shard: int = 0, batch: int | None = None) -> PlanMemory:
         """The plan memory of a shard (0 unsharded), made (or remade, when the batch size
@@ -486,37 +541,66 @@ class HostSolver:
         self, probs: list[RowProblem], inits: list[np.ndarray | None], num_static: int
     ) -> list[SolveResult]:
         """The SQP on each problem from its start (the shifted previous plan, or None: cold), in
-        this process, or in the worker pool with `n_workers > 1` and more than one row."""
+        the worker pool where `uses_pool`, else in this process."""
         params = solver_params(self.cfg, self.nav, num_static)
-        if self.cfg.n_workers > 1 and len(probs) > 1:
+        if self.uses_pool(len(probs)):
             return self._solve_in_pool(params, probs, inits)
+        return self.solve_here(params, probs, inits)
+
+    @property
+    def n_workers(self) -> int:
+        """The pool's worker processes (`pool_size` of `mpc.n_workers`); 1: no pool."""
+        return pool_size(self.cfg.n_workers)
+
+    def uses_pool(self, n: int) -> bool:
+        """Whether a call with n fired rows solves them in the worker pool: with more than one
+        worker and at least two rows (one row is solved here: a pool task's round trip costs
+        1-2 ms more, benchmarks/README.md, `mpc_bridge`)."""
+        return n >= 2 and self.n_workers > 1
+
+    def solve_here(self, params: SolverParams, probs, inits) -> list[SolveResult]:
+        """The rows one after the other in this process."""
         solver = self._solvers.get(params)
         if solver is None:
             solver = self._solvers[params] = SQPSolver(params)
         return [solver.solve(p, u0) for p, u0 in zip(probs, inits, strict=True)]
 
+    def start(self) -> None:
+        """Start the worker pool now (where there is one and it is not running): its processes
+        start and import beside whatever the caller does next (the bridge calls this when a
+        rollout is traced, so they start during its compilation), and the first call finds
+        them ready instead of waiting for them (seconds)."""
+        if self.n_workers <= 1 or self._pool is not None:
+            return
+        with self._lock, stop_signals_blocked():
+            if self._pool is None:
+                self._pool = make_pool(self.n_workers)
+                for _ in range(self.n_workers):  # the pool starts a process per waiting task
+                    self._pool.submit(os.getpid)
+
     def _solve_in_pool(self, params, probs, inits) -> list[SolveResult]:
-        """The rows on the worker pool. A row whose worker died (the pool broke) or that is not
-        done within `worker_timeout_s` gets a `WORKER_LOST` result, and the pool is replaced by a
-        fresh one at the next call."""
+        """The rows on the worker pool, one task per row (a free worker takes the next row:
+        solve times differ up to tenfold between rows, and fixed shares of the rows per worker
+        lose more to the unequal shares than a task per row costs). A row whose worker died
+        (the pool broke) or that is not done within `worker_timeout_s` gets a `WORKER_LOST`
+        result, and the pool is replaced by a fresh one at the next call."""
         t0 = time.perf_counter()
         futures = self._submit(params, probs, inits)
         done, _ = wait(futures, timeout=self.cfg.worker_timeout_s)
         lost = time.perf_counter() - t0
-        results = [
-            f.result() if f in done and not _broken(f) else _lost_result(params, lost)
-            for f in futures
-        ]
-        if len(done) < len(futures) or any(_broken(f) for f in done):
+        ok = [f in done and not _broken(f) for f in futures]
+        rows = [f.result() if good else None for f, good in zip(futures, ok, strict=True)]
+        if not all(ok):
             self._drop_pool()
-        return results
+        self._record_pool(t0, time.perf_counter(), [r for r in rows if r is not None])
+        return [r.result if r is not None else _lost_result(params, lost) for r in rows]
 
     def _submit(self, params, probs, inits) -> list:
         def submit_all() -> list:
             if self._pool is None:
-                self._pool = make_pool(self.cfg.n_workers)
+                self._pool = make_pool(self.n_workers)
             return [
-                self._pool.submit(self.worker_solve, params, p, u0)
+                self._pool.submit(solve_stamped, self.worker_solve, params, p, u0)
                 for p, u0 in zip(probs, inits, strict=True)
             ]
 
@@ -533,6 +617,17 @@ class HostSolver:
             self._pool = None
 
     # ---------------------------------------------------------------- stats
+    def _record_pool(self, t0: float, t1: float, rows: list[Stamped]) -> None:
+        """A pool call's own cost, from the rows' stamps: of the worker that finished last, the
+        time from the call's start (t0) to the start of its first row (pickling, queues, the
+        worker waking up), and from the end of its last row to the results in hand (t1)."""
+        if not rows:
+            return
+        last = max(rows, key=lambda r: r.end).worker
+        mine = [r for r in rows if r.worker == last]
+        self._stats["pool_send_s"].append(max(min(r.start for r in mine) - t0, 0.0))
+        self._stats["pool_return_s"].append(max(t1 - max(r.end for r in mine), 0.0))
+
     def _record(self, results: list[SolveResult], status: np.ndarray, host_s: float) -> None:
         s = self._stats
         s["calls"] += 1
@@ -551,8 +646,10 @@ class HostSolver:
         """Counters since the last reset: calls (host callbacks), rows_solved (fired rows handed
         to the host), fallbacks, status and reason counts, how each row's SQP ended (sqp_stops)
         and which start its plan came from (starts), per-row solve times (s), QP iterations and
-        QPs per row, host time per call (s). A row whose pool worker was lost counts in
-        rows_solved, status, reasons ("worker_lost") and fallbacks only."""
+        QPs per row, host time per call (s), and per call solved in the pool, of the worker that
+        finished last, the time until its first row started and from its last row's end to the
+        results in hand (pool_send_s, pool_return_s: `_record_pool`). A row whose pool worker
+        was lost counts in rows_solved, status, reasons ("worker_lost") and fallbacks only."""
         s = self._stats
         out = {
             k: (dict(v) if isinstance(v, Counter) else (list(v) if isinstance(v, list) else v))
@@ -573,6 +670,8 @@ class HostSolver:
             "qp_iters": [],
             "n_qp": [],
             "host_call_s": [],
+            "pool_send_s": [],
+            "pool_return_s": [],
         }
 
     def reset_memory(self) -> None:
