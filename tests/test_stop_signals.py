@@ -257,13 +257,15 @@ def test_evaluate_stopped_anywhere_is_one_line_and_exit_128_plus_signal(tmp_path
     Ctrl-C used to print a KeyboardInterrupt traceback and, landing inside XLA's compiler, crash
     the process at exit (SIGSEGV). Now: one line, exit 130 (SIGTERM: 143), nothing written."""
     run = ROOT / "results" / "restaurant" / "main-default"
-    env = {**_env(), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / "cache")}
     cases = [(3.0, signal.SIGINT), (6.0, signal.SIGINT), (9.0, signal.SIGINT)]
     cases.append((5.0, signal.SIGTERM))
     for i, (delay, sig) in enumerate(cases):
         log, out = tmp_path / f"log{i}", tmp_path / f"eval{i}"
+        # a cold cache for each case, and eight task seeds: the evaluation (about 13 s on a quiet
+        # 2-core CPU) outlasts the last delay
+        env = {**_env(), "JAX_COMPILATION_CACHE_DIR": str(tmp_path / f"cache{i}")}
         cmd = [sys.executable, "-m", "experiments.evaluate", str(run), "--split", "val"]
-        cmd += ["--task-seeds", "1", "--figures", "none", "--out", str(out)]
+        cmd += ["--task-seeds", "1-8", "--figures", "none", "--out", str(out)]
         rc, text = _stopped_after(cmd, delay, sig, log, env)
         assert rc == 128 + int(sig), (delay, rc, text[-2000:])
         _no_crash(text)
