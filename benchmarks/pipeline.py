@@ -113,8 +113,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             }
             for k in order
         ],
-        ["trainer", f"wall, iterations {FROM}-{n} (s)", "median iteration (s)",
-         "median collect (s)", "median update (s)"],  # fmt: skip
+        [
+            "trainer",
+            f"wall, iterations {FROM}-{n} (s)",
+            "median iteration (s)",
+            "median collect (s)",
+            "median update (s)",
+        ],
     )
     print(
         f"pipeline / serial: {ratio:.3f} (saving {100 * (1 - ratio):.1f} %, "

@@ -335,7 +335,8 @@ def render_gpu_session(rec: Records) -> list[str]:
         "",
         f"Record: `benchmarks/results/{found[0]}/`."
         if found
-        else "No GPU session is recorded yet (records go to `benchmarks/results/gpu-*/`).",
+        else "No training session of `gpu_session.sh` is recorded yet (its records go to "
+        "`benchmarks/results/gpu-*/summary.json`).",
     ]
     return lines
 
