@@ -178,6 +178,28 @@ def _interrupted_at(text: str) -> int:
     return int(lines[0].split()[3].rstrip(";"))
 
 
+def signal_group_when(
+    proc: subprocess.Popen, cond, sig: int, log: Path, *, after_s: float = 0.0, timeout=240.0
+) -> int:
+    """Send `sig` to the whole process group of proc (started with start_new_session=True), as a
+    terminal's Ctrl-C does, once cond() holds and `after_s` seconds more have passed; -> its
+    exit code. The group is killed if it is still there afterwards (a failed test leaves no
+    training behind)."""
+    try:
+        deadline = time.monotonic() + timeout
+        while not cond():
+            assert proc.poll() is None, log.read_text()[-3000:]
+            assert time.monotonic() < deadline, "the condition was not reached in time"
+            time.sleep(0.005)
+        time.sleep(after_s)
+        os.killpg(proc.pid, sig)
+        return proc.wait(timeout=90)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
 def _sigint_when(proc: subprocess.Popen, cond, timeout: float = 240.0) -> float:
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:

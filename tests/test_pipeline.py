@@ -10,7 +10,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +23,7 @@ from faults_helpers import (
     final_checkpoint,
     metric_rows,
     rows_at_least,
+    signal_group_when,
     small_args,
     small_cfg,
     spawn,
@@ -117,19 +117,8 @@ def test_ctrl_c_to_the_process_group_during_a_pipelined_iteration_saves_and_resu
     run, ref, log = tmp_path / "run", tmp_path / "ref", tmp_path / "log.txt"
     extra = (*PIPE, "--set", "mpc.n_workers=2", "--set", "train.checkpoint_interval=50")
     proc = spawn(small_args(0.5, run, 40, *extra), log, cli=True, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 240
-        while not rows_at_least(run, 2)():
-            assert proc.poll() is None, log.read_text()[-3000:]
-            assert time.monotonic() < deadline
-            time.sleep(0.005)
-        time.sleep(0.05)  # into the third iteration
-        os.killpg(proc.pid, signal.SIGINT)
-        rc = proc.wait(timeout=90)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+    # 0.05 s into the third iteration
+    rc = signal_group_when(proc, rows_at_least(run, 2), signal.SIGINT, log, after_s=0.05)
     text = log.read_text()
     assert rc == 130, text[-3000:]
     assert "Traceback" not in text, text[-3000:]

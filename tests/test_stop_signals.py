@@ -15,7 +15,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from faults_helpers import ROOT, _env, _interrupted_at, rows_at_least, small_args, spawn
+from faults_helpers import (
+    ROOT,
+    _env,
+    _interrupted_at,
+    rows_at_least,
+    signal_group_when,
+    small_args,
+    spawn,
+)
 
 from mpcpearl_jax.runfolder import LOG_FILE, read_log
 from mpcpearl_jax.training.loop import Progress, train_loop
@@ -75,18 +83,12 @@ def test_a_stop_signal_to_the_whole_process_group_saves_and_resumes(tmp_path, si
     args = small_args(0.5, run, 40, *extra)
     proc = spawn(args, log, cli=True, start_new_session=True)
     workers: list[int] = []
-    try:
-        deadline = time.monotonic() + 240
-        while not (rows_at_least(run, 2)() and len(workers := _mpc_workers(proc.pid)) >= 2):
-            assert proc.poll() is None, log.read_text()[-3000:]
-            assert time.monotonic() < deadline, "no MPC workers after two iterations"
-            time.sleep(0.05)
-        os.killpg(proc.pid, sig)  # what Ctrl-C in a terminal does (SIGINT to the group)
-        rc = proc.wait(timeout=90)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+
+    def ready() -> bool:  # two iterations logged and the two MPC workers up
+        workers[:] = _mpc_workers(proc.pid) if rows_at_least(run, 2)() else []
+        return len(workers) >= 2
+
+    rc = signal_group_when(proc, ready, sig, log)  # what Ctrl-C in a terminal does
     text = log.read_text()
     assert rc == 128 + sig, text[-3000:]
     assert "Traceback" not in text and "BrokenProcessPool" not in text, text[-3000:]
