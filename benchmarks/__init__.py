@@ -1,5 +1,5 @@
 """Benchmarks: every speed claim of the project, measured side by side. See benchmarks/README.md."""
 
-from mpcpearl_jax.training.stopping import guard_program
+from mpcpearl_jax.cli.stopping import guard_program
 
 guard_program()  # a stop signal in a benchmark: one line, exit 128 + the signal

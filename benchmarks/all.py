@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from benchmarks import harness
-from mpcpearl_jax.training.stopping import stops_with
+from mpcpearl_jax.cli.stopping import stops_with
 
 # Run order: cheap and independent first. mpc_latency.py belongs to the MPC module.
 SCRIPTS = (

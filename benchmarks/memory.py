@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import harness
-from mpcpearl_jax.training.stopping import stops_with
+from mpcpearl_jax.cli.stopping import stops_with
 
 SIZES: dict[str, dict[str, Any]] = {
     "tiny": dict(preset="smoke", seeds=(1,), tasks=(10, 120), iterate=False),

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks import harness
-from mpcpearl_jax.training.stopping import stops_with
+from mpcpearl_jax.cli.stopping import stops_with
 
 SEEDS = 4
 SIZES: dict[str, dict[str, Any]] = {

@@ -15,7 +15,7 @@ from mpcpearl_jax.config import PRESETS, ExperimentConfig, read_config, resolve
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.budget import default_label
-from mpcpearl_jax.training.stopping import (  # noqa: F401  (the commands' names for them)
+from mpcpearl_jax.cli.stopping import (  # noqa: F401  (the commands' names for them)
     exit_interrupted,
     stop_exit_code,
     stoppable,

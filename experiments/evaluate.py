@@ -70,7 +70,7 @@ from mpcpearl_jax.evaluation.runners import Setup
 from mpcpearl_jax.evaluation.scoring import failure_line
 from mpcpearl_jax.mpc.shield import ShieldConfig
 from mpcpearl_jax.runfolder import write_json
-from mpcpearl_jax.training.stopping import stoppable
+from mpcpearl_jax.cli.stopping import stoppable
 
 __all__ = ["UsageError", "main", "make_parser", "parse_indices", "setup"]
 

@@ -24,7 +24,7 @@ from pathlib import Path
 from experiments.common import add_run_mode_options, add_task_source_options, exit_interrupted
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.grbal.config import PRESETS, GrbalExperimentConfig, resolve
-from mpcpearl_jax.training.stopping import stoppable
+from mpcpearl_jax.cli.stopping import stoppable
 
 
 def parser() -> argparse.ArgumentParser:

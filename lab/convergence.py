@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpcpearl_jax.training.stopping import stops_with
+from mpcpearl_jax.cli.stopping import stops_with
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "results" / "mpc" / "convergence"

@@ -342,7 +342,7 @@ def test_grbal_ctrl_c_during_training_saves_the_iteration_and_resumes(tmp_path):
 _GUARDED = """
 import os, signal, sys, time
 sys.argv[0] = "-m"  # as `python -m PACKAGE.MODULE` runs its package's __init__
-from mpcpearl_jax.training.stopping import guard_program, stoppable
+from mpcpearl_jax.cli.stopping import guard_program, stoppable
 guard_program()
 if sys.argv[1] == "after":
     stoppable(lambda: 0)()  # a command that returned: its output is complete

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from lab.convergence import OUT, ROOT, _scenario_tasks
-from mpcpearl_jax.training.stopping import stops_with
+from mpcpearl_jax.cli.stopping import stops_with
 
 
 @stops_with("stopped: nothing written")

@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -162,8 +161,10 @@ def load_config(run_dir: str | Path, resume: bool = False) -> ExperimentConfig:
 
 
 def warn(msg: str) -> None:
-    """`msg` as one line on stderr."""
-    print(msg, file=sys.stderr, flush=True)
+    """Report `msg` as one line (`notices.warn`: the `mpcpearl_jax` logger)."""
+    from mpcpearl_jax.notices import warn as notice
+
+    notice(msg)
 
 
 def read_log(path: Path, upto: int = 10**9, report: Callable[[str], None] = warn) -> list[dict]:

@@ -1,0 +1,48 @@
+"""The command layer, the package's top floor: what every command of experiments/, lab/ and
+benchmarks/ shares, and nothing below imports.
+
+- `stopping`: the commands' stop signals (one line, exit code 128 + the signal);
+- `errors`: the one error ladder (`one_line_errors`: each error as one line and its exit code);
+- `args`: building a config from a command line (the training commands' options, `build_config`,
+  `--help-config`);
+- `progress`, `tables`: the progress bar, the printed tables, records and lines;
+- `train`: the training commands (MPC-PEARL and GrBAL), which parse, call `mpcpearl_jax.train`,
+  print and choose the exit code.
+
+`setup()` is where every command starts (done on importing this package, and again by each
+command: it does its work once): the library's notices (`mpcpearl_jax.notices`) are shown as
+one line each on stderr.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+
+class _StderrLines(logging.Handler):
+    """Each record's message as one line on the current sys.stderr, flushed."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            print(record.getMessage(), file=sys.stderr, flush=True)
+        except Exception:  # noqa: BLE001 - a closed stderr must not end the command
+            self.handleError(record)
+
+
+_done: list[bool] = []
+
+
+def setup() -> None:
+    """The commands' start: the library's notices as lines on stderr (once per process)."""
+    if _done:
+        return
+    from mpcpearl_jax.notices import LOGGER
+
+    LOGGER.addHandler(_StderrLines())
+    LOGGER.setLevel(logging.INFO)
+    LOGGER.propagate = False
+    _done.append(True)
+
+
+setup()
