@@ -1,9 +1,11 @@
 """Run every benchmark script, each in its own process, and collect their JSON records.
 
-    python -m benchmarks.all            # about 13 minutes on a 2-core CPU
+    python -m benchmarks.all --record   # about 13 minutes on a 2-core CPU: the committed records
+    python -m benchmarks.all            # the same into benchmarks/results/scratch/ (git-ignored)
     python -m benchmarks.all --full     # the paper's sizes (hours)
-    python -m benchmarks.all --tiny     # seconds per script (smoke test)
-    options: --out DIR (default benchmarks/results), --threads N, --only NAME [NAME ...]
+    python -m benchmarks.all --tiny     # seconds per script (smoke test; never with --record)
+    options: --record (write benchmarks/results/) or --out DIR (default
+    benchmarks/results/scratch/), --threads N, --only NAME [NAME ...]
 
 Each script gets the same size flag, `--out` and `--threads`. With `--full`, the PEARL step is
 also measured with 1 thread (into OUT/threads1/), as in the authors' same-CPU anchor. A script
@@ -12,7 +14,6 @@ that fails is reported and the others still run; the exit status is non-zero if 
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -67,12 +68,7 @@ def run_script(name: str, size: str, out: Path, threads: int | None) -> dict:
 
 @stops_with("interrupted; the benchmarks run so far wrote their records, all.json is not written")
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    sizes = p.add_mutually_exclusive_group()
-    sizes.add_argument("--tiny", action="store_true")
-    sizes.add_argument("--full", action="store_true")
-    p.add_argument("--out", default=str(harness.DEFAULT_OUT))
-    p.add_argument("--threads", type=int, default=None)
+    p = harness.common_parser(__doc__.splitlines()[0])  # --out or --record checked up front
     p.add_argument("--only", nargs="+", choices=SCRIPTS, default=None)
     args = p.parse_args(argv)
     size = "tiny" if args.tiny else "full" if args.full else "default"

@@ -10,13 +10,13 @@ every host callback solves one row. Reported per call:
   - GP: the jitted GP prediction (fit + K-step propagation + M samples) for the batch alone;
 and the QP iterations, QPs per call and the status counts.
 
-    python -m benchmarks.mpc_latency [--tasks N] [--out DIR] [--gp-mode fit|fixed]
+    python -m benchmarks.mpc_latency [--tasks N] [--out DIR | --record] [--gp-mode fit|fixed]
 """
 
 from __future__ import annotations
 
-import argparse
 import statistics
+import sys
 import time
 
 import jax
@@ -62,16 +62,21 @@ def gp_cost(env, tasks, cfg, batch):
     )
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tasks", type=int, default=24)
-    ap.add_argument("--out", default=None)
+def main(argv: list[str] | None = None) -> None:
+    ap = harness.BenchmarkParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tasks", type=int, default=24, help="episodes, one per test task (1-24)")
+    harness.add_out_options(ap)
     ap.add_argument("--gp-mode", default="fit", choices=("fit", "fixed"))
-    args = ap.parse_args()
-    env = make_env("restaurant")
+    args = ap.parse_args(argv)
     tasks = make_tasks("restaurant", "test")
+    if not 1 <= args.tasks <= tasks.num_tasks:  # before the episodes, not after them
+        harness.fail(
+            f"--tasks {args.tasks}: give 1 to {tasks.num_tasks} (the restaurant's test split "
+            "has that many tasks)"
+        )
+    env = make_env("restaurant")
     cfg = MPCConfig(gp_mode=args.gp_mode)
-    num_tasks = min(args.tasks, tasks.num_tasks)
+    num_tasks = args.tasks
     stats, wall = closed_loop(env, tasks, cfg, num_tasks)
     gp1, gp24 = gp_cost(env, tasks, cfg, 1), gp_cost(env, tasks, cfg, 24)
     # GP + callback transfer + env step, per step: episode wall time minus the host callbacks
@@ -142,4 +147,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:])

@@ -8,7 +8,8 @@ the host SQP through the callback) for one fired env, stepped in a closed loop o
 test tasks so that solves are warm-started as during training. Targets: policy >= 100x faster
 than an MPC call, batch-1 policy under 100 microseconds.
 
-    python -m benchmarks.policy_latency [--tiny | --full] [--out DIR] [--threads N] [--run DIR]
+    python -m benchmarks.policy_latency [--tiny | --full] [--out DIR | --record] [--threads N]
+        [--run DIR]
 """
 
 from __future__ import annotations
@@ -153,17 +154,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     threads = harness.configure_threads(args.threads)
     size = harness.size_of(args)
     sz = SIZES[size]
-    try:
-        from mpcpearl_jax import load_policy
-    except ImportError:  # older layout: only in the checkpoint module
-        from mpcpearl_jax.deploy.policy import load_policy
+    from mpcpearl_jax import load_policy
+    from mpcpearl_jax.errors import CheckpointError, RunDirError
 
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(args.run) if args.run else Path(tmp) / "run"
         if not args.run:
             save_untrained_run(run_dir, sz["preset"])
         t0 = time.perf_counter()
-        policy = load_policy(run_dir)
+        try:
+            policy = load_policy(run_dir)
+        except (CheckpointError, RunDirError, OSError, ValueError, TypeError) as e:
+            harness.fail(f"--run {run_dir}: {harness.error_text(e)}")  # before anything is timed
         load_s = time.perf_counter() - t0
     rows = policy_timings(policy, sz)
     mpc = mpc_timings(policy, sz)

@@ -315,3 +315,108 @@ def test_gpu_session_script_parses() -> None:
                    "benchmarks.gpu_summary"):  # fmt: skip
         assert f"-m {module}" in text
         assert importlib.util.find_spec(module) is not None
+
+
+# ------------------------------------------------------------ where records go, checked up front
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err, err
+    return err
+
+
+def test_records_go_to_the_scratch_folder_unless_record_or_out(tmp_path: Path) -> None:
+    """Without --record or --out a benchmark writes into the git-ignored scratch folder (it
+    wrote over the committed record the README quotes); --record names the committed one."""
+    from benchmarks import harness
+
+    p = harness.common_parser("x")
+    assert Path(p.parse_args([]).out) == harness.SCRATCH
+    assert Path(p.parse_args(["--record"]).out) == harness.RECORDS
+    assert p.parse_args(["--out", str(tmp_path / "o")]).out == str(tmp_path / "o")
+    assert harness.RECORDS == Path(__file__).resolve().parents[1] / "benchmarks" / "results"
+    assert "benchmarks/results/scratch/" in (harness.RECORDS.parents[1] / ".gitignore").read_text()
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--tiny", "--record"],
+        ["--tiny", "--out", "benchmarks/results"],
+        ["--tiny", "--out", "benchmarks/results/gpu-h100"],
+    ],
+)
+def test_a_tiny_run_never_replaces_a_measured_record(argv, capsys, monkeypatch) -> None:
+    """`benchmarks.env_throughput --tiny` wrote over benchmarks/results/env_throughput.json and
+    exited 0; `benchmarks.all --tiny` would have replaced every record."""
+    from benchmarks import all as bench_all
+    from benchmarks import env_throughput, harness
+
+    monkeypatch.chdir(harness.RECORDS.parents[1])
+    record = harness.RECORDS / "env_throughput.json"
+    before = record.read_bytes()
+    for main in (env_throughput.main, bench_all.main):
+        with pytest.raises(SystemExit) as exit_:
+            main(argv)
+        assert exit_.value.code == 2
+        assert "--tiny is a smoke run and never replaces a measured record" in _error_line(capsys)
+    assert record.read_bytes() == before
+
+
+def test_benchmark_flags_are_checked_before_it_runs(tmp_path: Path, capsys) -> None:
+    """--threads beyond the cores (a ValueError traceback), --out on a file or on a folder that
+    cannot be written (found only after the benchmark had run): one line, exit 2, at once."""
+    from benchmarks import env_throughput
+
+    from faults_helpers import _make_unwritable
+
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("x")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    cases = [
+        (["--threads", "999"], "--threads 999: this process may use 1 to"),
+        (["--threads", "0"], "--threads 0: this process may use 1 to"),
+        (["--out", str(a_file)], f"--out {a_file}: not writable (a file is"),
+        (["--out", str(locked / "sub")], f"--out {locked / 'sub'}: not writable"),
+    ]
+    undo = _make_unwritable(locked)
+    try:
+        for argv, expected in cases:
+            with pytest.raises(SystemExit) as exit_:
+                env_throughput.main(["--tiny", *argv])
+            assert exit_.value.code == 2
+            assert expected in _error_line(capsys)
+    finally:
+        undo()
+
+
+def test_mpc_latency_refuses_zero_tasks_before_its_episodes(capsys, monkeypatch) -> None:
+    """`mpc_latency --tasks 0` ended in an IndexError after 27 s of episodes."""
+    from benchmarks import mpc_latency
+
+    def never(*a, **k):
+        raise AssertionError("the episodes ran")
+
+    monkeypatch.setattr(mpc_latency, "closed_loop", never)
+    for n in ("0", "-3", "25"):
+        with pytest.raises(SystemExit) as exit_:
+            mpc_latency.main(["--tasks", n])
+        assert exit_.value.code == 2
+        assert f"--tasks {n}: give 1 to 24" in _error_line(capsys)
+
+
+def test_policy_latency_on_a_corrupt_run_is_one_line(tmp_path: Path, capsys, monkeypatch):
+    """`policy_latency --run` on a run folder whose config is cut off: a CheckpointError
+    traceback."""
+    from benchmarks import policy_latency
+
+    monkeypatch.setattr(policy_latency.harness, "configure_threads", lambda n: {"threads": n})
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text("{")
+    with pytest.raises(SystemExit) as exit_:
+        policy_latency.main(["--tiny", "--run", str(run), "--out", str(tmp_path / "o")])
+    assert exit_.value.code == 2
+    assert _error_line(capsys).startswith(f"error: --run {run}: ")
