@@ -16,10 +16,18 @@ RUN --split val --task-seeds 1-8` for a trained run).
 
 The observation is the run's (its `env` overrides), plus the egocentric entries with
 `--relative` (`env.observe_relative`) and people listed nearest first with `--sorted`
-(`env.observe_sorted`): the comparison of inputs under the same data-collection scheme.
+(`env.observe_sorted`): the comparison of inputs under the same data-collection scheme. The
+representation is the clone's: `--encoder mlp` (one MLP over the flat observation, as the
+policy of `pearl.crowd_encoder` "none") or `--encoder attention` (the policy's crowd encoder,
+`pearl.networks.CrowdEncoder`, in front of the same MLP; it adds `env.observe_relative` and
+`env.observe_presence`), with `--forecast K` the people's constant-velocity positions K points
+ahead (`env.observe_forecast`, every `--stride` steps). `--labels N` drives N times as many
+tasks per round (each training layout with N crowds drawn for the round), so N times the labels
+at the same number of rounds; `--seed` moves the DAgger mixture, the noise, the minibatches and
+the clone's initialisation (the tasks and crowds stay the same, so arms are paired).
 
-    python -m lab.diagnostics.dagger [--tiny] [--relative] [--sorted] [--rounds N] [--out
-    DIR]
+    python -m lab.diagnostics.dagger [--tiny] [--relative] [--sorted] [--encoder mlp|attention]
+    [--forecast K] [--stride S] [--labels N] [--seed S] [--rounds N] [--out DIR]
 """
 
 from __future__ import annotations
@@ -27,7 +35,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from benchmarks import harness
+from lab import harness
 from lab.diagnostics.imitation import DEFAULT_RUN, bc_mlp, closed_loop, run_name
 
 SIZES: dict[str, dict[str, Any]] = {
@@ -39,6 +47,37 @@ SIZES: dict[str, dict[str, Any]] = {
 SIZES["full"] = SIZES["default"]
 NOISE = 0.1  # std of the Gaussian noise on the clone's executed actions
 BATCH = 256
+
+
+def bc_attention(hidden, crowd):
+    """The clone with the policy's crowd encoder (`CrowdSpec` `crowd`) in front of an MLP of
+    `hidden` sizes, tanh output."""
+    import flax.linen as nn
+    import jax.numpy as jnp
+
+    from mpcpearl_jax.pearl.networks import CrowdEncoder
+
+    class BC(nn.Module):
+        @nn.compact
+        def __call__(self, x):
+            x = CrowdEncoder(crowd, name="crowd")(x)
+            for h in hidden:
+                x = nn.relu(nn.Dense(h)(x))
+            return jnp.tanh(nn.Dense(2)(x))
+
+    return BC()
+
+
+def record_name(args) -> str:
+    """The record's file stem: the inputs, the encoder, the label scale and the seed."""
+    name = "dagger" + ("-relative" if args.relative else "") + ("-sorted" if args.sorted else "")
+    if args.encoder != "mlp":
+        name += f"-{args.encoder}"
+    if args.forecast:
+        name += f"-forecast{args.forecast}x{args.stride}"
+    if args.labels != 1:
+        name += f"-labels{args.labels}"
+    return name + (f"-seed{args.seed}" if args.seed else "")
 
 
 def make_rollout(env, bridge, net):
@@ -84,7 +123,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--sorted", action="store_true", help="add env.observe_sorted")
     p.add_argument("--rounds", type=int, default=None, help="DAgger rounds (default by size)")
     p.add_argument("--hidden", default="128,128,128", help="the clone's hidden sizes")
+    p.add_argument(
+        "--encoder", choices=("mlp", "attention"), default="mlp", help="the clone's input network"
+    )
+    p.add_argument("--forecast", type=int, default=0, help="env.observe_forecast (points ahead)")
+    p.add_argument("--stride", type=int, default=1, help="env.forecast_stride (steps per point)")
+    p.add_argument("--labels", type=int, default=1, help="tasks per round, x the size's")
+    p.add_argument("--seed", type=int, default=0, help="the diagnostic's random seed")
     args = p.parse_args(argv)
+    for flag in ("forecast", "seed"):
+        if getattr(args, flag) < 0:
+            p.error(f"--{flag}: must be >= 0")
+    for flag in ("stride", "labels"):
+        if getattr(args, flag) < 1:
+            p.error(f"--{flag}: must be at least 1")
     threads = harness.configure_threads(args.threads)
     size = harness.size_of(args)
     sz = dict(SIZES[size])
@@ -112,9 +164,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         overrides["observe_relative"] = True
     if args.sorted:
         overrides["observe_sorted"] = True
+    if args.encoder == "attention":
+        overrides.update(observe_relative=True, observe_presence=True)
+    if args.forecast:
+        overrides.update(observe_forecast=args.forecast, forecast_stride=args.stride)
     env = make_env(cfg.env, **overrides)
-    net = bc_mlp(hidden)
     ids = np.arange(sz["train_tasks"])
+    if args.encoder == "attention":
+        from mpcpearl_jax.pearl.networks import PearlConfig, crowd_spec
+
+        probe = make_tasks(cfg.env, "val", 1, config=env.config)
+        layout = env.obs_layout(probe)
+        crowd = crowd_spec(PearlConfig(crowd_encoder="attention"), env.obs_dim(probe), layout)
+        net = bc_attention(hidden, crowd)
+    else:
+        net = bc_mlp(hidden)
     val = {ts: make_tasks(cfg.env, "val", ts, config=env.config) for ts in sz["final_seeds"]}
     drive = closed_loop(env, net)
     opt = optax.adam(1e-3)
@@ -130,14 +194,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     try:
         rollout = make_rollout(env, bridge, net)
         xs_all, ys_all, curve, prm, st = [], [], [], None, None
-        key = jax.random.PRNGKey(0)
+        key = jax.random.PRNGKey(args.seed)
         for r in range(sz["rounds"]):
-            tasks = redraw_tasks(cfg.env, cfg.task_seed, ids, (1000, r), config=env.config)
+            draws = [  # draw 0 is the one of --labels 1
+                redraw_tasks(cfg.env, cfg.task_seed, ids, (1000 * (d + 1), r), config=env.config)
+                for d in range(args.labels)
+            ]
+            tasks = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *draws)
             beta = 1.0 if r == 0 else 0.5**r
             if prm is None:
                 first = jax.tree_util.tree_map(lambda a: a[:1], tasks)
                 obs0, _ = jax.vmap(env.reset)(jax.random.split(key, 1), first)
-                prm = net.init(jax.random.PRNGKey(1), obs0)
+                prm = net.init(jax.random.PRNGKey(1 + 7919 * args.seed), obs0)
                 st = opt.init(prm)
             key, k = jax.random.split(key)
             (obs, lab, mask, col, goal), roll_s = harness.timed(
@@ -198,12 +266,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "hidden": list(hidden),
         "relative": args.relative,
         "sorted": args.sorted,
+        "encoder": args.encoder,
+        "forecast": args.forecast,
+        "stride": args.stride,
+        "labels": args.labels,
+        "seed": args.seed,
         "noise": NOISE,
         "batch": BATCH,
         "threads": threads,
     }
-    name = "dagger" + ("-relative" if args.relative else "") + ("-sorted" if args.sorted else "")
-    harness.write_record(name, config, results, args.out)
+    harness.write_record(record_name(args), config, results, args.out)
     return results
 
 

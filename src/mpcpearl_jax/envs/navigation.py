@@ -34,12 +34,15 @@ class NavEnv:
         return self.config.name
 
     def obs_dim(self, params: TaskParams) -> int:
-        num_h = params.human_pos.shape[-2]
-        num_s = params.static_lo.shape[-2] if self.config.observe_static else 0
-        num_v = num_h if self.config.observe_velocity else 0
-        num_r = num_h + params.static_lo.shape[-2] + 1 if self.config.observe_relative else 0
-        num_t = 1 if self.config.observe_time else 0
-        return 3 + 2 * num_h + 2 * num_v + 2 * num_s + 2 * num_r + num_t
+        return observation.obs_dim(
+            self.config, params.human_pos.shape[-2], params.static_lo.shape[-2]
+        )
+
+    def obs_layout(self, params: TaskParams) -> list[dict]:
+        """The parts of the observation (`envs.observation.layout`)."""
+        return observation.layout(
+            self.config, params.human_pos.shape[-2], params.static_lo.shape[-2]
+        )
 
     # ------------------------------------------------------------------ API
     def reset(self, key: Array, params: TaskParams) -> tuple[Array, EnvState]:
@@ -130,9 +133,10 @@ class NavEnv:
         """Observation in [-1, 1] (`envs.observation.observation`, which `deploy.observe` builds
         from a robot's raw arrays): pose, people (absent ones at (-1, -1)), [people's last-step
         displacement (extension `observe_velocity`)], [static centres], [people, nearest static
-        points and goal in the robot's frame (extension `observe_relative`)]. With the extension
-        `sensing_radius` a person farther than it from the robot counts as absent throughout; [the
-        elapsed time 2 t / T - 1 (extension `observe_time`)]. With `observe_sorted` the people are
+        points and goal in the robot's frame (extension `observe_relative`)], [people's
+        forecast (extension `observe_forecast`)], [presence (extension `observe_presence`)], [the
+        elapsed time 2 t / T - 1 (extension `observe_time`)]. With the extension
+        `sensing_radius` a person farther than it from the robot counts as absent throughout. With `observe_sorted` the people are
         listed nearest first in every part."""
         humans, mask = self.humans_at(params, state.t)
         prev, prev_mask = self.humans_at(params, jnp.maximum(state.t - 1, 0))

@@ -20,7 +20,9 @@ def obs_dim(config: NavConfig, num_people: int, num_static: int) -> int:
     num_s = num_static if config.observe_static else 0
     num_r = num_people + num_static + 1 if config.observe_relative else 0
     num_t = 1 if config.observe_time else 0
-    return 3 + 2 * num_people + 2 * num_v + 2 * num_s + 2 * num_r + num_t
+    num_f = 2 * num_people * config.observe_forecast
+    num_p = num_people if config.observe_presence else 0
+    return 3 + 2 * num_people + 2 * num_v + 2 * num_s + 2 * num_r + num_f + num_p + num_t
 
 
 def normalize_xy(config: NavConfig, p: Array) -> Array:
@@ -84,6 +86,14 @@ def observation(
         parts.append(jnp.where(mask[:, None], ego(humans), 1.0).reshape(-1))
         parts.append(ego(nearest).reshape(-1))
         parts.append(ego(goal[None]).reshape(-1))
+        if config.observe_forecast > 0:  # extension: constant-velocity foresight
+            step = jnp.where((mask & prev_mask)[:, None], humans - prev, 0.0)  # [H, 2]
+            k = config.forecast_stride * jnp.arange(1, config.observe_forecast + 1)
+            ahead = humans[:, None, :] + k[None, :, None] * step[:, None, :]  # [H, K, 2]
+            fut = jnp.stack([ego(ahead[:, i]) for i in range(config.observe_forecast)], 1)
+            parts.append(jnp.where(mask[:, None, None], fut, 1.0).reshape(-1))
+    if config.observe_presence:  # extension: who is there, for a crowd encoder's mask
+        parts.append(jnp.where(mask, 1.0, -1.0))
     if config.observe_time:  # extension: elapsed fraction of the episode
         parts.append((2.0 * t / config.horizon - 1.0).reshape(1))
     return jnp.concatenate(parts).astype(jnp.float32)
@@ -108,6 +118,14 @@ def layout(config: NavConfig, num_people: int, num_static: int) -> list[dict]:
         parts.append(("people_ego", 2 * h, f"people in the robot frame {scale}; absent (1, 1)"))
         parts.append(("static_ego", 2 * s, f"nearest static points in the robot frame {scale}"))
         parts.append(("goal_ego", 2, f"goal in the robot frame {scale}"))
+        if config.observe_forecast > 0:
+            k, st = config.observe_forecast, config.forecast_stride
+            what = f"each person's position {st}, ..., {k * st} steps ahead at constant velocity"
+            parts.append(
+                ("people_forecast", 2 * h * k, f"{what}, [H, {k}, 2] in the robot frame {scale}")
+            )
+    if config.observe_presence:
+        parts.append(("people_present", h, "1 if the person is present (and in range), else -1"))
     if config.observe_time:
         parts.append(("time", 1, "2 t / T - 1, T the episode length in steps"))
     out, start = [], 0

@@ -75,6 +75,16 @@ class NavConfig:
     # slot means "the k-th nearest person" whoever it is (as in crowd-navigation policies such as
     # CADRL); the MPC, the reward and the events are unchanged
     observe_sorted: bool = False
+    # extension (off in the paper): foresight. Each person's positions observe_forecast points
+    # ahead, at every forecast_stride steps (t + forecast_stride, ..., t + observe_forecast *
+    # forecast_stride), extrapolated at constant velocity from the last-step displacement, in
+    # the robot's frame as the egocentric entries (needs observe_relative; absent: (1, 1))
+    observe_forecast: int = 0
+    forecast_stride: int = 1
+    # extension (off in the paper): each person's presence, 1 present (and within
+    # sensing_radius) and -1 absent, so that a crowd encoder (`pearl.crowd_encoder`) masks the
+    # absent people out instead of reading placeholder coordinates
+    observe_presence: bool = False
 
     def __post_init__(self) -> None:
         validate.positive(
@@ -102,6 +112,14 @@ class NavConfig:
         )
         validate.nonnegative(self, "sensing_radius")
         validate.ints(self, "horizon")
+        validate.ints(self, "observe_forecast", lo=0)
+        validate.ints(self, "forecast_stride")
+        validate.check(
+            self.observe_forecast == 0 or self.observe_relative,
+            self,
+            "observe_forecast",
+            "the forecast is egocentric: set env.observe_relative=true with it",
+        )
         validate.flags(
             self,
             "observe_static",
@@ -109,6 +127,7 @@ class NavConfig:
             "observe_relative",
             "observe_time",
             "observe_sorted",
+            "observe_presence",
         )
         for f in ("arena_lo", "arena_hi"):
             p = getattr(self, f)

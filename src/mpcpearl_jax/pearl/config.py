@@ -8,6 +8,9 @@ from typing import Any
 from mpcpearl_jax import validate as v
 
 
+CROWD_ENCODERS = ("none", "attention")
+
+
 @dataclasses.dataclass(frozen=True)
 class PearlConfig:
     """Networks, losses and update schedule of PEARL's SAC variant.
@@ -42,6 +45,15 @@ class PearlConfig:
     # policy's entropy is pulled to the target; target_entropy None = -(action dimension)
     auto_entropy: bool = False
     target_entropy: float | None = None
+    # a crowd encoder in front of the actor and the critics (`pearl.networks.CrowdEncoder`):
+    # "none" (the paper: one MLP over the flat observation) or "attention" (each person and each
+    # static obstacle embedded by a network shared within its kind, with the robot's own
+    # features, and pooled by attention queried by the robot's state and goal, absent people
+    # masked out, as crowd-navigation policies such as SARL do). "attention" needs the
+    # observation's egocentric entries and presence (env.observe_relative, env.observe_presence)
+    crowd_encoder: str = "none"
+    crowd_dim: int = 64  # width of the per-entity embeddings and of each pooled feature
+    crowd_heads: int = 4  # attention heads (crowd_dim must be a multiple)
 
     def __post_init__(self) -> None:
         v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size")
@@ -71,6 +83,19 @@ class PearlConfig:
             "must be below log_std_max",
         )
         v.positive(self, "max_grad_norm", none_ok=True)
+        v.check(
+            self.crowd_encoder in CROWD_ENCODERS,
+            self,
+            "crowd_encoder",
+            f"must be one of {', '.join(CROWD_ENCODERS)}, got {self.crowd_encoder!r}",
+        )
+        v.ints(self, "crowd_dim", "crowd_heads")
+        v.check(
+            self.crowd_dim % self.crowd_heads == 0,
+            self,
+            "crowd_dim",
+            f"must be a multiple of crowd_heads ({self.crowd_heads}), got {self.crowd_dim}",
+        )
 
     def replace(self, **changes: Any) -> PearlConfig:
         return dataclasses.replace(self, **changes)

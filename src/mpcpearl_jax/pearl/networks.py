@@ -6,6 +6,7 @@ hidden biases 0.1, last layer weights and biases uniform in +-3e-3.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any, cast
 
@@ -15,6 +16,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.pearl.config import PearlConfig
 
 LAST_INIT = 3e-3
@@ -51,27 +53,122 @@ class MLP(nn.Module):
         )(x)
 
 
+# the observation's parts (`envs.observation.layout`) as the crowd encoder reads them
+ROBOT_PARTS = ("robot_xy", "robot_heading", "goal_ego", "time")
+PEOPLE_PARTS = ("people_xy", "people_velocity", "people_ego", "people_forecast", "people_present")
+STATIC_PARTS = ("static_centres", "static_ego")
+
+
+@dataclasses.dataclass(frozen=True)
+class CrowdSpec:
+    """What shapes a crowd encoder: the observation's parts as (name, start, size) and the
+    embedding sizes. The number of people is the size of `people_present`, the number of
+    static obstacles half the size of `static_ego`."""
+
+    layout: tuple[tuple[str, int, int], ...]
+    dim: int = 64
+    heads: int = 4
+
+    @property
+    def parts(self) -> dict[str, tuple[int, int]]:
+        return {name: (start, size) for name, start, size in self.layout}
+
+    @property
+    def num_people(self) -> int:
+        return self.parts.get("people_present", (0, 0))[1]
+
+    @property
+    def num_static(self) -> int:
+        return self.parts.get("static_ego", (0, 0))[1] // 2
+
+
+class AttentionPool(nn.Module):
+    """Entities [..., N, F] (mask [..., N], None = all present) -> one feature [..., dim]: each
+    entity embedded with the robot's features [..., R] by one shared MLP, then pooled by
+    multi-head attention whose query is the robot's embedding [..., dim]; 0 when no entity is
+    present (an absent entity never enters the pool)."""
+
+    dim: int
+    heads: int
+
+    @nn.compact
+    def __call__(self, ent: Array, mask: Array | None, robot: Array, own: Array) -> Array:
+        rob = jnp.broadcast_to(robot[..., None, :], ent.shape[:-1] + robot.shape[-1:])
+        e = nn.relu(nn.Dense(self.dim)(jnp.concatenate([ent, rob], axis=-1)))
+        e = nn.relu(nn.Dense(self.dim)(e))
+        attention = nn.MultiHeadDotProductAttention(
+            num_heads=self.heads, qkv_features=self.dim, out_features=self.dim
+        )
+        att_mask = None if mask is None else mask[..., None, None, :]  # [..., heads, q, N]
+        out = attention(own[..., None, :], e, e, mask=att_mask)[..., 0, :]
+        if mask is not None:
+            out = jnp.where(jnp.any(mask, axis=-1, keepdims=True), out, 0.0)
+        return out
+
+
+class CrowdEncoder(nn.Module):
+    """Flat observation [..., O] -> [..., R + dim (+ dim)]: the robot's own features (pose,
+    goal, time), the people pooled by attention and the static obstacles pooled by attention
+    (`pearl.crowd_encoder` "attention"; SARL, Chen et al. 2019, with HEIGHT's two entity kinds).
+    Each person's entries (arena and egocentric position, displacement, forecast, presence) form
+    one entity; the people's presence entry is the mask. Invariant to the order of the people."""
+
+    spec: CrowdSpec
+
+    @nn.compact
+    def __call__(self, obs: Array) -> Array:
+        batch = obs.shape[:-1]
+        parts = {n: obs[..., s : s + k] for n, (s, k) in self.spec.parts.items()}
+        robot = jnp.concatenate([parts[n] for n in ROBOT_PARTS if n in parts], axis=-1)
+        own = nn.relu(nn.Dense(self.spec.dim, name="robot")(robot))
+        feats = [robot]
+
+        def entities(names: Sequence[str], n: int) -> Array:
+            return jnp.concatenate(
+                [parts[x].reshape(*batch, n, -1) for x in names if x in parts], axis=-1
+            )
+
+        h, s = self.spec.num_people, self.spec.num_static
+        if h > 0:
+            present = parts["people_present"] > 0
+            pool = AttentionPool(self.spec.dim, self.spec.heads, name="people")
+            feats.append(pool(entities(PEOPLE_PARTS, h), present, robot, own))
+        if s > 0:
+            pool = AttentionPool(self.spec.dim, self.spec.heads, name="static")
+            feats.append(pool(entities(STATIC_PARTS, s), None, robot, own))
+        return jnp.concatenate(feats, axis=-1)
+
+
+def _see(crowd: CrowdSpec | None, obs: Array, name: str | None = None) -> Array:
+    """The observation as the network sees it: through a crowd encoder of its own, or as is."""
+    return obs if crowd is None else CrowdEncoder(crowd, name=name)(obs)
+
+
 class TwinQ(nn.Module):
     """Two Q heads Q_i(s, a, z): returns ([...], [...])."""
 
     hidden: Sequence[int]
     layer_norm: bool = False
+    crowd: CrowdSpec | None = None
 
     @nn.compact
     def __call__(self, obs: Array, action: Array, z: Array) -> tuple[Array, Array]:
-        x = jnp.concatenate([obs, action, z], axis=-1)
-        q1 = MLP(self.hidden, 1, self.layer_norm, name="q1")(x)[..., 0]
-        q2 = MLP(self.hidden, 1, self.layer_norm, name="q2")(x)[..., 0]
-        return q1, q2
+        def head(name: str) -> Array:
+            x = jnp.concatenate([_see(self.crowd, obs, f"{name}_crowd"), action, z], axis=-1)
+            return MLP(self.hidden, 1, self.layer_norm, name=name)(x)[..., 0]
+
+        return head("q1"), head("q2")
 
 
 class ValueNet(nn.Module):
     hidden: Sequence[int]
     layer_norm: bool = False
+    crowd: CrowdSpec | None = None
 
     @nn.compact
     def __call__(self, obs: Array, z: Array) -> Array:
-        return MLP(self.hidden, 1, self.layer_norm)(jnp.concatenate([obs, z], axis=-1))[..., 0]
+        x = jnp.concatenate([_see(self.crowd, obs, "crowd"), z], axis=-1)
+        return MLP(self.hidden, 1, self.layer_norm)(x)[..., 0]
 
 
 class PolicyNet(nn.Module):
@@ -81,10 +178,12 @@ class PolicyNet(nn.Module):
     action_dim: int
     log_std_min: float = -20.0
     log_std_max: float = 2.0
+    crowd: CrowdSpec | None = None
 
     @nn.compact
     def __call__(self, obs: Array, z: Array) -> tuple[Array, Array]:
-        out = MLP(self.hidden, 2 * self.action_dim)(jnp.concatenate([obs, z], axis=-1))
+        x = jnp.concatenate([_see(self.crowd, obs, "crowd"), z], axis=-1)
+        out = MLP(self.hidden, 2 * self.action_dim)(x)
         mean, log_std = jnp.split(out, 2, axis=-1)
         return mean, jnp.clip(log_std, self.log_std_min, self.log_std_max)
 
@@ -142,19 +241,59 @@ NETWORK_FIELDS = (
     "min_posterior_var",
     "use_context",
 )
+# the fields of the crowd encoder, saved only when it is on (a spec without them has none)
+CROWD_FIELDS = ("crowd_encoder", "crowd_dim", "crowd_heads")
+
+
+def crowd_spec(
+    cfg: PearlConfig, obs_dim: int, obs_layout: Sequence[dict] | None
+) -> CrowdSpec | None:
+    """The crowd encoder's spec under `cfg` (None for `crowd_encoder` "none"); ConfigError
+    naming the missing observation entries when the layout lacks them."""
+    if cfg.crowd_encoder == "none":
+        return None
+    if obs_layout is None:
+        raise ConfigError(
+            f"pearl.crowd_encoder={cfg.crowd_encoder} needs the observation's layout "
+            "(Networks(..., obs_layout=env.obs_layout(tasks)))"
+        )
+    layout = tuple((str(p["name"]), int(p["start"]), int(p["size"])) for p in obs_layout)
+    names = {n for n, _, _ in layout}
+    need = {"people_ego": "env.observe_relative", "people_present": "env.observe_presence"}
+    missing = [opt for part, opt in need.items() if part not in names]
+    if missing:
+        raise ConfigError(
+            f"pearl.crowd_encoder={cfg.crowd_encoder} reads each person's egocentric position "
+            f"and presence: set {' and '.join(f'{m}=true' for m in missing)}"
+        )
+    end = max(s + k for _, s, k in layout)
+    if end != obs_dim:
+        raise ConfigError(f"observation layout covers {end} entries, the observation has {obs_dim}")
+    return CrowdSpec(layout, cfg.crowd_dim, cfg.crowd_heads)
 
 
 class Networks:
     """The flax modules of one PEARL agent, built from a config."""
 
-    def __init__(self, cfg: PearlConfig, obs_dim: int, action_dim: int):
+    def __init__(
+        self,
+        cfg: PearlConfig,
+        obs_dim: int,
+        action_dim: int,
+        obs_layout: Sequence[dict] | None = None,
+    ):
+        """`obs_layout`: the observation's parts (`NavEnv.obs_layout`), needed by a crowd
+        encoder (`pearl.crowd_encoder`), ignored without one."""
         self.cfg = cfg
         self.obs_dim = int(obs_dim)
         self.action_dim = int(action_dim)
         self.context_dim = 2 * obs_dim + action_dim + 1
-        self.policy = PolicyNet(cfg.hidden, action_dim, cfg.log_std_min, cfg.log_std_max)
-        self.q = TwinQ(cfg.hidden, cfg.layer_norm)
-        self.v = ValueNet(cfg.hidden, cfg.layer_norm)
+        self.crowd = crowd_spec(cfg, self.obs_dim, obs_layout)
+        self.policy = PolicyNet(
+            cfg.hidden, action_dim, cfg.log_std_min, cfg.log_std_max, crowd=self.crowd
+        )
+        self.q = TwinQ(cfg.hidden, cfg.layer_norm, crowd=self.crowd)
+        self.v = ValueNet(cfg.hidden, cfg.layer_norm, crowd=self.crowd)
         self.encoder = ContextEncoder(cfg.encoder_hidden, cfg.latent_dim, cfg.min_posterior_var)
 
     def spec(self) -> dict[str, Any]:
@@ -169,6 +308,11 @@ class Networks:
         for f in NETWORK_FIELDS:
             v = getattr(self.cfg, f)
             out[f] = list(v) if isinstance(v, tuple) else v
+        if self.crowd is not None:
+            out.update({f: getattr(self.cfg, f) for f in CROWD_FIELDS})
+            out["obs_layout"] = [
+                {"name": n, "start": s, "size": k} for n, s, k in self.crowd.layout
+            ]
         return out
 
     @classmethod
@@ -184,7 +328,14 @@ class Networks:
         fields = {
             f: tuple(spec[f]) if isinstance(spec[f], list) else spec[f] for f in NETWORK_FIELDS
         }
-        nets = cls((cfg or PearlConfig()).replace(**fields), spec["obs_dim"], spec["action_dim"])
+        fields.update({f: spec[f] for f in CROWD_FIELDS if f in spec})
+        fields.setdefault("crowd_encoder", "none")
+        nets = cls(
+            (cfg or PearlConfig()).replace(**fields),
+            spec["obs_dim"],
+            spec["action_dim"],
+            spec.get("obs_layout"),
+        )
         if "context_dim" in spec and spec["context_dim"] != nets.context_dim:
             raise ValueError(
                 f"network spec: context_dim {spec['context_dim']} != 2 obs_dim + action_dim + 1 "

@@ -182,7 +182,9 @@ class Trainer:
         self.mesh = make_mesh(cfg.seeds, cfg.devices)  # None: one device, no sharding
         self.obs_dim = self.env.obs_dim(self.train_tasks)
         self.action_dim = self.env.action_dim
-        self.nets = Networks(cfg.pearl, self.obs_dim, self.action_dim)
+        self.nets = Networks(
+            cfg.pearl, self.obs_dim, self.action_dim, self.env.obs_layout(self.train_tasks)
+        )
         self.horizon = self.env.config.horizon
         tc = cfg.train
         self.enc_capacity = tc.prior_episodes * self.horizon
