@@ -10,11 +10,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from mpcpearl_jax.training.machine import (  # noqa: F401 (re-exported)
-    configure_threads,
-    print_table,
-    write_record,
-)
+from mpcpearl_jax.cli.tables import print_table, write_record  # noqa: F401 (re-exported)
+from mpcpearl_jax.training.machine import configure_threads  # noqa: F401 (re-exported)
 
 SIZES = ("tiny", "default", "full")
 
