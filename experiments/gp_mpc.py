@@ -3,6 +3,11 @@
     python -m experiments.gp_mpc --env restaurant --split test [--set v_max=5.0 --set alpha=0.95]
     python -m experiments.gp_mpc --scenarios path/to/MPC-PEARL --split test   # the paper's tasks
     python -m experiments.gp_mpc --scenarios path/to/MPC-PEARL --split train --tasks 0:30
+    python -m experiments.gp_mpc --scenarios path/to/MPC-PEARL --preset default   # the teacher
+
+The MPC settings are the `paper` preset's (the SQP to convergence, method §7) unless --preset
+names another preset, whose MPC is taken (e.g. `default`: 2 QPs per solve and the unsafe-plan
+recovery, the expert the learned presets train with); --set changes them further.
 
 Prints the method §8 metrics next to the paper's numbers, the MPC status counts and solve times, and
 writes a JSON record and a trajectory figure (one task) under --out. A stop signal (Ctrl-C,
@@ -23,7 +28,7 @@ import jax
 import numpy as np
 
 from experiments.common import add_task_source_options, env_family, one_line_errors, stops_with
-from mpcpearl_jax.config import ExperimentConfig, apply_overrides, task_source
+from mpcpearl_jax.config import ExperimentConfig, apply_overrides, preset, task_source
 from mpcpearl_jax.envs import make_env, mpc_defaults, tasks_for
 from mpcpearl_jax.evaluation import metrics
 from mpcpearl_jax.evaluation.report import PAPER, metrics_table
@@ -47,8 +52,10 @@ def select_tasks(tasks, span: str | None, max_tasks: int | None, plot_task: int 
             sep = ""
         if not sep or lo < 0 or hi <= lo:
             raise ValueError(f"--tasks {span}: not START:STOP with 0 <= START < STOP (e.g. 0:30)")
-        if lo >= n:
-            raise ValueError(f"--tasks {span}: the {n} tasks of the split are 0 to {n - 1}")
+        if lo >= n or hi > n:  # refused, not cut silently to the split's tasks
+            raise ValueError(
+                f"--tasks {span}: the {n} tasks of the split are 0 to {n - 1} (STOP at most {n})"
+            )
     if max_tasks is not None:
         if max_tasks < 1:
             raise ValueError(f"--max-tasks must be positive, got {max_tasks}")
@@ -60,6 +67,13 @@ def select_tasks(tasks, span: str | None, max_tasks: int | None, plot_task: int 
     return jax.tree_util.tree_map(lambda a: a[lo:hi], tasks), lo, plot - lo
 
 
+def mpc_settings(env: str, preset_name: str, overrides: list[str]) -> MPCConfig:
+    """The MPC of `preset_name` (--preset), under the family's MPC defaults, then the --set
+    `overrides`; ConfigError naming the preset or the field."""
+    base = preset(preset_name).mpc.replace(**mpc_defaults(env))
+    return apply_overrides(base, overrides)
+
+
 @stops_with("interrupted before GP-MPC finished; nothing was written")
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.gp_mpc", description=__doc__)
@@ -67,6 +81,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--split", default="test")
     ap.add_argument("--seed", type=int, default=0, help="task-set seed")
     ap.add_argument("--sample-seed", type=int, default=0, help="seed of the GP samples")
+    ap.add_argument(
+        "--preset",
+        default="paper",
+        metavar="NAME",
+        help="take the MPC settings of this preset (default: paper, the SQP to convergence; "
+        "default: the expert the learned presets train with)",
+    )
     ap.add_argument(
         "--set",
         action="append",
@@ -95,8 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     with one_line_errors(interrupted=None) as failed:
         args.env = env_family(args.env)  # MODULE:NAME registers NAME
         env = make_env(args.env)
-        # the family's MPC defaults, then --set (ConfigError naming the field)
-        cfg = apply_overrides(MPCConfig(**mpc_defaults(args.env)), args.set)
+        cfg = mpc_settings(args.env, args.preset, args.set)
         source = task_source(args.env, args.scenarios, data=args.data)
         tasks = tasks_for(ExperimentConfig(env=args.env, **source), args.split, seed=args.seed)
         tasks, first, plot = select_tasks(tasks, args.tasks, args.max_tasks, args.plot_task)
@@ -137,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         "scenarios": source.get("task_options"),
         "seed": None if args.scenarios is not None else args.seed,
         "sample_seed": args.sample_seed,
+        "preset": args.preset,
         "mpc": cfg.to_dict(),
         "metrics": m,
         "paper": paper,

@@ -53,6 +53,22 @@ def test_gp_mpc_cli(tmp_path):
     assert rec["status"].get("solved", 0) > 0
 
 
+def test_gp_mpc_preset_takes_that_presets_mpc():
+    """`--preset default` runs the expert the learned presets train with (2 QPs and the
+    unsafe-plan recovery; it needed five --set flags); without it, the `paper` preset's MPC (the
+    SQP to convergence); --set still changes a field on top."""
+    from experiments.gp_mpc import mpc_settings
+    from mpcpearl_jax.config import preset
+    from mpcpearl_jax.mpc import MPCConfig
+
+    teacher = mpc_settings("restaurant", "default", [])
+    assert teacher == preset("default").mpc
+    assert teacher.sqp_iters == 2 and teacher.unsafe_recovery
+    assert mpc_settings("restaurant", "paper", []) == MPCConfig()
+    assert mpc_settings("restaurant", "default", ["alpha=0.9"]) == teacher.replace(alpha=0.9)
+    assert mpc_settings("sidewalk", "default", []).v_max != teacher.v_max  # the family's cap
+
+
 def test_compare_names_the_runs_with_labels(tmp_path, capsys):
     """`lab.compare --labels`: one name per run in the figure and summary; a wrong count
     is a one-line error."""
@@ -83,6 +99,9 @@ def test_gp_mpc_tasks_and_max_tasks_are_checked_before_the_rollout(tmp_path, cap
         (["--tasks", "a:b"], "--tasks a:b: not START:STOP"),
         (["--tasks=-1:2"], "--tasks -1:2: not START:STOP"),
         (["--tasks", "30:40"], "--tasks 30:40: the 24 tasks of the split are 0 to 23"),
+        (["--tasks", "0:999999"], "--tasks 0:999999: the 24 tasks of the split are 0 to 23"),
+        (["--tasks", "20:25"], "--tasks 20:25: the 24 tasks of the split are 0 to 23"),
+        (["--preset", "nosuch"], "unknown preset 'nosuch'"),
         (["--max-tasks", "0"], "--max-tasks must be positive, got 0"),
         (["--tasks", "0:2", "--plot-task", "5"], "--plot-task 5: not among the tasks run (0 to 1)"),
     ]

@@ -401,7 +401,12 @@ def test_summary_tables_set_the_paper_beside_the_recipe_with_budgets():
     assert "| 0.92 | 0.99 |" in paper and "about 27 h on the authors' GPU machine" in paper
     recipe = rows["MPC-PEARL 0.2, this project's recipe"]
     assert "(worst " in recipe and "24 min each on a 2-core CPU" in recipe and "5 seeds" in recipe
-    assert "GP-MPC, this project" in rows and "seeds 0-9" in text
+    assert "GP-MPC, this project, the SQP to convergence (the `paper` preset's expert)" in rows
+    expert = (
+        "GP-MPC, this project, the learned presets' expert (2 QPs with the unsafe-plan recovery)"
+    )
+    assert "| 0.92 | 1.00 |" in rows[expert] and "seeds 0-9" in text
+    assert "the learned presets' SQP" not in text  # the 2-QP row without the recovery is not it
     speed = summary.render_speed(rec)
     assert "MISSING" not in speed and "2.88 ms" in speed  # the H100's PEARL step
     assert summary._duration(0.274101) == "0.274 s" and summary._duration(1.5996e-2) == "16.0 ms"

@@ -37,7 +37,7 @@ _GP_MPC = Entry(
         ("scen_ood", "gp_mpc/scenarios/restaurant_ood.json"),
     ),
 )
-GP_MPC = _GP_MPC  # the GP-MPC's records with 2 QPs, the learned presets' SQP (docs/method.md §6)
+GP_MPC = _GP_MPC  # the GP-MPC's records with 2 QPs, without the unsafe-plan recovery
 # the GP-MPC of the `paper` preset's expert, the SQP to convergence (`python -m experiments.gp_mpc`
 # with the MPCConfig defaults): README's summary and the paper's table side by side
 GP_MPC_CONVERGED = Entry(
@@ -47,6 +47,14 @@ GP_MPC_CONVERGED = Entry(
         ("scen_ood", "gp_mpc/converged/scenarios/restaurant_ood.json"),
     ),
     absent=frozenset({"test", "val8"}),
+)
+# the GP-MPC of the learned presets' expert, 2 QPs with the unsafe-plan recovery (`python -m
+# experiments.gp_mpc --scenarios DIR --split test --preset default`): README's summary and the
+# paper's table side by side
+GP_MPC_EXPERT = Entry(
+    "GP-MPC (this project, the learned presets' expert)",
+    files=(("scen_test", "gp_mpc/teacher/scenarios/restaurant_test.json"),),
+    absent=frozenset({"test", "val8", "scen_ood"}),
 )
 _GP_MPC_TEACHER = Entry(
     "GP-MPC with unsafe-plan recovery (the learned agents' MPC)",

@@ -11,6 +11,7 @@ from lab.tables.catalogue import (
     CAMPAIGN_MPC_PEARL,
     GP_MPC,
     GP_MPC_CONVERGED,
+    GP_MPC_EXPERT,
     MAIN_PASS,
     MAIN_SEED_SUMMARY,
     PERTURBATIONS,
@@ -76,8 +77,27 @@ def render_summary(rec: Records) -> str:
         (Entry("MPC-PEARL 0.2, the paper", paper="MPC-PEARL 0.2"), _paper_budget("MPC-PEARL 0.2")),
         (RECIPE, run_budget(rec, RECIPE)),
         (Entry("GP-MPC, the paper", paper="GP-MPC"), _paper_budget("GP-MPC")),
-        (Entry("GP-MPC, this project", files=GP_MPC_CONVERGED.files), "no training"),
-        (Entry("GP-MPC, this project, 2 QPs", files=GP_MPC.files), "no training"),
+        (
+            Entry(
+                "GP-MPC, this project, the SQP to convergence (the `paper` preset's expert)",
+                files=GP_MPC_CONVERGED.files,
+            ),
+            "no training",
+        ),
+        (
+            Entry(
+                "GP-MPC, this project, 2 QPs without the unsafe-plan recovery", files=GP_MPC.files
+            ),
+            "no training",
+        ),
+        (
+            Entry(
+                "GP-MPC, this project, the learned presets' expert (2 QPs with the unsafe-plan "
+                "recovery)",
+                files=GP_MPC_EXPERT.files,
+            ),
+            "no training",
+        ),
     ]
     head = ["", *SUMMARY_METRICS, "training"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -94,9 +114,11 @@ def render_summary(rec: Records) -> str:
         "folders under `results/` these numbers are read from: "
         + ", ".join(f"`{r}`" for r in RECIPE.runs)
         + "); GP-MPC: the MPC alone at every step, `python -m experiments.gp_mpc --scenarios DIR "
-        "--split test`, its SQP run to convergence (the `paper` preset's expert), and with 2 QPs "
-        "per solve (the learned presets' SQP, which adds the unsafe-plan recovery: docs/method.md "
-        "§6); the paper: its published table.",
+        "--split test`: with the MPC settings of the `paper` preset (the default), its SQP run to "
+        "convergence; with 2 QPs per solve and no unsafe-plan recovery; and with `--preset "
+        "default`, the expert the learned presets (`default`, `recipe`, `cpu-explore`) train "
+        "with: 2 QPs per solve and the unsafe-plan recovery (docs/method.md §6); the paper: its "
+        "published table.",
         "",
         _main_command_line(rec),
     ]
@@ -166,7 +188,21 @@ def render_paper(rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEE
             rows.append(("the paper", None, "not in the paper's table"))
         if ours is None:
             rows.append(("this project", Entry(name, files=GP_MPC_CONVERGED.files), "no training"))
-            rows.append(("this project, 2 QPs", Entry(name, files=GP_MPC.files), "-"))
+            rows.append(
+                (
+                    "this project, 2 QPs without the unsafe-plan recovery",
+                    Entry(name, files=GP_MPC.files),
+                    "-",
+                )
+            )
+            rows.append(
+                (
+                    "this project, the learned presets' expert (2 QPs with the unsafe-plan "
+                    "recovery)",
+                    Entry(name, files=GP_MPC_EXPERT.files),
+                    "-",
+                )
+            )
         else:
             rows.append(("this project", seeds[ours], run_budget(rec, seeds[ours])))
         for source, runs in SIDE_BY_SIDE_MORE.get(name, ()):
@@ -186,7 +222,10 @@ def render_paper(rec: Records, groups: Sequence[tuple[str, Sequence[str]]] = SEE
         "the paper's scenarios are unseen crowds; one run of `cpu-explore` trained on the paper's "
         "own training scenarios instead "
         "(`restaurant/paper-scenarios/cpu-explore-eps0.2`); GP-MPC: "
-        "`gp_mpc/scenarios/restaurant_test.json`. The paper: its published table "
+        "`gp_mpc/converged/scenarios/restaurant_test.json` (the SQP to convergence), "
+        "`gp_mpc/scenarios/restaurant_test.json` (2 QPs) and "
+        "`gp_mpc/teacher/scenarios/restaurant_test.json` (2 QPs with the unsafe-plan recovery, "
+        "`--preset default`). The paper: its published table "
         "(`mpcpearl_jax.evaluation.report.PAPER`, the training from method §9).",
     ]
     return "\n".join(lines)
@@ -361,7 +400,7 @@ def render_speed(rec: Records) -> str:
         lines.append(f"| {what} | {c} | {g} |")
     lines += [
         "",
-        "`python -m benchmarks.all`; records: `benchmarks/results/` (CPU) and "
+        "`python -m benchmarks.all --record`; records: `benchmarks/results/` (CPU) and "
         "`benchmarks/results/gpu-h100/` (GPU; benchmarks/README.md has the commands). Different "
         "machines, JAX versions and host CPUs: compare the columns as orders of magnitude. The "
         "MPC's solves run on the host CPU in both (OSQP), so on the GPU they take most of an "
