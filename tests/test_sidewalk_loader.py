@@ -117,6 +117,16 @@ def test_non_numeric_value_names_file_and_line(tmp_path):
         load_eth_ucy(path)
 
 
+@pytest.mark.parametrize("frame", ["1e15", "1e30", "-100000001"])
+def test_a_frame_beyond_any_video_names_file_and_line(tmp_path, frame):
+    """A frame of 1e15 made the windows a 29.1 TiB allocation; 1e30 overflowed int64."""
+    path = _write(tmp_path, f"0 1 2.0 3.0\n10 1 2.5 3.0\n{frame} 1 3.0 3.0\n", "far.txt")
+    with pytest.raises(DataFormatError, match=rf"far\.txt: line 3: frame {frame} is beyond"):
+        load_eth_ucy(path)
+    ok = _write(tmp_path, "0 1 2.0 3.0\n100000000 1 3.0 3.0\n", "edge.txt")
+    assert load_eth_ucy(ok).frame.max() == 10**8
+
+
 def test_non_finite_value_is_rejected(tmp_path):
     path = _write(tmp_path, "0 1 2.0 3.0\n10 1 nan 3.0\n", "nan.txt")
     with pytest.raises(DataFormatError, match=r"nan\.txt: line 2: non-finite"):

@@ -48,7 +48,7 @@ from mpcpearl_jax.training.checkpoint import (
 )
 from mpcpearl_jax.training.loop import Progress, train_loop
 from mpcpearl_jax.training.resources import check_state_fits
-from mpcpearl_jax.training.runlock import RunLock
+from mpcpearl_jax.training.runlock import LOCK_FILE, RunLock
 from mpcpearl_jax.training.stopping import stop_flag
 from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer, TrainState
 from mpcpearl_jax.validate import not_writable
@@ -340,14 +340,39 @@ def open_session(
         kind.load_config(run_dir, False)  # a run folder at all, before the lock creates anything
     elif not overwrite:
         _check_fresh(run_dir)  # before the lock file is written into another run's folder
+    created = _first_missing(run_dir)  # the folder the lock creates, if any
     lock = RunLock(run_dir, enabled=is_primary())
     try:
         if overwrite and not resume:
             clear_run_outputs(run_dir)
         return _open_locked(cfg, run_dir, resume, until_budget, lock, kind, tensorboard)
     except BaseException:
+        if created is not None and lock.held:  # a refused new run leaves no folder behind
+            _remove_created(run_dir, created)
         lock.release()
         raise
+
+
+def _first_missing(folder: Path) -> Path | None:
+    """The outermost of `folder` and its parents that does not exist yet (None: it exists)."""
+    missing = None
+    for p in (folder, *folder.parents):
+        if p.exists():
+            return missing
+        missing = p
+    return missing
+
+
+def _remove_created(run_dir: Path, created: Path) -> None:
+    """Remove `run_dir` if it holds nothing but its lock file, then its empty parents up to
+    `created`; the lock file goes while still held."""
+    with contextlib.suppress(OSError):
+        if {p.name for p in run_dir.iterdir()} <= {LOCK_FILE}:
+            (run_dir / LOCK_FILE).unlink(missing_ok=True)
+            for p in (run_dir, *run_dir.parents):
+                p.rmdir()
+                if p == created:
+                    break
 
 
 def _open_locked(

@@ -29,6 +29,11 @@ import numpy as np
 from mpcpearl_jax.errors import DataFormatError
 
 VIDEO_FPS = 25.0  # ETH/UCY frame numbers count frames of a 25 fps video
+# the largest frame number and pedestrian id read: 10^8 frames are 46 days of 25 fps video (the
+# UCY and ETH files stay below 10^5); beyond, a window count or an id would not fit in memory or
+# in an int64
+MAX_FRAME = 10**8
+MAX_PED_ID = 10**9
 NUM_COLUMNS = 4
 
 
@@ -111,6 +116,15 @@ def _parse_line(path: Path, lineno: int, line: str) -> tuple[float, float, float
             f"{path}: line {lineno}: frame and pedestrian id must be whole numbers, "
             f"got {fields[:2]}"
         )
+    if abs(frame) > MAX_FRAME:
+        raise DataFormatError(
+            f"{path}: line {lineno}: frame {fields[0]} is beyond {MAX_FRAME:,} (46 days of "
+            f"{VIDEO_FPS:g} fps video); frames must be the video's frame numbers"
+        )
+    if abs(ped) > MAX_PED_ID:
+        raise DataFormatError(
+            f"{path}: line {lineno}: pedestrian id {fields[1]} is beyond {MAX_PED_ID:,}"
+        )
     return values[0], values[1], values[2], values[3]
 
 
@@ -119,8 +133,9 @@ def load_eth_ucy(path: str | Path, fps: float = VIDEO_FPS) -> Scene:
 
     Raises:
       FileNotFoundError: the file does not exist.
-      DataFormatError: wrong column count, non-numeric or non-finite value (with the line
-        number), duplicate (frame, pedestrian) rows, no rows at all, or not a text file.
+      DataFormatError: wrong column count, non-numeric or non-finite value, a frame beyond
+        MAX_FRAME or a pedestrian id beyond MAX_PED_ID (with the line number), duplicate (frame,
+        pedestrian) rows, no rows at all, or not a text file.
     """
     path = Path(path)
     if not path.is_file():
