@@ -21,12 +21,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from mpcpearl_jax.training import machine
+from mpcpearl_jax.cli import tables
+from mpcpearl_jax.cli.tables import print_table  # noqa: F401 (re-exported)
 from mpcpearl_jax.training.machine import (  # noqa: F401 (re-exported)
     available_cores,
     configure_threads,
     machine_info,
-    print_table,
 )
 
 # the committed records (what the README's speed tables quote) and the git-ignored folder a run
@@ -230,5 +230,5 @@ def write_record(
     name: str, config: dict[str, Any], results: Any, out_dir: str | Path | None = None
 ) -> Path:
     """Write {machine, config, results} to OUT/name.json (default the scratch folder,
-    benchmarks/results/scratch/) and return the path (`training.machine.write_record`)."""
-    return machine.write_record(name, config, results, out_dir or DEFAULT_OUT)
+    benchmarks/results/scratch/) and return the path (`cli.tables.write_record`)."""
+    return tables.write_record(name, config, results, out_dir or DEFAULT_OUT)

@@ -214,20 +214,10 @@ def _holds_another_run(run: CampaignRun) -> bool:
 
 def built_config(run: CampaignRun):
     """The config the entry's argv builds now (as its trainer's command line would)."""
-    argv = list(run.argv)
+    from mpcpearl_jax.cli.args import config_from_argv
+
     try:
-        if run.trainer == "learning":
-            from experiments.common import build_config, env_family, parse_args
-
-            args = parse_args("restaurant", argv)
-            return build_config(args, env_family(args.env))
-        if run.trainer == "grbal":
-            from experiments import grbal
-
-            return grbal.build_config(grbal.parser().parse_args(argv))
-        from experiments.common import build_config, parser
-
-        return build_config(parser(run.trainer).parse_args(argv), run.trainer)
+        return config_from_argv(run.trainer, list(run.argv))
     except SystemExit as e:  # argparse's own error, printed above
         raise ValueError(f"{run.name}: its argv is not a valid {run.module} command line") from e
 

@@ -10,12 +10,13 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "mpcpearl_jax"
 
 # lowest first; every module of the package is ranked, by its longest listed prefix (a
 # package's name ranks its modules not listed on their own). The packages are the layers:
-# envs < pearl, mpc < collection < config < runfolder < evaluation < training, grbal < deploy.
+# envs < pearl, mpc < collection < config < runfolder < evaluation < training, grbal < deploy
+# < cli, the command layer on top (the commands' stop signals, errors, tables and parsers).
 # Collection (episodes with event-triggered MPC infusion) sits below both training and
 # evaluation, which import it downward (the trainer, and the evaluation command's policy with MPC
 # infusion); the run folder's files (`runfolder`) below every reader of a run folder.
 LAYERS = [
-    ["errors", "validate", "distributed"],
+    ["errors", "validate", "distributed", "notices"],
     ["envs.types", "envs.dynamics", "envs.physics", "pearl.types", "pearl.config", "mpc.config"],
     ["envs", "pearl", "evaluation.metrics"],
     ["mpc", "collection"],
@@ -27,6 +28,7 @@ LAYERS = [
     ["training.budget"],
     ["training.final"],  # the end of either mode and Python's entry, `mpcpearl_jax.train`
     ["deploy"],
+    ["cli"],  # the command layer: nothing below imports it
 ]
 RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}
 
@@ -95,3 +97,14 @@ def test_the_knots_of_issue_11_stay_untied():
         assert "pearl.learner" not in text[m], m
     assert 'cfg.env == "sidewalk"' not in text["training.run"]
     assert "except ImportError" not in text["envs"]
+
+
+def test_the_command_layer_is_the_top_floor():
+    """`cli` ranks above every other module, and no module outside it imports it (the library
+    reports through callbacks, return values and `notices`; the commands print)."""
+    assert RANK["cli"] == max(RANK.values())
+    assert [m for m in RANK if RANK[m] == RANK["cli"]] == ["cli"]
+    below = [(m, p) for m, p in _modules() if m.split(".")[0] != "cli"]
+    assert below and all(_rank(m) < RANK["cli"] for m, _ in below)
+    for m, path in below:
+        assert not [i for i in _imports(path) if i.split(".")[0] == "cli"], m

@@ -1,4 +1,4 @@
-"""The training command's progress bar (`training.run.ProgressBar`) tells the truth: it says it is
+"""The training command's progress bar (`cli.progress.ProgressBar`) tells the truth: it says it is
 compiling during the first iteration, its ETA comes from the iterations after the first (whose
 compilation would otherwise inflate it many times over), and its fields say what they are."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import io
 
-from mpcpearl_jax.training.run import COMPILING, ProgressBar
+from mpcpearl_jax.cli.progress import COMPILING, ProgressBar
 
 
 class _Clock:

@@ -41,6 +41,68 @@ def test_one_run_driver():
         assert "_sigint_flag" not in text and "Checkpointer(" not in text, user
 
 
+def _exits(path: Path) -> list[int]:
+    """Lines of `path` that end the process: sys.exit, os._exit, exit, quit."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Call):
+            f = node.func
+            if isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name):
+                if (f.value.id, f.attr) in (("sys", "exit"), ("os", "_exit")):
+                    lines.append(node.lineno)
+            elif isinstance(f, ast.Name) and f.id in ("exit", "quit"):
+                lines.append(node.lineno)
+    return lines
+
+
+# the MPC's pool worker processes end themselves (once the training process is gone,
+# `watch_parent`; a worker that imported an unguarded main script): a worker's own exit, not a
+# command's
+WORKER_EXITS = ("src/mpcpearl_jax/mpc/host.py", "src/mpcpearl_jax/mpc/pool.py")
+
+
+def test_the_library_neither_prints_nor_exits_outside_the_command_layer():
+    """Below `mpcpearl_jax.cli` the library reports through callbacks, return values and
+    `notices` (a logger): no `print`, and no exit of the process."""
+    prints, exits = {}, {}
+    for path in SRC.rglob("*.py"):
+        rel = str(path.relative_to(ROOT))
+        if path.relative_to(SRC).parts[0] == "cli":
+            continue
+        if _calls(path, "print"):
+            prints[rel] = _calls(path, "print")
+        if _exits(path) and rel not in WORKER_EXITS:
+            exits[rel] = _exits(path)
+    assert not prints, prints
+    assert not exits, exits
+    assert sum(len(_exits(ROOT / p)) for p in WORKER_EXITS if (ROOT / p).exists()) <= 2
+
+
+def test_the_exit_check_sees_each_way_out(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("import os, sys\nsys.exit(1)\nos._exit(2)\nexit()\nprint('x')\n")
+    assert _exits(f) == [2, 3, 4] and _calls(f, "print") == [5]
+
+
+def test_every_training_command_goes_through_the_one_entry():
+    """The training commands (restaurant, sidewalk, learning: `cli.train.main`; grbal:
+    `cli.train.grbal_main`) train through `mpcpearl_jax.train` (`training.final.train`): no
+    command opens a session or runs a mode itself, and GrBAL has no entry of its own."""
+    commands = [ROOT / "experiments" / f"{c}.py" for c in ("restaurant", "sidewalk", "learning")]
+    commands += [ROOT / "experiments" / "grbal.py", ROOT / "experiments" / "common.py"]
+    commands += list((SRC / "cli").rglob("*.py"))
+    for path in commands:
+        for name in ("open_session", "train_iterations", "train_minutes", "final_evaluation"):
+            assert not _calls(path, name), (path.name, name)
+    entry = [
+        m for _, m in _imported(SRC / "cli" / "train.py") if m == "mpcpearl_jax.training.final"
+    ]
+    assert len(entry) == 2  # MPC-PEARL's and GrBAL's command
+    grbal = ast.parse((SRC / "grbal" / "run.py").read_text())
+    assert "train" not in {n.name for n in grbal.body if isinstance(n, ast.FunctionDef)}
+    assert len((ROOT / "experiments" / "common.py").read_text().splitlines()) < 773
+
+
 def test_the_config_is_validated_once_where_it_is_resolved():
     """The checks across fields (`config.validate`) run in one place, `config.resolve`, which
     every command builds its config with; not again in the commands, the session or the

@@ -16,7 +16,6 @@ written by process 0 only (`is_primary`).
 from __future__ import annotations
 
 import socket
-import sys
 import threading
 from typing import Any
 
@@ -97,11 +96,11 @@ def initialize(
     thread.start()
     thread.join(min(NOTICE_S, timeout_s))
     if thread.is_alive():  # say what it waits for rather than nothing
-        print(
+        from mpcpearl_jax.notices import warn
+
+        warn(
             f"waiting for the coordinator at {coordinator} and the other processes (at most "
-            f"{timeout_s:g} s, --coordinator-timeout)",
-            file=sys.stderr,
-            flush=True,
+            f"{timeout_s:g} s, --coordinator-timeout)"
         )
         thread.join(max(timeout_s - NOTICE_S, 0.0))
     if thread.is_alive():

@@ -1,7 +1,7 @@
-"""Run GrBAL: train with checkpoints and a metrics log, evaluate, write figures and the results
-table (the same files as `mpcpearl_jax.runfolder` names, so `lab.compare` reads both).
-
-Used by `python -m experiments.grbal`.
+"""GrBAL on the run session: its `RunKind` (`GRBAL`), its rules (`train_iterations`) and its
+final evaluation (results.json, curves and figures: the files `mpcpearl_jax.runfolder` names,
+so `lab.compare` reads both methods). `mpcpearl_jax.train` runs it for a GrBAL config (the
+command: `python -m experiments.grbal`).
 """
 
 from __future__ import annotations
@@ -18,13 +18,13 @@ import numpy as np
 
 from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
-from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves, results_table
+from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
 from mpcpearl_jax.runfolder import CONFIG_FILE, LOG_FILE, read_log, write_json
 from mpcpearl_jax.training.loop import Progress
 from mpcpearl_jax.training.resources import check_fits, tree_bytes
-from mpcpearl_jax.training.run import Session, open_session
+from mpcpearl_jax.training.run import Session
 
 LABEL = "GrBAL"
 # The paper prints no GrBAL numbers (its restaurant bar charts only); its text (Sec. IV-A):
@@ -101,22 +101,6 @@ def _eval_row(trainer: GrbalTrainer, state: GrbalState) -> dict[str, Any]:
 _ROW_KEYS = (*METRIC_NAMES, "return")
 
 
-def _progress_line(log: dict, total: int) -> str:
-    parts = [
-        f"it {log['iteration']}/{total}",
-        f"fit {log['update_s']:.1f}s",
-        f"collect {log['collect_s']:.1f}s",
-        f"loss pre {log['model_pre_loss']:.3f} post {log['model_post_loss']:.3f}",
-        f"train ret {log['train_return']:.0f} SR {log['train_success']:.2f}",
-    ]
-    if "test_SR" in log:
-        parts.append(
-            f"| test SR {log['test_SR']:.2f} CFR {log['test_CFR']:.2f} "
-            f"ret {log['test_return']:.0f} ({log['eval_s']:.0f}s)"
-        )
-    return "  ".join(parts)
-
-
 class GrbalRun:
     """GrBAL's `training.run.RunKind`: `GrbalTrainer`, its dynamics model in policy.msgpack,
     iterations and checkpoints in the `grbal` section."""
@@ -140,25 +124,6 @@ class GrbalRun:
 GRBAL = GrbalRun()
 
 
-def train(
-    cfg: GrbalExperimentConfig,
-    out: str | Path,
-    resume: bool = False,
-    progress: Callable[[str], None] | None = print,
-    budget_s: float | None = None,
-    overwrite: bool = False,
-) -> tuple[GrbalTrainer, GrbalState]:
-    """Train `cfg` into `out` (checkpoints, config.json, metrics.jsonl); -> (trainer, state).
-
-    The run session (`training.run.open_session`: checks, lock, restore, log) with GrBAL's rules:
-    `grbal.iterations` iterations (or until `budget_s` seconds of this process have passed, if
-    the iterations last longer: the run stops evaluated and checkpointed, resumable), evaluation
-    every `eval_interval` iterations and at the end, checkpoints every `checkpoint_interval`;
-    `overwrite` replaces a run already in `out`."""
-    with open_session(cfg, out, resume, kind=GRBAL, overwrite=overwrite) as sess:
-        return sess.trainer, train_iterations(sess, progress, budget_s)
-
-
 def _check_memory(trainer: GrbalTrainer) -> None:
     """The state (model, optimizer, per-task buffers) and MPPI's sampled sequences (every env of
     a collection or an evaluation batch holds num_samples x plan_horizon actions, noise and
@@ -175,14 +140,21 @@ def _check_memory(trainer: GrbalTrainer) -> None:
 
 def train_iterations(
     sess: Session,
-    progress: Callable[[str], None] | None = print,
-    budget_s: float | None = None,
+    on_row: Callable[[dict[str, Any]], None] | None = None,
+    minutes: float | None = None,
     handle_sigint: bool = False,
-) -> GrbalState:
-    """GrBAL's rules on an open session (see `train`). With handle_sigint, a stop signal
-    (Ctrl-C, SIGTERM, SIGHUP) finishes the iteration under way, saves it and raises
-    RunInterrupted (`Session.train`); a second one stops at once."""
+) -> tuple[GrbalState | None, dict[str, Any]]:
+    """GrBAL's rules on an open session: `grbal.iterations` iterations (or until `minutes` of
+    this process have passed, if the iterations last longer: the run stops evaluated and
+    checkpointed, resumable), evaluation every `eval_interval` iterations and at the end,
+    checkpoints every `checkpoint_interval`; `on_row(row)` sees every row with its evaluation.
+
+    Returns (state, info) as `training.run.train_iterations` does, info["stopped"] "done" or
+    "budget" (the time ran out first). With handle_sigint, a stop signal (Ctrl-C, SIGTERM,
+    SIGHUP) finishes the iteration under way, saves it and raises RunInterrupted
+    (`Session.train`); a second one stops at once."""
     trainer, g, done = sess.trainer, sess.cfg.grbal, sess.done
+    budget_s = None if minutes is None else 60.0 * minutes
     t_start = time.perf_counter()
 
     def out_of_time() -> bool:
@@ -196,26 +168,26 @@ def train_iterations(
             decided[p.iterations] = p.iterations >= g.iterations or not more_time
         return decided[p.iterations]
 
-    def on_row(row: dict[str, Any], state: GrbalState, p: Progress) -> dict[str, Any] | None:
+    def evaluate(row: dict[str, Any], state: GrbalState, p: Progress) -> dict[str, Any] | None:
         fields = None
         if p.last or (g.eval_interval > 0 and p.iterations % g.eval_interval == 0):
             t0 = time.perf_counter()
             fields = {**_eval_row(trainer, state), "eval_s": time.perf_counter() - t0}
-        if progress is not None:
-            progress(_progress_line({**row, **(fields or {})}, g.iterations))
+        if on_row is not None:
+            on_row({**row, **(fields or {})})
         return fields
 
     state = sess.train(
         until=until,
-        on_row=on_row,
+        on_row=evaluate,
         checkpoint_after=lambda p, _: p.iterations % g.checkpoint_interval == 0,
         handle_sigint=handle_sigint,
     )
-    if sess.progress.iterations < g.iterations and progress is not None:
-        progress(
-            f"time budget of {budget_s:.0f} s reached after iteration {sess.progress.iterations}"
-        )
-    return state
+    p = sess.progress
+    stopped = "budget" if p.iterations < g.iterations else "done"
+    info = {"mode": "iterations", "stopped": stopped, "iterations": p.iterations, "lost": 0}
+    info.update(saved=p.saved, train_s=p.train_s, first_iteration_s=p.first_iteration_s)
+    return state, info
 
 
 def final_evaluation(trainer: GrbalTrainer, state: GrbalState, out: str | Path) -> dict[str, Any]:
@@ -237,8 +209,6 @@ def final_evaluation(trainer: GrbalTrainer, state: GrbalState, out: str | Path) 
     no_result = "no GrBAL result in the paper"
     results["paper_note"] = PAPER_NOTE if cfg.env == "restaurant" else no_result
     write_json(run_dir / "results.json", results)
-    print(results_table(results))
-    print(results["paper_note"])
     plot_learning_curves([(LABEL, read_log(run_dir / LOG_FILE))], run_dir / "learning_curves.png")
     trajectory_figures(trainer, raw, run_dir)
     return results

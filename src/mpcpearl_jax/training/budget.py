@@ -33,7 +33,6 @@ import json
 import math
 import os
 import statistics
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -123,14 +122,14 @@ def load_at_start() -> list[float] | None:
 
 
 def warn_if_busy(load: list[float] | None) -> None:
-    """A warning on stderr when the 1-minute load average `load[0]` is above LOAD_WARN: another
-    job would slow the whole curve."""
+    """A warning (`notices.warn`) when the 1-minute load average `load[0]` is above LOAD_WARN:
+    another job would slow the whole curve."""
+    from mpcpearl_jax.notices import warn
+
     if load is not None and load[0] > LOAD_WARN:
-        print(
+        warn(
             f"warning: 1-minute load average {load[0]:.2f} > {LOAD_WARN}: another job is "
-            "running; timings (and so the whole curve) will be slower than on a quiet machine",
-            file=sys.stderr,
-            flush=True,
+            "running; timings (and so the whole curve) will be slower than on a quiet machine"
         )
 
 

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import orbax.checkpoint as ocp
 
 from mpcpearl_jax.errors import CheckpointError, RunDirError
+from mpcpearl_jax.notices import warn
 from mpcpearl_jax.runfolder import POLICY_FILE, non_finite_leaves, save_params
 
 
@@ -146,7 +147,7 @@ class Checkpointer:
         steps = self.steps()
         if not steps:
             raise CheckpointError(f"{self.run_dir}: no checkpoint to resume from")
-        report = report or (lambda msg: print(msg, file=sys.stderr, flush=True))
+        report = report or warn
         errors = []
         for i, s in enumerate(reversed(steps)):
             try:

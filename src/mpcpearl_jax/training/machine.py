@@ -1,7 +1,7 @@
-"""The machine a run or benchmark ran on (recorded in every curve and benchmark record) and a
-Markdown table printer shared by training on a time budget (`training.budget`) and the benchmark
-scripts; the cores a benchmark or diagnostic process uses (`configure_threads`) and its JSON
-record (`write_record`)."""
+"""The machine a run or benchmark ran on (recorded in every curve and benchmark record), a
+Markdown table's text (`format_table`; the commands print it, `mpcpearl_jax.cli.tables`), the
+cores a benchmark or diagnostic process uses (`configure_threads`) and its JSON record
+(`write_record`)."""
 
 from __future__ import annotations
 
@@ -56,8 +56,8 @@ def machine_info() -> dict[str, Any]:
     return info
 
 
-def print_table(rows: Sequence[dict[str, Any]], columns: Sequence[str], title: str = "") -> str:
-    """Print rows as a Markdown table (also returned)."""
+def format_table(rows: Sequence[dict[str, Any]], columns: Sequence[str], title: str = "") -> str:
+    """Rows as a Markdown table's text (`### title` above it when given)."""
 
     def fmt(v: Any) -> str:
         if isinstance(v, float):
@@ -69,9 +69,7 @@ def print_table(rows: Sequence[dict[str, Any]], columns: Sequence[str], title: s
     lines.append("|" + "|".join("---" for _ in columns) + "|")
     for r in rows:
         lines.append("| " + " | ".join(fmt(r.get(c, "")) for c in columns) + " |")
-    text = "\n".join(lines)
-    print(text, flush=True)
-    return text
+    return "\n".join(lines)
 
 
 def configure_threads(n: int | None) -> dict[str, Any]:
@@ -118,7 +116,6 @@ def write_record(name: str, config: dict[str, Any], results: Any, out_dir: str |
         "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
     }
     path.write_text(json.dumps(record, indent=2, default=_jsonable))
-    print(f"wrote {path}", flush=True)
     return path
 
 

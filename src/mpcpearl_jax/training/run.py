@@ -3,9 +3,9 @@ lock, the restored state, the log cut back to it, progress rebuilt from it, Tens
 `Session.train` trains under a caller's rules and its one callback per row (the one training
 loop, `loop.train_loop`, with logging, Ctrl-C and write errors handled), `Session.close` closes
 it (checkpointer, the MPC bridge's worker pool, TensorBoard, lock). Its users keep only their
-rules: the training command (`train_iterations`, then `training.final.final_evaluation`:
-results.json, figures and the results table), training on a time budget
-(`training.budget`, `--minutes`) and GrBAL (`grbal.run`, with its own `RunKind`).
+rules: the iterations mode (`train_iterations`), training on a time budget (`training.budget`,
+`--minutes`) and GrBAL (`grbal.run`, with its own `RunKind`), all three run by the one entry
+`mpcpearl_jax.train` (`training.final`), which then writes results.json and the figures.
 
 Resume is exact: everything that shapes the rest of a run is in the checkpointed TrainState or
 rebuilt deterministically from the config, so a run stopped at any moment (kill -9, Ctrl-C, power
@@ -235,14 +235,15 @@ class Session:
         """Train under the caller's rules (`loop.train_loop`: until and the checkpoint schedule)
         and return the state. After every iteration the caller's one callback, `on_row(row,
         state, progress)`, evaluates when its rule says so (always when `progress.last`),
-        returning the evaluation's fields (None: not evaluated), and prints; the session then
+        returning the evaluation's fields (None: not evaluated), and reports; the session then
         logs the row (`log`). save: "checkpoint" (the session's checkpointer), a function
         (iteration, state), or None (no saves).
 
         With handle_sigint, Ctrl-C stops at the next phase boundary, saves the last finished
-        iteration if it is still in memory, and raises RunInterrupted (a second Ctrl-C:
-        KeyboardInterrupt at once). A failed write (a full disk) raises RunDirError naming the
-        file and the iteration a resume starts from; TrainingDiverged propagates."""
+        iteration if it is still in memory, and raises RunInterrupted, also when it came during
+        the iteration that ends the training (a second Ctrl-C: KeyboardInterrupt at once). A
+        failed write (a full disk) raises RunDirError naming the file and the iteration a
+        resume starts from; TrainingDiverged propagates."""
         saver = self.save if save == "checkpoint" else save
         where = self.progress
         with stop_flag(handle_sigint, where) as stop:
@@ -265,6 +266,8 @@ class Session:
                 raise RunInterrupted(saved, where.iterations - saved) from None
             except OSError as e:  # a full disk or an I/O error while logging or saving
                 raise write_error(e, where.saved) from e
+        if stop is not None and stop.asked:  # a stop during the last iteration: saved, stop
+            where.stopped = "interrupted"
         if where.stopped == "interrupted":
             raise RunInterrupted(where.iterations)
         return self.state
@@ -460,7 +463,7 @@ def train_iterations(
     """The iterations mode, the training command's rules: `train.iterations` iterations,
     evaluation on the test tasks every `eval_interval` iterations and at the end, checkpoints
     every `checkpoint_interval`; `on_row(row)` sees every row with its evaluation (the command's
-    progress bar, `progress_bar`). Prints nothing.
+    progress bar, `cli.progress`). Prints nothing.
 
     Returns (state, info), info = {mode, stopped, iterations, saved, lost, train_s,
     first_iteration_s}: stopped is "done", "interrupted" (a stop signal, with handle_sigint: the
@@ -505,73 +508,6 @@ def train_iterations(
         first_iteration_s=p.first_iteration_s,
     )
     return state, info
-
-
-def progress_bar(sess: Session) -> ProgressBar | None:
-    """The training command's progress bar for the session's run (process 0 only)."""
-    if not is_primary():
-        return None
-    cfg = sess.cfg
-    return ProgressBar(cfg.train.iterations, sess.done, f"{cfg.env} eps={cfg.train.eps}")
-
-
-class ProgressBar:
-    """The training command's progress bar (tqdm): "compiling (first iteration, about a
-    minute)" until the first iteration of this process ends (it compiles the training
-    programs); then the time that took, and a rate and ETA from the iterations after it only;
-    `PROGRESS_FIELDS` as self-explaining fields. `clock` (seconds) and `tqdm_kw` are for tests."""
-
-    def __init__(
-        self,
-        total: int,
-        done: int,
-        label: str,
-        clock: Callable[[], float] = time.time,  # tqdm's own clock
-        **tqdm_kw: Any,
-    ):
-        from tqdm import tqdm
-
-        self.label, self.clock, self.t0, self.first = label, clock, clock(), True
-        self.bar = tqdm(total=total, desc=f"{label}: {COMPILING}", dynamic_ncols=True, **tqdm_kw)
-        self.bar._time = clock  # tqdm's clock, the same as ours
-        self._restart(done)
-
-    def _restart(self, n: int) -> None:
-        """`n` done; the clock and the smoothed rate start again from now."""
-        self.bar.reset(total=self.bar.total)
-        self.bar.initial = self.bar.n = self.bar.last_print_n = n
-        self.bar.refresh()
-
-    def row(self, row: dict[str, Any]) -> None:
-        """A finished iteration's metrics row."""
-        if self.first:  # the first iteration compiled: the rate (and ETA) start after it
-            self.first = False
-            took = self.bar.format_interval(self.clock() - self.t0)
-            self.bar.set_description(f"{self.label} (first iteration, with compiling: {took})")
-            self._restart(row["iteration"])
-        else:
-            self.bar.update(row["iteration"] - self.bar.n)
-        self.bar.set_postfix(progress_fields(row))
-
-    def close(self) -> None:
-        self.bar.close()
-
-
-# the progress bar before the first iteration, which compiles the training programs
-COMPILING = "compiling (first iteration, about a minute)"
-
-# the progress bar's fields (also in the training command's --help): label, row key, format
-PROGRESS_FIELDS = (
-    ("episode return", "train_return", "{:.0f}"),  # mean over the iteration's training episodes
-    ("MPC-acted steps", "train_mpc_share", "{:.0%}"),  # share of their steps the MPC acted
-    ("test SR", "test_SR", "{:.2f}"),  # success rate on the test tasks (at evaluations)
-    ("test CFR", "test_CFR", "{:.2f}"),  # collision-free rate on the test tasks
-)
-
-
-def progress_fields(row: dict[str, Any]) -> dict[str, str]:
-    """The progress bar's postfix of a metrics row: each `PROGRESS_FIELDS` field the row has."""
-    return {label: fmt.format(row[key]) for label, key, fmt in PROGRESS_FIELDS if key in row}
 
 
 def policy_params(state: TrainState) -> dict:

@@ -14,10 +14,10 @@ import errno
 import fcntl
 import os
 import socket
-import sys
 from pathlib import Path
 
 from mpcpearl_jax.errors import RunDirError
+from mpcpearl_jax.notices import warn
 from mpcpearl_jax.validate import not_writable
 
 LOCK_FILE = ".lock"
@@ -77,11 +77,8 @@ class RunLock:
                     f"{self.run_dir}: {holder} is writing this run folder; wait for it to end "
                     "(or stop it), or choose another --out"
                 ) from None
-            print(  # e.g. a network file system without locks: go on unprotected
-                f"warning: {path}: cannot lock ({e.strerror}); nothing stops a second writer",
-                file=sys.stderr,
-                flush=True,
-            )
+            # e.g. a network file system without locks: go on unprotected
+            warn(f"warning: {path}: cannot lock ({e.strerror}); nothing stops a second writer")
         try:
             os.ftruncate(fd, 0)
             os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)

@@ -1,0 +1,95 @@
+"""The training commands' progress: a tqdm bar for the iterations of MPC-PEARL, one line per
+iteration for GrBAL."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+from mpcpearl_jax.distributed import is_primary
+
+
+def progress_bar(cfg: Any, done: int) -> ProgressBar | None:
+    """The training command's progress bar for a run of `cfg` with `done` iterations finished
+    (process 0 only)."""
+    if not is_primary():
+        return None
+    return ProgressBar(cfg.train.iterations, done, f"{cfg.env} eps={cfg.train.eps}")
+
+
+class ProgressBar:
+    """The training command's progress bar (tqdm): "compiling (first iteration, about a
+    minute)" until the first iteration of this process ends (it compiles the training
+    programs); then the time that took, and a rate and ETA from the iterations after it only;
+    `PROGRESS_FIELDS` as self-explaining fields. `clock` (seconds) and `tqdm_kw` are for tests."""
+
+    def __init__(
+        self,
+        total: int,
+        done: int,
+        label: str,
+        clock: Callable[[], float] = time.time,  # tqdm's own clock
+        **tqdm_kw: Any,
+    ):
+        from tqdm import tqdm
+
+        self.label, self.clock, self.t0, self.first = label, clock, clock(), True
+        self.bar = tqdm(total=total, desc=f"{label}: {COMPILING}", dynamic_ncols=True, **tqdm_kw)
+        self.bar._time = clock  # tqdm's clock, the same as ours
+        self._restart(done)
+
+    def _restart(self, n: int) -> None:
+        """`n` done; the clock and the smoothed rate start again from now."""
+        self.bar.reset(total=self.bar.total)
+        self.bar.initial = self.bar.n = self.bar.last_print_n = n
+        self.bar.refresh()
+
+    def row(self, row: dict[str, Any]) -> None:
+        """A finished iteration's metrics row."""
+        if self.first:  # the first iteration compiled: the rate (and ETA) start after it
+            self.first = False
+            took = self.bar.format_interval(self.clock() - self.t0)
+            self.bar.set_description(f"{self.label} (first iteration, with compiling: {took})")
+            self._restart(row["iteration"])
+        else:
+            self.bar.update(row["iteration"] - self.bar.n)
+        self.bar.set_postfix(progress_fields(row))
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+# the progress bar before the first iteration, which compiles the training programs
+COMPILING = "compiling (first iteration, about a minute)"
+
+# the progress bar's fields (also in the training command's --help): label, row key, format
+PROGRESS_FIELDS = (
+    ("episode return", "train_return", "{:.0f}"),  # mean over the iteration's training episodes
+    ("MPC-acted steps", "train_mpc_share", "{:.0%}"),  # share of their steps the MPC acted
+    ("test SR", "test_SR", "{:.2f}"),  # success rate on the test tasks (at evaluations)
+    ("test CFR", "test_CFR", "{:.2f}"),  # collision-free rate on the test tasks
+)
+
+
+def progress_fields(row: dict[str, Any]) -> dict[str, str]:
+    """The progress bar's postfix of a metrics row: each `PROGRESS_FIELDS` field the row has."""
+    return {label: fmt.format(row[key]) for label, key, fmt in PROGRESS_FIELDS if key in row}
+
+
+def grbal_line(log: dict, total: int) -> str:
+    """GrBAL's line per iteration: its fit, collection and model losses, the test metrics at
+    evaluations."""
+    parts = [
+        f"it {log['iteration']}/{total}",
+        f"fit {log['update_s']:.1f}s",
+        f"collect {log['collect_s']:.1f}s",
+        f"loss pre {log['model_pre_loss']:.3f} post {log['model_post_loss']:.3f}",
+        f"train ret {log['train_return']:.0f} SR {log['train_success']:.2f}",
+    ]
+    if "test_SR" in log:
+        parts.append(
+            f"| test SR {log['test_SR']:.2f} CFR {log['test_CFR']:.2f} "
+            f"ret {log['test_return']:.0f} ({log['eval_s']:.0f}s)"
+        )
+    return "  ".join(parts)

@@ -1,0 +1,376 @@
+"""The training commands (`python -m experiments.restaurant`, `.sidewalk`, `.learning`,
+`.grbal`): each parses its command line (`cli.args`), calls the one entry `mpcpearl_jax.train`
+with its options and callbacks (`TrainOptions`), prints what they report and chooses the exit
+code: 0 done, 2 a command-line error (config, data, checkpoint, permissions: one line on stderr,
+the traceback with --debug), 1 training diverged, 128 + the signal for a stop (130: Ctrl-C;
+resumable)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from mpcpearl_jax import cli
+from mpcpearl_jax.cli.args import (
+    budget_error,
+    build_config,
+    build_grbal_config,
+    env_family,
+    grbal_parser,
+    parse_args,
+)
+from mpcpearl_jax.cli.errors import fail_line, one_line_errors
+from mpcpearl_jax.cli.platform import PlatformError, check_platform
+from mpcpearl_jax.cli.progress import grbal_line, progress_bar
+from mpcpearl_jax.cli.stopping import exit_interrupted, stop_exit_code, stoppable
+from mpcpearl_jax.cli.tables import curve_summary, print_point
+from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.errors import ConfigError
+from mpcpearl_jax.evaluation.report import run_label
+from mpcpearl_jax.training.budget import default_label
+
+
+@stoppable
+def main(
+    env: str,
+    argv: list[str] | None = None,
+    *,
+    command: str | None = None,
+    from_config: bool = False,
+    clock=time.perf_counter,
+    **extra,
+) -> int:
+    """The MPC-PEARL training command for family `env` (exit codes: the module doc). `clock`
+    times a --minutes budget (tests give a fake one); `extra`: config fields (`build_config`)."""
+    cli.setup()
+    args = parse_args(env, argv, command=command, from_config=from_config)
+
+    def fail(e: BaseException, code: int = 2) -> int:
+        return fail_line(e, code, args.debug)
+
+    if budget_error(args):
+        return fail(ValueError(budget_error(args)))
+    if args.tensorboard:
+        from mpcpearl_jax.training.livelog import LiveLogError, missing
+
+        if missing():
+            return fail(LiveLogError(missing()))
+    if args.print_config:
+        try:
+            cfg = build_config(args, env_family(args.env), **extra)
+        except (ValueError, TypeError, OSError) as e:
+            return fail(e)
+        print(cfg.to_json(), flush=True)
+        return 0
+    run = _Run(args, clock)
+    try:  # each check names the field, file or folder; errors and stops as one line
+        with one_line_errors(args.debug, interrupted=None) as outcome:
+            _initialize(args)  # before any JAX work
+            check_platform()  # JAX_PLATFORMS naming a platform this machine lacks: one line
+            family = env_family(args.env)
+            cfg = build_config(args, family, **extra)
+            label = args.label or default_label(family, args.preset, args.algo, cfg.train.eps)
+            out = args.out or Path("runs") / label
+            finished = finished_line(out, cfg, args.minutes) if args.resume else None
+            if finished is not None:  # nothing to train or evaluate: no file is touched
+                print(finished, flush=True)
+                return 0
+            _print_start(args, family, cfg, label, out)
+            return run.train(cfg, label, out)
+    except KeyboardInterrupt:  # a stop before training, or a second one during it
+        run.close_bar()
+        if run.start is None:  # the session closed what it had opened
+            exit_interrupted("interrupted before training started")
+        print("interrupted; continue with --resume", file=sys.stderr, flush=True)
+        return stop_exit_code()
+    finally:
+        run.close_bar()
+    return outcome.code  # type: ignore[return-value]
+
+
+class _Run:
+    """One MPC-PEARL training of the command: `mpcpearl_jax.train` with the command's callbacks
+    (the progress bar, the eval points' lines), then its lines and exit code."""
+
+    def __init__(self, args: argparse.Namespace, clock) -> None:
+        self.args, self.clock = args, clock
+        self.start: int | None = None  # iterations finished when the session opened
+        self.info: dict[str, Any] = {}
+        self.bar: Any = None
+        self.t0 = self.train_s = 0.0
+
+    def close_bar(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    def on_start(self, sess) -> None:
+        self.start, self.t0 = sess.done, time.perf_counter()
+        if self.args.minutes is None and not self.args.no_progress:
+            self.bar = progress_bar(sess.cfg, sess.done)
+
+    def on_row(self, row: dict[str, Any]) -> None:
+        if self.bar is not None:
+            self.bar.row(row)
+
+    def on_trained(self, info: dict[str, Any]) -> None:
+        self.close_bar()
+        self.info, self.train_s = info, time.perf_counter() - self.t0
+        if info["stopped"] == "done" and self.args.minutes is None:
+            print(f"trained in {self.train_s:.1f} s; evaluating", flush=True)
+        if info["stopped"].startswith("diverged") and self.args.minutes is not None:
+            print(f"error: {info['error']}", file=sys.stderr, flush=True)  # the curve follows
+
+    def train(self, cfg: ExperimentConfig, label: str, out: Path) -> int:
+        from mpcpearl_jax.errors import TrainingDiverged
+        from mpcpearl_jax.training.final import TrainOptions, train
+        from mpcpearl_jax.training.run import RunInterrupted
+
+        args, minutes = self.args, self.args.minutes
+        options = TrainOptions(
+            resume=args.resume,
+            overwrite=args.overwrite,
+            eval_minutes=args.eval_minutes,
+            policy_only=args.policy_only,
+            tensorboard=args.tensorboard,
+            record={"preset": args.preset, "argv": args.argv} if minutes is not None else {},
+            clock=self.clock,
+            on_start=self.on_start,
+            on_row=self.on_row,
+            on_point=print_point,
+            on_trained=self.on_trained,
+        )
+        try:
+            _, results = train(cfg, out, minutes, label=label, options=options)
+        except RunInterrupted:
+            info = self.info
+            line = str(RunInterrupted(info["iterations"], info.get("lost", 0)))
+            if args.policy_only:
+                saved = info["iterations"]
+                line = (
+                    f"interrupted at iteration {saved} (--policy-only: no checkpoint to resume "
+                    "from)"
+                )
+            print(line, file=sys.stderr, flush=True)
+            return stop_exit_code()
+        except TrainingDiverged:
+            if minutes is None:
+                raise
+            return curve_summary(self.info, label, out)  # its error line printed above
+        except KeyboardInterrupt:
+            if minutes is not None or not self.info:
+                raise
+            print(
+                f"interrupted in the final evaluation; training is saved (iteration "
+                f"{cfg.train.iterations}): evaluate it with --resume",
+                file=sys.stderr,
+                flush=True,
+            )
+            return stop_exit_code()
+        return self.report(cfg, results, label, out)
+
+    def report(self, cfg: ExperimentConfig, results: dict, label: str, out: Path) -> int:
+        from mpcpearl_jax.distributed import is_primary
+        from mpcpearl_jax.evaluation.report import results_table
+
+        if results and is_primary():
+            print(results_table(results))
+        if self.args.minutes is not None:
+            return curve_summary(self.info, label, out)
+        print(trained_line(cfg, self.train_s, self.start or 0, self.info), flush=True)
+        print(LONGER if cfg.env == "restaurant" else LONGER_ANY, flush=True)
+        print(f"results, curves and figures in {out}", flush=True)
+        return 0
+
+
+def finished_line(out: Path, cfg: ExperimentConfig, minutes: float | None = None) -> str | None:
+    """For --resume: the one line that says the run in `out` is finished, or None where there
+    is something to train or evaluate. On iterations: results.json written for the config's
+    iterations, every one of them logged; on a time budget (`minutes`): results.json written
+    and curve.json's budget spent, and `minutes` no larger than it."""
+    from mpcpearl_jax.runfolder import LOG_FILE, read_log
+    from mpcpearl_jax.training.budget import CURVE_FILE
+
+    try:
+        done = json.loads((out / "results.json").read_text())["config"]["train"]["iterations"]
+        logged = len(read_log(out / LOG_FILE))
+        curve = json.loads((out / CURVE_FILE).read_text()) if minutes is not None else {}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None  # opening the session names any problem
+    if minutes is not None:
+        budget = curve.get("budget_minutes")
+        spent = curve.get("stopped") == "budget" and curve.get("iterations") == logged
+        if not (spent and isinstance(budget, (int, float)) and minutes <= budget):
+            return None
+        return (
+            f"{out}: finished ({budget:g} minutes of training, results.json written); nothing "
+            f"to do (to train it further: --resume --minutes M, M above {budget:g})"
+        )
+    if done != cfg.train.iterations or logged != done:
+        return None
+    return (
+        f"{out}: finished ({done} iteration(s), results.json written); nothing to do (to train it "
+        f"further: --resume --iterations N, N above {done})"
+    )
+
+
+def _initialize(args: argparse.Namespace) -> None:
+    """jax.distributed for --coordinator and its options (nothing without them)."""
+    from mpcpearl_jax.distributed import CoordinatorTimeout, initialize
+
+    try:
+        initialize(args.coordinator, args.num_processes, args.process_id, args.coordinator_timeout)
+    except CoordinatorTimeout as e:  # the runtime's start-up thread would abort the process
+        print(f"error: {e}", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(2)
+
+
+def _print_start(args: argparse.Namespace, family: str, cfg, label: str, out: Path) -> None:
+    """The command's first line: what it trains, how long, into which folder."""
+    if args.minutes is not None:
+        from mpcpearl_jax.training.budget import eval_every_minutes
+
+        every = eval_every_minutes(args.minutes, args.eval_minutes)
+        print(
+            f"[{family}] {run_label(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
+            f"budget={args.minutes:g} min, eval every {every:.3g} min "
+            f"({'online' if cfg.online_eval else 'adaptation'} protocol), out={out}"
+            + (" (resumed)" if args.resume else ""),
+            flush=True,
+        )
+        return
+    print(
+        f"[{family}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "
+        f"iterations={cfg.train.iterations} out={out}",
+        flush=True,
+    )
+    if args.preset == "default" and args.config is None and args.iterations is None:
+        print(DEFAULT_NOTE, flush=True)  # its figures are for the preset's 75 iterations
+
+
+DEFAULT_NOTE = (
+    "the default preset: a first look, 75 iterations, about 4-5 minutes of training on a quiet "
+    "2-core CPU, up to about 8 on a slower or busy one (the README gives the range over ten "
+    "seeds); the "
+    "first iteration compiles, up to a minute of it. Far shorter than the paper's training "
+    "(printed under the results table)"
+)
+
+# the recipe of the five-seed comparison (docs/usage.md, "Training longer")
+LONGER = (
+    "to train longer (docs/usage.md, 'Training longer'): python -m experiments.restaurant "
+    "--preset recipe --eps 0.2 --minutes 24"
+)
+LONGER_ANY = "to train longer: --iterations N, or another preset (docs/usage.md#training-longer)"
+
+
+def trained_line(
+    cfg: ExperimentConfig, seconds: float, start: int = 0, info: dict | None = None
+) -> str:
+    """What this process trained, for how long and on what (printed under the results table,
+    whose paper columns say how long the paper trained). A resumed run whose iterations were
+    all trained before (stopped during its final evaluation) says so: its iterations and the
+    training time of its earlier processes (`info["train_s"]`, the run's lifetime)."""
+    import jax
+
+    iters = cfg.train.iterations - start
+    dev = jax.devices()[0]
+    where = (
+        f"a {os.cpu_count()}-core CPU"
+        if dev.platform == "cpu"
+        else f"{jax.device_count()} x {dev.device_kind}"
+    )
+    if iters == 0 and info:  # nothing left to train: evaluated what was trained before
+        iters, seconds = cfg.train.iterations, float(info.get("train_s") or 0.0)
+        steps = iters * cfg.train.updates_per_iteration
+        return (
+            f"this run: {run_label(cfg)}, {iters} iteration(s) x "
+            f"{cfg.train.updates_per_iteration} gradient steps ({steps:,}), {cfg.seeds} "
+            f"seed(s), trained in {seconds / 60:.1f} min before this resume, which evaluated it "
+            f"on {where}"
+        )
+    steps = iters * cfg.train.updates_per_iteration
+    return (
+        f"this run: {run_label(cfg)}, {iters} iteration(s) x {cfg.train.updates_per_iteration} "
+        f"gradient steps ({steps:,}), {cfg.seeds} seed(s), trained in {seconds / 60:.1f} min on "
+        f"{where}"
+    )
+
+
+@stoppable
+def grbal_main(argv: list[str] | None = None, description: str = "GrBAL baseline") -> int:
+    """The GrBAL command (`experiments.grbal`); a stop signal (Ctrl-C, SIGTERM, SIGHUP) ends it
+    with one line and exit code 128 + the signal, the run folder closed. During training the
+    first signal finishes the iteration under way and saves it ("interrupted at iteration N;
+    continue with --resume"); a second one, or one during start-up or the final evaluation,
+    stops at once with the last checkpoint kept."""
+    cli.setup()
+    run: dict[str, Path] = {}  # the run folder, once known
+    try:
+        return _grbal(grbal_parser(description).parse_args(argv), run)
+    except KeyboardInterrupt:
+        if "out" in run and (run["out"] / "config.json").is_file():
+            line = (
+                "interrupted: the same command with --resume continues from the run's last "
+                "checkpoint (written every checkpoint_interval iterations; from the start if none)"
+            )
+        else:
+            line = "interrupted before the run started; the same command starts it again"
+        exit_interrupted(line)
+
+
+def _grbal(args: argparse.Namespace, run: dict[str, Path]) -> int:
+    from mpcpearl_jax.evaluation.report import results_table
+    from mpcpearl_jax.training.final import TrainOptions, train
+
+    try:
+        check_platform()  # JAX_PLATFORMS naming a platform this machine lacks: one line
+        if args.minutes is not None and not (args.minutes > 0 and args.minutes < float("inf")):
+            raise ConfigError(f"--minutes must be positive, got {args.minutes}")
+        cfg = build_grbal_config(args)
+    except (ConfigError, TypeError, PlatformError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    out = args.out or Path("runs") / f"{args.env}-{args.preset}-grbal"
+    run["out"] = Path(out)
+    g = cfg.grbal
+    print(
+        f"[{args.env}] GrBAL preset={args.preset} seeds={cfg.seeds} iterations={g.iterations} "
+        f"model={'x'.join(map(str, g.hidden))} MPPI {g.num_samples}x{g.mppi_iterations} "
+        f"horizon {g.plan_horizon} out={out}",
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    progress = not args.no_progress
+
+    def on_trained(info: dict[str, Any]) -> None:
+        if info["stopped"] == "budget" and progress:
+            print(
+                f"time budget of {60.0 * args.minutes:.0f} s reached after iteration "
+                f"{info['iterations']}",
+                flush=True,
+            )
+        if info["stopped"] in ("done", "budget"):
+            print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
+
+    options = TrainOptions(
+        resume=args.resume,
+        overwrite=args.overwrite,
+        on_row=(lambda row: print(grbal_line(row, g.iterations), flush=True)) if progress else None,
+        on_trained=on_trained,
+    )
+    # errors as one line; a stop signal: the iteration under way finished and saved
+    with one_line_errors(interrupted=None) as outcome:
+        _, results = train(cfg, out, args.minutes, options=options)
+        print(results_table(results))
+        print(results["paper_note"])
+    if outcome.code is not None:
+        return outcome.code
+    print(f"results, curves and figures in {out}", flush=True)
+    return 0
