@@ -71,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     p = harness.common_parser(__doc__.splitlines()[0])  # --out or --record checked up front
     p.add_argument("--only", nargs="+", choices=SCRIPTS, default=None)
     args = p.parse_args(argv)
+    harness.check_platform_or_fail()  # once here, not once per script
     size = "tiny" if args.tiny else "full" if args.full else "default"
     out = Path(args.out)
     here = Path(__file__).parent

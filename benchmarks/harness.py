@@ -22,10 +22,11 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from mpcpearl_jax.cli import tables
+from mpcpearl_jax.cli.platform import PlatformError, check_platform
 from mpcpearl_jax.cli.tables import print_table  # noqa: F401 (re-exported)
+from mpcpearl_jax.training import machine as _machine
 from mpcpearl_jax.training.machine import (  # noqa: F401 (re-exported)
     available_cores,
-    configure_threads,
     machine_info,
 )
 
@@ -54,6 +55,22 @@ def fail(line: str) -> NoReturn:
     """End a benchmark with `line` as its one-line error (exit 2), before it measures anything."""
     print(f"error: {line}", file=sys.stderr, flush=True)
     raise SystemExit(2)
+
+
+def configure_threads(n: int | None) -> dict[str, Any]:
+    """`training.machine.configure_threads` (the same cores for JAX and PyTorch), then the
+    platform JAX_PLATFORMS asks for, checked (one line, exit 2, if this machine lacks it)."""
+    info = _machine.configure_threads(n)
+    check_platform_or_fail()
+    return info
+
+
+def check_platform_or_fail() -> None:
+    """JAX_PLATFORMS naming a platform this machine does not have: one line, exit 2."""
+    try:
+        check_platform()
+    except PlatformError as e:
+        fail(str(e))
 
 
 def error_text(e: BaseException) -> str:

@@ -68,6 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     harness.add_out_options(ap)
     ap.add_argument("--gp-mode", default="fit", choices=("fit", "fixed"))
     args = ap.parse_args(argv)
+    harness.check_platform_or_fail()
     tasks = make_tasks("restaurant", "test")
     if not 1 <= args.tasks <= tasks.num_tasks:  # before the episodes, not after them
         harness.fail(

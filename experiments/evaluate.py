@@ -49,6 +49,8 @@ from experiments.common import (
     exit_interrupted,
     one_line_errors,
 )
+from mpcpearl_jax.cli.platform import check_platform
+from mpcpearl_jax.cli.stopping import stoppable
 from mpcpearl_jax.envs import SPLITS, env_names, make_env
 from mpcpearl_jax.evaluation.command import (
     FIGURES,
@@ -70,7 +72,6 @@ from mpcpearl_jax.evaluation.runners import Setup
 from mpcpearl_jax.evaluation.scoring import failure_line
 from mpcpearl_jax.mpc.shield import ShieldConfig
 from mpcpearl_jax.runfolder import write_json
-from mpcpearl_jax.cli.stopping import stoppable
 
 __all__ = ["UsageError", "main", "make_parser", "parse_indices", "setup"]
 
@@ -436,7 +437,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     args = make_parser().parse_args(argv)
-
+    with one_line_errors(interrupted=None) as failed:
+        check_platform()  # JAX_PLATFORMS naming a platform this machine lacks: one line
+    if failed.code is not None:
+        return failed.code
     if args.task_seeds is not None:
         return main_task_seeds(args)
     with one_line_errors(interrupted=None) as failed:

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 from experiments.common import one_line_errors, stops_with
+from mpcpearl_jax.cli.platform import check_platform
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -55,6 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     platforms = tuple(p.strip() for p in args.platforms.split(",") if p.strip())
     # a run that does not load, or writing the export or its sidecar (a full disk, permissions)
     with one_line_errors(interrupted=None) as failed:
+        check_platform()  # JAX_PLATFORMS naming a platform this machine lacks: one line
         out = export_policy(args.run, args.out, args.seed_index, platforms)
         if runs_here(platforms):
             meta = load_exported(out).meta  # read back: the files are usable as written

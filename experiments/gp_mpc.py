@@ -28,6 +28,7 @@ import jax
 import numpy as np
 
 from experiments.common import add_task_source_options, env_family, one_line_errors, stops_with
+from mpcpearl_jax.cli.platform import check_platform
 from mpcpearl_jax.config import ExperimentConfig, apply_overrides, preset, task_source
 from mpcpearl_jax.envs import make_env, mpc_defaults, tasks_for
 from mpcpearl_jax.evaluation import metrics
@@ -114,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     with one_line_errors(interrupted=None) as failed:
+        check_platform()  # JAX_PLATFORMS naming a platform this machine lacks: one line
         args.env = env_family(args.env)  # MODULE:NAME registers NAME
         env = make_env(args.env)
         cfg = mpc_settings(args.env, args.preset, args.set)

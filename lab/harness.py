@@ -5,13 +5,15 @@ their command line (--tiny, --full, --out, --threads), the cores they use and th
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from mpcpearl_jax.cli.platform import PlatformError, check_platform
 from mpcpearl_jax.cli.tables import print_table, write_record  # noqa: F401 (re-exported)
-from mpcpearl_jax.training.machine import configure_threads  # noqa: F401 (re-exported)
+from mpcpearl_jax.training import machine
 
 SIZES = ("tiny", "default", "full")
 
@@ -30,6 +32,18 @@ def common_parser(description: str) -> argparse.ArgumentParser:
     )
     p.add_argument("--threads", type=int, help="CPU cores (default: all this process may use)")
     return p
+
+
+def configure_threads(n: int | None) -> dict[str, Any]:
+    """`training.machine.configure_threads` (the cores the diagnostic uses), then the platform
+    JAX_PLATFORMS asks for, checked: one line and exit 2 if this machine lacks it."""
+    info = machine.configure_threads(n)
+    try:
+        check_platform()
+    except PlatformError as e:
+        print(f"error: {e}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    return info
 
 
 def size_of(args: argparse.Namespace) -> str:

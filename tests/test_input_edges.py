@@ -153,3 +153,84 @@ def test_q11_a_sidecar_t_update_beyond_the_episode_is_refused(tmp_path):
         load_exported(out)
     sidecar_path(out).write_text(json.dumps({**meta, "t_update": horizon}))
     assert load_exported(out).t_update == horizon
+
+
+# ---------------------------------------------------------------- JAX_PLATFORMS this machine lacks
+
+
+def _platform_line(module: str, args: list[str], platform: str, tmp_path: Path) -> str:
+    import subprocess
+    import sys
+
+    from faults_helpers import _env
+
+    env = {**_env(), "JAX_PLATFORMS": platform}
+    proc = subprocess.run(
+        [sys.executable, "-m", module, *args],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    err = proc.stderr.strip()
+    assert proc.returncode == 2 and "\n" not in err, (module, proc.returncode, err)
+    assert err.startswith(f"error: JAX_PLATFORMS={platform}: not available on this machine"), err
+    assert "unset JAX_PLATFORMS" in err
+    return err
+
+
+PLATFORM_COMMANDS = {
+    "experiments.restaurant": ["--preset", "smoke"],
+    "experiments.grbal": ["--preset", "smoke"],
+    "experiments.gp_mpc": ["--max-tasks", "1"],
+    "experiments.evaluate": [str(HEADLINE)],
+    "experiments.export": [str(HEADLINE)],
+    "benchmarks.env_throughput": ["--tiny"],
+    "benchmarks.mpc_latency": ["--tasks", "1"],
+    "lab.diagnostics.shield": ["--tiny"],
+}
+
+
+@pytest.mark.skipif(
+    __import__("jax").default_backend() != "cpu", reason="the machine has an accelerator"
+)
+@pytest.mark.parametrize(
+    "module",
+    [
+        m
+        if m in ("experiments.restaurant", "benchmarks.env_throughput")
+        else pytest.param(m, marks=pytest.mark.slow)
+        for m in PLATFORM_COMMANDS
+    ],
+)
+def test_a_platform_this_machine_lacks_is_one_line(module, tmp_path):
+    """JAX_PLATFORMS=cuda (or gpu, or a misspelt name) on a CPU machine: a 58-68-line traceback
+    of JAX's backend start; now one line saying so and how to fix it, before anything is
+    written."""
+    out = tmp_path / "out"
+    args = [*PLATFORM_COMMANDS[module], "--out", str(out)]
+    _platform_line(module, args, "cuda", tmp_path)
+    if module == "experiments.gp_mpc":
+        assert "knows: cpu" in _platform_line(module, args, "bogus", tmp_path)
+        _platform_line(module, args, "gpu", tmp_path)
+    assert not out.exists() or not any(out.iterdir())  # nothing written
+
+
+def test_the_platform_check_starts_nothing_for_the_cpu(monkeypatch):
+    """The check runs where the commands start: unless a platform other than the CPU is asked
+    for, it must not start JAX's backend (thread settings come first)."""
+    import jax
+
+    from mpcpearl_jax.cli import platform
+
+    def started():
+        raise AssertionError("the backend was started")
+
+    monkeypatch.setattr(jax, "devices", started)
+    for asked in ("", "cpu", " cpu "):
+        monkeypatch.setattr(platform, "requested_platforms", lambda asked=asked: asked)
+        platform.check_platform()
+    monkeypatch.setattr(platform, "requested_platforms", lambda: "cuda")
+    with pytest.raises(platform.PlatformError, match="JAX_PLATFORMS=cuda: not available"):
+        platform.check_platform()
