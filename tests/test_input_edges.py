@@ -234,3 +234,32 @@ def test_the_platform_check_starts_nothing_for_the_cpu(monkeypatch):
     monkeypatch.setattr(platform, "requested_platforms", lambda: "cuda")
     with pytest.raises(platform.PlatformError, match="JAX_PLATFORMS=cuda: not available"):
         platform.check_platform()
+
+
+# ---------------------------------------------------------------- --env MODULE:NAME that fails
+
+BAD_MODULES = {
+    "raises": ("raise RuntimeError('no GPU found for my task')\n", "failed: RuntimeError: no GPU"),
+    "syntax": ("def broken(:\n    pass\n", "has a syntax error (invalid syntax, "),
+    "exits": ("import sys\nsys.exit(0)\n", "exited (sys.exit(0))"),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(BAD_MODULES))
+def test_an_env_module_that_fails_to_import_is_one_line(kind, tmp_path, monkeypatch, capsys):
+    """--env MODULE:NAME whose module raises on import or has a syntax error: a full traceback;
+    one that calls sys.exit(0): --print-config printed nothing and exited 0."""
+    from experiments.common import main
+
+    name = f"edge_family_{kind}"
+    (tmp_path / f"{name}.py").write_text(BAD_MODULES[kind][0])
+    monkeypatch.syspath_prepend(str(tmp_path))
+    spec = f"{name}:corridor"
+    expected = f"error: --env {spec}: "
+    assert main("restaurant", ["--env", spec, "--print-config"]) == 2
+    out, err = capsys.readouterr()
+    assert not out and err.startswith(expected) and BAD_MODULES[kind][1] in err, err
+    assert "\n" not in err.strip() and name in err
+    assert gp_mpc.main(["--env", spec, "--out", str(tmp_path / "g")]) == 2
+    line = _one_line(capsys)
+    assert line.startswith(expected) and BAD_MODULES[kind][1] in line

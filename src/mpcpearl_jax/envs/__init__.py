@@ -98,7 +98,8 @@ def load_family(spec: str) -> str:
     """The name of the task family `spec` names: NAME, a registered family (`restaurant`,
     `sidewalk`), or MODULE:NAME, whose MODULE is imported first (importing it registers NAME;
     e.g. `examples.corridor:corridor`, docs/custom_tasks.md). ValueError, starting with `spec`,
-    when the module or the family is missing."""
+    when the module or the family is missing, or when importing the module fails (its error, a
+    syntax error or an exit, in one line)."""
     import importlib
 
     module, sep, name = spec.partition(":")
@@ -114,6 +115,18 @@ def load_family(spec: str) -> str:
         raise ValueError(
             f"{spec}: no module named {e.name!r} (run from the folder that holds {module!r}, or "
             f"install its package)"
+        ) from None
+    except SyntaxError as e:
+        raise ValueError(
+            f"{spec}: {module} has a syntax error ({e.msg}, {e.filename} line {e.lineno})"
+        ) from None
+    except SystemExit as e:  # an exit while importing: nothing was registered or printed
+        raise ValueError(f"{spec}: importing {module} exited (sys.exit({e.code!r}))") from None
+    except Exception as e:  # noqa: BLE001 - the module's own error, as one line
+        first = (str(e).strip().splitlines() or [""])[0]
+        raise ValueError(
+            f"{spec}: importing {module} failed: {type(e).__name__}"
+            + (f": {first}" if first else "")
         ) from None
     if name not in _REGISTRY:
         raise ValueError(
