@@ -53,6 +53,23 @@ def _load(run: Path) -> tuple[dict, list[dict], dict | None]:
     return cfg, rows, res
 
 
+def _gp_mpc_metrics(path: Path) -> dict:
+    """The metrics of a record written by experiments.gp_mpc; NotARun naming the file."""
+    if not path.is_file():
+        raise NotARun(f"--gp-mpc {path}: no such file (a JSON written by experiments.gp_mpc)")
+    try:
+        record = _json(path)
+    except NotARun as e:
+        raise NotARun(f"--gp-mpc {e}") from None
+    m = record.get("metrics", record) if isinstance(record, dict) else None
+    if not isinstance(m, dict) or not any(isinstance(m.get(k), (int, float)) for k in METRIC_NAMES):
+        raise NotARun(
+            f"--gp-mpc {path}: not a record of experiments.gp_mpc (no metrics "
+            f"{', '.join(METRIC_NAMES)})"
+        )
+    return m
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m lab.compare", description=__doc__)
     ap.add_argument("runs", nargs="+", type=Path)
@@ -67,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         loaded = [(r, *_load(r)) for r in args.runs]
+        gp = _gp_mpc_metrics(args.gp_mpc) if args.gp_mpc else None
         names = [run_label(c) for _, c, _, _ in loaded]
         if args.labels is not None:
             names = [x.strip() for x in args.labels.split(",")]
@@ -91,11 +109,9 @@ def main(argv: list[str] | None = None) -> int:
     ]
     paper = finished[0][1].get("paper", {}) if finished else {}
     text = comparison_table(finished, paper)
-    if args.gp_mpc and args.gp_mpc.is_file():
-        gp = json.loads(args.gp_mpc.read_text())
-        m = gp.get("metrics", gp)
+    if gp is not None:
         text += "\n\nGP-MPC (this project, same test tasks): " + ", ".join(
-            f"{k} {m[k]:.2f}" for k in METRIC_NAMES if k in m
+            f"{k} {gp[k]:.2f}" for k in METRIC_NAMES if isinstance(gp.get(k), (int, float))
         )
     notes = {res["paper_note"] for _, res in finished if res.get("paper_note")}
     text += "".join(f"\n\n{note}" for note in sorted(notes))

@@ -494,6 +494,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", action="append", help="one setting of SETTINGS (repeatable)")
     ap.add_argument("--redo", action="store_true", help="measure settings already recorded again")
     args = ap.parse_args(argv)
+    if args.count < 1:  # before any problem is read
+        print(f"error: --count must be positive, got {args.count}", file=sys.stderr)
+        return 2
     {
         "problems": part_problems,
         "scenarios": part_scenarios,

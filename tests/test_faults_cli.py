@@ -74,6 +74,43 @@ def test_compare_on_a_folder_that_is_not_a_run(tmp_path, capsys):
     assert err == [f"error: {tmp_path / 'empty'}: not a run directory (no config.json)"]
 
 
+def test_compare_gp_mpc_record_that_is_not_one_is_named(tmp_path, capsys):
+    """`lab.compare RUN --gp-mpc NOTES.txt`: a JSONDecodeError naming no file (after the figure
+    was drawn); a missing file was silently left out. Now one line naming the file, exit 2,
+    before anything is written."""
+    from lab import compare
+
+    run = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"
+    notes = tmp_path / "NOTES.txt"
+    notes.write_text("these are my notes\n")
+    listing = tmp_path / "list.json"
+    listing.write_text("[1, 2]")
+    cases = [
+        (notes, f"error: --gp-mpc {notes}: not valid JSON"),
+        (tmp_path / "nope.json", f"error: --gp-mpc {tmp_path / 'nope.json'}: no such file"),
+        (listing, f"error: --gp-mpc {listing}: not a record of experiments.gp_mpc"),
+    ]
+    out = tmp_path / "cmp"
+    for path, expected in cases:
+        assert compare.main([str(run), "--out", str(out), "--gp-mpc", str(path)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(expected) and "\n" not in err, err
+    assert not out.exists()
+    record = ROOT / "results" / "gp_mpc" / "restaurant_test.json"
+    assert compare.main([str(run), "--out", str(out), "--gp-mpc", str(record)]) == 0
+    assert "GP-MPC (this project, same test tasks): SR " in (out / "table.md").read_text()
+
+
+def test_convergence_count_below_one_is_one_line(capsys):
+    """`lab.convergence problems --count -1`: a numpy ValueError traceback."""
+    from lab import convergence
+
+    for count in ("0", "-1"):
+        assert convergence.main(["problems", "--count", count]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == f"error: --count must be positive, got {count}"
+
+
 @pytest.mark.slow  # (~13 s)
 def test_unreachable_coordinator_is_a_one_line_error_in_bounded_time(tmp_path):
     """No coordinator at the address (process 1), or process 0 left alone: exit 2 and one line
