@@ -1,8 +1,8 @@
-"""Test configuration: a persistent XLA compilation cache shared by the test session and its
-worker processes, so that identical programs (e.g. trainers rebuilt from the same config) compile
-once; LLVM optimisation level 1 for the compiled programs; the number of worker processes for
-`-n auto`; the fault tests' reference run (`ref0`), trained once per worker process that needs
-it."""
+"""Test configuration: a persistent XLA compilation cache shared by the test session, its
+worker processes and the commands the tests start, so that identical programs (e.g. trainers
+rebuilt from the same config) compile once; LLVM optimisation level 1 for the compiled
+programs; the number of worker processes for `-n auto`; the fault tests' reference run (`ref0`),
+trained once per worker process that needs it."""
 
 import os
 import tempfile
@@ -20,15 +20,24 @@ if _OPT != "keep" and "xla_backend_optimization_level" not in os.environ.get("XL
         os.environ.get("XLA_FLAGS", "") + f" --xla_backend_optimization_level={_OPT}"
     ).strip()
 
-import jax  # noqa: E402
 import pytest  # noqa: E402
 
+from mpcpearl_jax import compilation_cache  # noqa: E402
+
+# One cache for the test session, its worker processes and the commands the tests start (they
+# inherit MPCPEARL_JAX_CACHE, which `compilation_cache.enable` reads where a command starts):
+# never the user's own cache folder
 _CACHE = os.environ.get("MPCPEARL_TEST_JAX_CACHE") or os.path.join(
     tempfile.gettempdir(), "mpcpearl_jax_test_xla_cache"
 )
-jax.config.update("jax_compilation_cache_dir", _CACHE)
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+os.environ[compilation_cache.ENV] = _CACHE
+compilation_cache.enable()
+
+import mpcpearl_jax.cli  # noqa: E402
+
+# the library's notices (`mpcpearl_jax.notices`) as the commands show them: one line each on
+# stderr, whether a test calls a command or the library
+mpcpearl_jax.cli.setup()
 
 
 def pytest_xdist_auto_num_workers(config) -> int:

@@ -1,8 +1,9 @@
 """mpcpearl_jax: MPC-PEARL (meta-RL with event-triggered risk-aware MPC infusion) in JAX.
 
 Public entry points: `make_env`, `make_tasks` (environments), `train` (a run from a config:
-`train(cfg, out, minutes=None) -> (state, results)`), `load_policy` (a trained policy from a run
-directory), `metrics`; `Adapter`, `Frame`, `Scene`, `observe` (a policy in your own
+`train(cfg, out, minutes=None, options=None) -> (state, results)`, the one entry the training
+commands use too; `options`: `training.final.TrainOptions`), `load_policy` (a trained policy
+from a run directory), `metrics`; `Adapter`, `Frame`, `Scene`, `observe` (a policy in your own
 control loop, from raw sensor arrays), `export_policy` and `load_exported` (a portable artifact
 run with jax alone).
 
@@ -20,7 +21,10 @@ back up):
   one training loop, a trained run's final evaluation (`training.final`: results.json,
   figures); `grbal`: the GrBAL baseline on the same session;
 - `deploy`: a trained policy in your own code (`load_policy`, `Adapter`, `export_policy`,
-  `load_exported`).
+  `load_exported`);
+- `cli`: the command layer on top (stop signals, the error ladder, parsers, the progress bar and
+  printed tables, the training commands). Below it nothing prints: the library reports through
+  callbacks, return values and the `mpcpearl_jax` logger (`notices`).
 """
 
 from typing import Any

@@ -30,9 +30,11 @@ from mpcpearl_jax.cli.progress import grbal_line, progress_bar
 from mpcpearl_jax.cli.stopping import exit_interrupted, stop_exit_code, stoppable
 from mpcpearl_jax.cli.tables import curve_summary, print_point
 from mpcpearl_jax.config import ExperimentConfig
-from mpcpearl_jax.errors import ConfigError
+from mpcpearl_jax.errors import ConfigError, TrainingDiverged
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.budget import default_label
+from mpcpearl_jax.training.final import TrainOptions, train
+from mpcpearl_jax.training.run import RunInterrupted
 
 
 @stoppable
@@ -81,7 +83,11 @@ def main(
                 print(finished, flush=True)
                 return 0
             _print_start(args, family, cfg, label, out)
-            return run.train(cfg, label, out)
+            try:
+                _, results = train(cfg, out, args.minutes, label=label, options=run.options())
+            except (RunInterrupted, TrainingDiverged, KeyboardInterrupt) as e:
+                return run.stopped(e, cfg, label, out)
+            return run.report(cfg, results, label, out)
     except KeyboardInterrupt:  # a stop before training, or a second one during it
         run.close_bar()
         if run.start is None:  # the session closed what it had opened
@@ -122,49 +128,46 @@ class _Run:
         self.close_bar()
         self.info, self.train_s = info, time.perf_counter() - self.t0
         if info["stopped"] == "done" and self.args.minutes is None:
-            print(f"trained in {self.train_s:.1f} s; evaluating", flush=True)
+            if info["iterations"] == self.start:  # a resume of a run stopped in its evaluation
+                print(f"all {self.start} iteration(s) trained before; evaluating", flush=True)
+            else:
+                print(f"trained in {self.train_s:.1f} s; evaluating", flush=True)
         if info["stopped"].startswith("diverged") and self.args.minutes is not None:
             print(f"error: {info['error']}", file=sys.stderr, flush=True)  # the curve follows
 
-    def train(self, cfg: ExperimentConfig, label: str, out: Path) -> int:
-        from mpcpearl_jax.errors import TrainingDiverged
-        from mpcpearl_jax.training.final import TrainOptions, train
-        from mpcpearl_jax.training.run import RunInterrupted
-
-        args, minutes = self.args, self.args.minutes
-        options = TrainOptions(
+    def options(self):
+        """`mpcpearl_jax.train`'s options: the command line's, and the callbacks above."""
+        args = self.args
+        return TrainOptions(
             resume=args.resume,
             overwrite=args.overwrite,
             eval_minutes=args.eval_minutes,
             policy_only=args.policy_only,
             tensorboard=args.tensorboard,
-            record={"preset": args.preset, "argv": args.argv} if minutes is not None else {},
+            record={"preset": args.preset, "argv": args.argv} if args.minutes is not None else {},
             clock=self.clock,
             on_start=self.on_start,
             on_row=self.on_row,
             on_point=print_point,
             on_trained=self.on_trained,
         )
-        try:
-            _, results = train(cfg, out, minutes, label=label, options=options)
-        except RunInterrupted:
-            info = self.info
+
+    def stopped(self, e: BaseException, cfg: ExperimentConfig, label: str, out: Path) -> int:
+        """A stop signal or a divergence: its line and exit code (or `e` raised again for the
+        error ladder: a divergence on iterations, a second stop during training)."""
+        args, info = self.args, self.info
+        if isinstance(e, RunInterrupted):
             line = str(RunInterrupted(info["iterations"], info.get("lost", 0)))
             if args.policy_only:
-                saved = info["iterations"]
                 line = (
-                    f"interrupted at iteration {saved} (--policy-only: no checkpoint to resume "
-                    "from)"
+                    f"interrupted at iteration {info['iterations']} (--policy-only: no "
+                    "checkpoint to resume from)"
                 )
             print(line, file=sys.stderr, flush=True)
             return stop_exit_code()
-        except TrainingDiverged:
-            if minutes is None:
-                raise
-            return curve_summary(self.info, label, out)  # its error line printed above
-        except KeyboardInterrupt:
-            if minutes is not None or not self.info:
-                raise
+        if isinstance(e, TrainingDiverged) and args.minutes is not None:
+            return curve_summary(info, label, out)  # its error line printed above
+        if isinstance(e, KeyboardInterrupt) and args.minutes is None and info:
             print(
                 f"interrupted in the final evaluation; training is saved (iteration "
                 f"{cfg.train.iterations}): evaluate it with --resume",
@@ -172,7 +175,7 @@ class _Run:
                 flush=True,
             )
             return stop_exit_code()
-        return self.report(cfg, results, label, out)
+        raise e
 
     def report(self, cfg: ExperimentConfig, results: dict, label: str, out: Path) -> int:
         from mpcpearl_jax.distributed import is_primary
@@ -327,7 +330,6 @@ def grbal_main(argv: list[str] | None = None, description: str = "GrBAL baseline
 
 def _grbal(args: argparse.Namespace, run: dict[str, Path]) -> int:
     from mpcpearl_jax.evaluation.report import results_table
-    from mpcpearl_jax.training.final import TrainOptions, train
 
     try:
         check_platform()  # JAX_PLATFORMS naming a platform this machine lacks: one line

@@ -123,7 +123,19 @@ def train(
         build_s = time.perf_counter() - t_wall0  # the trainer and its initial or restored state
         if opts.on_start is not None:
             opts.on_start(sess)
-        state, info = _train_mode(sess, kind, minutes, opts)
+        if kind is GRBAL:
+            state, info = _grbal_rules(sess, minutes, opts)
+        elif minutes is None:
+            state, info = train_iterations(sess, opts.on_row, handle_sigint=True)
+        else:
+            state, info = train_minutes(
+                sess,
+                minutes=minutes,
+                eval_minutes=opts.eval_minutes,
+                policy_only=opts.policy_only,
+                on_point=opts.on_point,
+                clock=opts.clock,
+            )
         if opts.on_trained is not None:
             opts.on_trained(info)
         extra: dict[str, Any] = {}
@@ -198,22 +210,11 @@ def check_train_arguments(
     return kind
 
 
-def _train_mode(
-    sess: Session, kind: RunKind, minutes: float | None, opts: TrainOptions
+def _grbal_rules(
+    sess: Session, minutes: float | None, opts: TrainOptions
 ) -> tuple[Any, dict[str, Any]]:
-    """Train the open session by its kind's rules; -> (state, info) with info["error"] the
-    exception of a stop or a divergence (then state is None)."""
-    if kind is PEARL and minutes is None:
-        return train_iterations(sess, opts.on_row, handle_sigint=True)
-    if kind is PEARL:
-        return train_minutes(
-            sess,
-            minutes=minutes,  # type: ignore[arg-type]
-            eval_minutes=opts.eval_minutes,
-            policy_only=opts.policy_only,
-            on_point=opts.on_point,
-            clock=opts.clock,
-        )
+    """GrBAL's rules (`grbal.run.train_iterations`); -> (state, info) with info["error"] the
+    exception of a stop or a divergence (then state is None), as the MPC-PEARL modes return."""
     from mpcpearl_jax.errors import TrainingDiverged
 
     try:
