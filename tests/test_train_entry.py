@@ -164,3 +164,16 @@ def test_a_resume_that_only_evaluates_says_what_the_run_trained():
     assert "1 iteration(s)" in line and "trained in 1.5 min before this resume" in line
     fresh = trained_line(cfg, 60.0, start=0, info={"train_s": 60.0})
     assert "1 iteration(s)" in fresh and "trained in 1.0 min on" in fresh
+
+
+def test_a_grbal_resume_reads_the_runs_own_config(tmp_path):
+    from mpcpearl_jax.cli.args import build_grbal_config, grbal_parser
+    from mpcpearl_jax.grbal.config import resolve as grbal_resolve
+
+    run_cfg = grbal_resolve("smoke", "sidewalk")
+    (tmp_path / "config.json").write_text(run_cfg.to_json())
+    args = grbal_parser().parse_args(["--resume", "--out", str(tmp_path)])
+    assert build_grbal_config(args).to_dict() == run_cfg.to_dict()
+    assert (args.env, args.preset) == ("sidewalk", "smoke")  # printed on the first line
+    more = grbal_parser().parse_args(["--resume", "--out", str(tmp_path), "--iterations", "9"])
+    assert build_grbal_config(more).grbal.iterations == 9

@@ -112,7 +112,7 @@ def config_help(cls: type = ExperimentConfig, width: int = 100) -> str:
     import dataclasses
     import textwrap
 
-    from mpcpearl_jax.config import override_sections
+    from mpcpearl_jax.config import chosen_elsewhere, override_sections
 
     lines = [
         "Every config field, changed with --set SECTION.FIELD=VALUE (JSON values). The defaults "
@@ -128,6 +128,8 @@ def config_help(cls: type = ExperimentConfig, width: int = 100) -> str:
         for f in dataclasses.fields(sub):
             kind = getattr(f.type, "__name__", f.type)  # a name under `from __future__`
             if kind in nested or f.name == "env_overrides" or not f.init:
+                continue
+            if chosen_elsewhere(sub, f.name):  # --set does not change it
                 continue
             default = f.default
             if default is dataclasses.MISSING:
@@ -380,16 +382,18 @@ def recorded_preset(cfg: ExperimentConfig) -> str:
 
 
 def _check_same_run(run: ExperimentConfig, cfg: ExperimentConfig, args: argparse.Namespace):
-    """--resume with options that build another config than the run's: ConfigError naming the
-    run's preset and the fields, and the resume that reads the run's own config."""
+    """--resume with another --preset than the run's, giving another config: ConfigError naming
+    the run's preset and the fields, and the resume that reads the run's own config (with the
+    run's own preset, the session's check names the differing fields)."""
     from mpcpearl_jax.training.checkpoint import config_differences
 
     diff = config_differences(run, cfg, ignore=("train.iterations", "devices"))
-    if not diff:
+    started = recorded_preset(run)
+    if not diff or started.split()[0] == args.preset:  # the session lists the fields
         return
     shown = ", ".join(diff[:4]) + (f" and {len(diff) - 4} more" if len(diff) > 4 else "")
     raise ConfigError(
-        f"{args.out}: the run was started from preset {recorded_preset(run)}; --preset "
+        f"{args.out}: the run was started from preset {started}; --preset "
         f"{args.preset} and the other options give another config ({shown}); continue it with "
         f"--resume --out {args.out} alone (it reads the run's own config), or choose another --out"
     )
@@ -465,8 +469,8 @@ def grbal_parser(description: str = "GrBAL baseline") -> argparse.ArgumentParser
         description=description,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--env", default="restaurant", choices=("restaurant", "sidewalk"))
-    p.add_argument("--preset", default="default", choices=sorted(GRBAL_PRESETS))
+    p.add_argument("--env", default=DefaultPreset("restaurant"), choices=("restaurant", "sidewalk"))
+    p.add_argument("--preset", default=DefaultPreset("default"), choices=sorted(GRBAL_PRESETS))
     p.add_argument("--iterations", type=int, help="training iterations (fit + collection)")
     p.add_argument(
         "--minutes",
@@ -504,6 +508,12 @@ def build_grbal_config(args: argparse.Namespace):
         )
         if value is not None
     }
+    run = _resumed_grbal_run(args)
+    if run is not None:  # --resume --out RUN alone: the run's own config
+        from mpcpearl_jax.config import apply_overrides
+
+        args.env, args.preset = run.env, DefaultPreset(_grbal_preset(run))
+        return apply_overrides(run, args.set, changes)
     return grbal_resolve(
         args.preset,
         args.env,
@@ -513,6 +523,36 @@ def build_grbal_config(args: argparse.Namespace):
         hold_out_val=args.hold_out_val,
         data=args.data,
     )
+
+
+def _resumed_grbal_run(args: argparse.Namespace):
+    """With --resume --out RUN and neither --preset, --env nor a task source: RUN's recorded
+    GrBAL config (None otherwise, or where it cannot be read: opening the run names it)."""
+    from mpcpearl_jax.errors import CheckpointError
+    from mpcpearl_jax.grbal.run import load_config
+
+    given = not isinstance(args.preset, DefaultPreset) or not isinstance(args.env, DefaultPreset)
+    given = given or args.data is not None or args.scenarios is not None or args.hold_out_val
+    if not args.resume or args.out is None or given:
+        return None
+    try:
+        return load_config(Path(args.out))
+    except (CheckpointError, OSError):
+        return None
+
+
+def _grbal_preset(cfg) -> str:
+    """The GrBAL preset whose settings a run's `grbal` section has (iterations aside)."""
+    import dataclasses
+
+    from mpcpearl_jax.grbal.config import PRESETS as GRBAL_PRESETS
+    from mpcpearl_jax.grbal.config import preset
+
+    own = dataclasses.replace(cfg.grbal, iterations=1)
+    for name in sorted(GRBAL_PRESETS):
+        if dataclasses.replace(preset(name), iterations=1) == own:
+            return name
+    return "its own"
 
 
 def config_from_argv(command: str, argv: list[str]):
