@@ -263,3 +263,29 @@ def test_an_env_module_that_fails_to_import_is_one_line(kind, tmp_path, monkeypa
     assert gp_mpc.main(["--env", spec, "--out", str(tmp_path / "g")]) == 2
     line = _one_line(capsys)
     assert line.startswith(expected) and BAD_MODULES[kind][1] in line
+
+
+# ---------------------------------------------------------------- the family: --env, not --set
+
+
+def test_the_family_is_chosen_by_env_not_by_set(capsys):
+    """`--set env.name=...`, listed as settable by --help-config, failed with "make_env() got
+    multiple values for argument 'name'"; it is one line pointing at --env, and --help-config
+    (test_learning_harness) no longer lists it. The library says the same."""
+    from experiments.common import main
+    from mpcpearl_jax.config import ConfigError, ExperimentConfig
+    from mpcpearl_jax.envs import make_env
+
+    for item, owner in (
+        ("env.name=sidewalk", "NavConfig.name"),
+        ("env=sidewalk", "ExperimentConfig.env"),
+    ):
+        assert main("restaurant", ["--set", item, "--print-config"]) == 2
+        out, err = capsys.readouterr()
+        assert not out and err.strip() == (
+            f"error: --set {item}: {owner} is the task family: choose it with --env, not --set"
+        )
+    with pytest.raises(ConfigError, match="'name' is the task family"):
+        ExperimentConfig(env_overrides={"name": "sidewalk"})
+    with pytest.raises(ConfigError, match="NavConfig.name is the task family"):
+        make_env("restaurant", name="sidewalk")

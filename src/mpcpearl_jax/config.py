@@ -21,6 +21,19 @@ from mpcpearl_jax.mpc.config import MPCConfig
 from mpcpearl_jax.pearl.config import PearlConfig
 
 NAV_FIELDS = frozenset(f.name for f in dataclasses.fields(NavConfig))
+# fields --set does not change, by class name: what chooses them instead
+CHOSEN_ELSEWHERE: dict[str, dict[str, str]] = {
+    "NavConfig": {"name": "the task family: choose it with --env"},
+    "ExperimentConfig": {"env": "the task family: choose it with --env"},
+    "GrbalExperimentConfig": {"env": "the task family: choose it with --env"},
+}
+
+
+def chosen_elsewhere(cls: type, field: str) -> str | None:
+    """What chooses `cls.field` where --set does not (`CHOSEN_ELSEWHERE`), or None."""
+    return CHOSEN_ELSEWHERE.get(cls.__name__, {}).get(field)
+
+
 C = TypeVar("C")  # a run-config dataclass (ExperimentConfig, GrbalExperimentConfig)
 
 
@@ -174,6 +187,12 @@ class ExperimentConfig(SerializableConfig):
         v.instance(self, "env_overrides", dict, "a dict of NavConfig fields")
         unknown = sorted(set(self.env_overrides) - NAV_FIELDS)
         v.check(not unknown, self, "env_overrides", f"NavConfig has no field(s) {unknown}")
+        v.check(
+            "name" not in self.env_overrides,
+            self,
+            "env_overrides",
+            "'name' is the task family, the config's env (--env), not an override",
+        )
         v.instance(self, "data", (str, type(None)), "a file path or None")
         v.flags(self, "online_eval")
 
@@ -553,8 +572,10 @@ def field_value(item: str, cls: type, field: str, text: str) -> Any:
     if field not in hints or field not in {f.name for f in dataclasses.fields(cls)}:
         note = _removed_note(cls, [field])
         raise ConfigError(f"--set {item}: {cls.__name__} has no field(s) {[field]}{note}")
-    hint = hints[field]
     name = f"{cls.__name__}.{field}"
+    if chosen_elsewhere(cls, field):
+        raise ConfigError(f"--set {item}: {name} is {chosen_elsewhere(cls, field)}, not --set")
+    hint = hints[field]
     args = typing.get_args(hint)
     if hint is bool:
         if text in _TRUE:

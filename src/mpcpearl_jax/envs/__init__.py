@@ -135,9 +135,13 @@ def load_family(spec: str) -> str:
     return name
 
 
-def make_env(name: str, **overrides: Any) -> NavEnv:
+def make_env(name: str, /, **overrides: Any) -> NavEnv:
     """The environment of a task family; keyword overrides replace `NavConfig` fields."""
     config, _ = _lookup(name)
+    if "name" in overrides:  # it would be a second value for `name`
+        raise ConfigError(
+            "NavConfig.name is the task family (make_env's name, --env), not an override"
+        )
     unknown = set(overrides) - set(NavConfig.__dataclass_fields__)
     if unknown:
         raise ConfigError(f"NavConfig has no field(s) {sorted(unknown)}")
