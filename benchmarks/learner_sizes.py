@@ -11,7 +11,13 @@ per iteration for `default`, a point costing r times as much per step gets
 75 (C + U) / (C + r U) iterations for the same training time (results/restaurant/plateau/
 width-cost.json measures C and U).
 
-    python -m benchmarks.learner_sizes [--tiny] [--out DIR] [--threads N]
+With `--encoders` the points are instead `default`'s learner on its own observation (the
+restaurant's, with `default`'s observation options), and the same learner with the crowd encoder
+(`pearl.crowd_encoder` "attention", which adds the people's presence to the observation) without
+and with the forecast (`env.observe_forecast` 5, `env.forecast_stride` 2): the price of the
+encoder per gradient step, for comparing it with `default` at equal wall time.
+
+    python -m benchmarks.learner_sizes [--tiny] [--encoders] [--out DIR] [--threads N]
 """
 
 from __future__ import annotations
@@ -38,14 +44,34 @@ SIZES: dict[str, dict[str, Any]] = {
     "full": dict(points=POINTS, steps_per_sample=100, rounds=10),
 }
 DEFAULT_ITERATIONS = 75
+# (crowd encoder, forecast points, crowd_dim) of the --encoders points, at `default`'s sizes
+ENCODERS: tuple[tuple[str, int, int], ...] = (
+    ("none", 0, 64),
+    ("attention", 0, 64),
+    ("attention", 5, 64),
+    ("attention", 5, 32),
+    ("attention", 5, 16),
+)
 
 
 class Point:
     """One learner size's jitted update, compiled, on a fixed batch."""
 
-    def __init__(self, width: int, layers: int, tasks: int):
+    def __init__(
+        self,
+        width: int,
+        layers: int,
+        tasks: int,
+        encoder: str | None = None,
+        forecast: int = 0,
+        crowd_dim: int = 64,
+    ):
+        """`encoder` None: the fixed benchmark observation; "none" or "attention": the
+        restaurant's observation under `default`'s options (+ presence and `forecast` points
+        with the crowd encoder)."""
         import jax
         import jax.numpy as jnp
+        import numpy as np
 
         from mpcpearl_jax.config import preset
         from mpcpearl_jax.pearl import Networks, Transitions, init_learner, make_update
@@ -53,10 +79,20 @@ class Point:
         self.jax = jax
         hidden = (width,) * layers
         self.cfg = dataclasses.replace(
-            preset("default").pearl, hidden=hidden, encoder_hidden=hidden, meta_batch=tasks
+            preset("default").pearl,
+            hidden=hidden,
+            encoder_hidden=hidden,
+            meta_batch=tasks,
+            crowd_encoder=encoder or "none",
+            crowd_dim=crowd_dim,
+            crowd_heads=min(4, crowd_dim // 8),
         )
-        nets = Networks(self.cfg, OBS_DIM, ACTION_DIM)
-        nb = random_numpy_batch(self.cfg, seed=0)
+        if encoder is None:
+            nets = Networks(self.cfg, OBS_DIM, ACTION_DIM)
+            nb = random_numpy_batch(self.cfg, seed=0)
+        else:
+            nets, nb = _restaurant_learner(self.cfg, forecast)
+            nb = {k: np.asarray(v) for k, v in nb.items()}
         self.batch = Transitions(
             **{k: jnp.asarray(v) for k, v in nb.items() if k in Transitions._fields}
         )
@@ -76,13 +112,54 @@ class Point:
         self.jax.block_until_ready(self.state)
 
 
+def _restaurant_learner(cfg, forecast: int):
+    """(Networks, random batch) on the restaurant's observation under `default`'s options, with
+    the people's presence and `forecast` points when `cfg` has a crowd encoder."""
+    import numpy as np
+
+    from mpcpearl_jax.config import preset
+    from mpcpearl_jax.envs import make_env, make_tasks
+    from mpcpearl_jax.pearl import Networks
+
+    overrides = dict(preset("default").env_overrides)
+    if cfg.crowd_encoder != "none":
+        overrides.update(observe_presence=True, observe_forecast=forecast, forecast_stride=2)
+    env = make_env("restaurant", **overrides)
+    tasks = make_tasks("restaurant", "val", 1, config=env.config)
+    obs_dim = env.obs_dim(tasks)
+    nets = Networks(cfg, obs_dim, ACTION_DIM, env.obs_layout(tasks))
+    nb = random_numpy_batch(cfg, seed=0)
+    rng = np.random.default_rng(1)
+    mb, b, c = cfg.meta_batch, cfg.batch_size, cfg.context_size
+    for k, shape in (("obs", (mb, b, obs_dim)), ("next_obs", (mb, b, obs_dim))):
+        nb[k] = rng.uniform(-1, 1, shape).astype(np.float32)
+    nb["context"] = rng.uniform(-1, 1, (mb, c, nets.context_dim)).astype(np.float32)
+    return nets, nb
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = harness.common_parser(__doc__.splitlines()[0])
+    parser.add_argument(
+        "--encoders",
+        action="store_true",
+        help="default's learner with and without the crowd encoder, on the restaurant's obs",
+    )
     args = parser.parse_args(argv)
     threads = harness.configure_threads(args.threads)
     size = harness.size_of(args)
-    sz = SIZES[size]
-    points = {f"{w}x{layers}, {t} tasks": Point(w, layers, t) for w, layers, t in sz["points"]}
+    sz = dict(SIZES[size])
+    if args.encoders:
+        w, layers, t = sz["points"][0]
+        sz["points"] = tuple((w, layers, t, enc, f, d) for enc, f, d in ENCODERS)
+        names = [
+            f"crowd {enc}"
+            + (f" (dim {d})" if enc != "none" else "")
+            + (f" + forecast {f}" if f else "")
+            for enc, f, d in ENCODERS
+        ]
+    else:
+        names = [f"{w}x{layers}, {t} tasks" for w, layers, t in sz["points"]]
+    points = {n: Point(*pt) for n, pt in zip(names, sz["points"], strict=True)}
     for p in points.values():
         p.steps(1)
     raw: dict[str, list[float]] = {k: [] for k in points}
@@ -95,7 +172,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     base_name = next(iter(points))
     base = stats[base_name]["median_s"]
     rows = []
-    for (name, s), (w, layers, t) in zip(stats.items(), sz["points"], strict=True):
+    for (name, s), (w, layers, t, *_) in zip(stats.items(), sz["points"], strict=True):
         ratio = s["median_s"] / base
         rows.append(
             {
@@ -127,6 +204,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     config = {
         "size": size,
         "points": [list(p) for p in sz["points"]],
+        "encoders": args.encoders,
         "baseline": base_name,
         "steps_per_sample": sz["steps_per_sample"],
         "rounds": sz["rounds"],
@@ -135,7 +213,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "data": "fixed random batch per point (no replay sampling timed)",
     }
     results = {"rows": rows, "raw": stats}
-    harness.write_record("learner_sizes", config, results, args.out)
+    name = "learner_sizes-encoders" if args.encoders else "learner_sizes"
+    harness.write_record(name, config, results, args.out)
     return results
 
 

@@ -126,6 +126,51 @@ def test_dagger_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     assert list(res["final"]["per_task_seed"]) == [1] and 0.0 <= final["SR"] <= final["CFR"] <= 1
 
 
+@pytest.mark.slow  # a diagnostic outside the README's commands (~60-110 s)
+def test_dagger_diagnostic_runs_tiny_with_the_crowd_encoder(tmp_path: Path, clean_environ) -> None:
+    """The clone with the crowd encoder and the forecast, twice the tasks per round, seed 1:
+    the observation gains the presence and forecast entries, the record names its arm."""
+    from lab.diagnostics import dagger
+
+    argv = ["--tiny", "--relative", "--sorted", "--encoder", "attention", "--forecast", "2"]
+    res = dagger.main([*argv, "--labels", "2", "--seed", "1", "--out", str(tmp_path)])
+    record = json.loads(
+        (tmp_path / "dagger-relative-sorted-attention-forecast2x1-labels2-seed1.json").read_text()
+    )
+    assert record["config"]["encoder"] == "attention" and record["config"]["labels"] == 2
+    assert res["observation"]["observe_presence"] and res["observation"]["observe_forecast"] == 2
+    assert 0 < res["curve"][0]["samples"] <= 2 * 2 * 80  # two layouts x two crowds, one round
+    assert 0.0 <= res["final"]["mean"]["SR"] <= 1.0
+
+
+def test_dagger_report_groups_seeds_by_arm(tmp_path: Path) -> None:
+    """`--report`: seeds of one arm pooled, the MLP arm of the same inputs as the baseline of
+    P(improvement), records of the tiny size left out, a folder without records one line."""
+    from lab.diagnostics import dagger
+
+    def record(name, encoder, seed, sr, size="default", forecast=0):
+        config = {"size": size, "encoder": encoder, "forecast": forecast, "stride": 2}
+        config.update(labels=1, seed=seed)
+        results = {"curve": [{"samples": 100 + seed}], "final": {"mean": {"SR": sr}}}
+        (tmp_path / f"{name}.json").write_text(json.dumps({"config": config, "results": results}))
+
+    for seed, (a, b) in enumerate([(0.6, 0.2), (0.5, 0.25), (0.7, 0.1)]):
+        record(f"dagger-att-s{seed}", "attention", seed, a, forecast=5)
+        record(f"dagger-mlp-s{seed}", "mlp", seed, b)
+    record("dagger-tiny", "mlp", 9, 1.0, size="tiny")
+    rows = {r["arm"]: r for r in dagger.report(tmp_path)["arms"]}
+    att, mlp = rows["attention + forecast 5x2"], rows["mlp"]
+    assert att["seeds"] == [0, 1, 2] and att["val_SR"] == [0.6, 0.5, 0.7]
+    assert att["worst"] == 0.5 and abs(att["mean"] - 0.6) < 1e-9
+    assert att["vs"] == "mlp" and att["improvement"]["value"] == 1.0
+    assert mlp["improvement"] is None and 9 not in mlp["seeds"]
+    assert "| attention + forecast 5x2 | 3 |" in (tmp_path / "README.md").read_text()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ValueError, match="no DAgger record"):
+        dagger.report(empty)
+
+
 @pytest.mark.slow  # a diagnostic outside the README's commands (~20 s)
 def test_shield_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     """`lab.diagnostics.shield` (a diagnostic) on the committed headline run: one row per
@@ -367,9 +412,9 @@ def test_a_tiny_run_never_replaces_a_measured_record(argv, capsys, monkeypatch) 
 def test_benchmark_flags_are_checked_before_it_runs(tmp_path: Path, capsys) -> None:
     """--threads beyond the cores (a ValueError traceback), --out on a file or on a folder that
     cannot be written (found only after the benchmark had run): one line, exit 2, at once."""
-    from benchmarks import env_throughput
-
     from faults_helpers import _make_unwritable
+
+    from benchmarks import env_throughput
 
     a_file = tmp_path / "notes.txt"
     a_file.write_text("x")

@@ -187,7 +187,9 @@ def test_spec_round_trip_and_errors():
     tasks_np = make_tasks("restaurant", "train", 0, config=_env().config)
     with pytest.raises(ConfigError, match="observe_presence=true"):
         e = _env()
-        Networks(PearlConfig(crowd_encoder="attention"), e.obs_dim(tasks_np), 2, e.obs_layout(tasks_np))
+        Networks(
+            PearlConfig(crowd_encoder="attention"), e.obs_dim(tasks_np), 2, e.obs_layout(tasks_np)
+        )
     with pytest.raises(ConfigError, match="needs the observation's layout"):
         Networks(PearlConfig(crowd_encoder="attention"), 10, 2)
     with pytest.raises(ConfigError, match="crowd_encoder"):
@@ -203,3 +205,58 @@ def test_jitted_act_traces_once():
     z = jnp.zeros((obs.shape[0], nets.cfg.latent_dim))
     for _ in range(3):
         act(params["policy"], obs, z)
+
+
+def _tiny_crowd_cfg():
+    cfg = preset("smoke")
+    return dataclasses.replace(
+        cfg,
+        pearl=cfg.pearl.replace(
+            hidden=(16, 16),
+            encoder_hidden=(16,),
+            latent_dim=3,
+            meta_batch=2,
+            batch_size=16,
+            context_size=8,
+            crowd_encoder="attention",
+            crowd_dim=8,
+            crowd_heads=2,
+        ),
+        train=dataclasses.replace(
+            cfg.train,
+            eps=0.0,
+            iterations=2,
+            tasks_per_iteration=2,
+            updates_per_iteration=2,
+            eval_interval=0,
+            rl_capacity=400,
+        ),
+        env_overrides={**EGO, "observe_presence": True, "observe_forecast": 2},
+        task_options={"train_behaviours": 1},
+    )
+
+
+@pytest.mark.slow  # trains (~70 s); fast sibling: test_spec_round_trip_and_errors
+def test_a_trained_crowd_policy_loads_and_exports(tmp_path):
+    """A tiny training with the encoder: `load_policy` rebuilds it from the run folder alone and
+    the exported artifact acts as it does."""
+    from mpcpearl_jax import export_policy, load_exported, load_policy, train
+
+    train(_tiny_crowd_cfg(), tmp_path / "run")
+    policy = load_policy(tmp_path / "run")
+    assert policy.nets.crowd is not None
+    ex = load_exported(export_policy(tmp_path / "run", tmp_path / "policy.export"))
+    rng = np.random.default_rng(0)
+    obs = rng.uniform(-1, 1, (5, policy.obs_dim)).astype(np.float32)
+    z = rng.normal(size=(5, policy.latent_dim)).astype(np.float32)
+    act, _ = policy.jit()
+    np.testing.assert_allclose(ex.act(obs, z), act(obs, z), atol=1e-6)
+
+
+def test_a_run_without_the_observation_entries_fails_before_training(tmp_path):
+    from mpcpearl_jax.config import validate
+
+    cfg = _tiny_crowd_cfg()
+    bad = dataclasses.replace(cfg, env_overrides=dict(EGO))
+    with pytest.raises(ConfigError, match="env.observe_presence=true"):
+        validate(bad)

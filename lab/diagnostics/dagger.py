@@ -28,6 +28,12 @@ the clone's initialisation (the tasks and crowds stay the same, so arms are pair
 
     python -m lab.diagnostics.dagger [--tiny] [--relative] [--sorted] [--encoder mlp|attention]
     [--forecast K] [--stride S] [--labels N] [--seed S] [--rounds N] [--out DIR]
+
+`--report DIR` (alone) reads the records in DIR, groups them by arm (everything but the seed)
+and writes DIR/README.md and DIR/report.json: per arm the final SR of each seed on the 192
+validation tasks, mean +- standard error over seeds, the worst seed, IQM with its bootstrap
+interval and the probability that a seed of the arm beats a seed of the MLP arm of the same
+inputs and label scale (rliable, as `lab.screen` computes them).
 """
 
 from __future__ import annotations
@@ -80,6 +86,89 @@ def record_name(args) -> str:
     return name + (f"-seed{args.seed}" if args.seed else "")
 
 
+def arm_of(config: dict) -> str:
+    """A record's arm: its representation, forecast and label scale (not its seed)."""
+    enc = config.get("encoder", "mlp")
+    arm = enc + (
+        f" + forecast {config['forecast']}x{config['stride']}" if config.get("forecast") else ""
+    )
+    return arm + (f", {config['labels']}x labels" if config.get("labels", 1) != 1 else "")
+
+
+def report(folder: Path) -> dict[str, Any]:
+    """The arms of the records in `folder` (see the module doc): README.md and report.json."""
+    import json
+
+    from lab import screen
+
+    arms: dict[str, dict[int, float]] = {}
+    samples: dict[str, list[int]] = {}
+    for path in sorted(folder.glob("dagger*.json")):
+        try:
+            rec = json.loads(path.read_text())
+            config, final = rec["config"], rec["results"]["final"]["mean"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"{path}: not a DAgger record ({type(e).__name__}: {e})") from e
+        if config.get("size") != "default":
+            continue
+        arm = arm_of(config)
+        arms.setdefault(arm, {})[int(config.get("seed", 0))] = float(final["SR"])
+        samples.setdefault(arm, []).append(int(rec["results"]["curve"][-1]["samples"]))
+    if not arms:
+        raise ValueError(f"{folder}: no DAgger record of the default size")
+    rows = []
+    for arm, by_seed in sorted(arms.items()):
+        scores = [by_seed[k] for k in sorted(by_seed)]
+        base_arm = arm.replace(arm.split(",")[0], "mlp", 1)
+        base = [arms[base_arm][k] for k in sorted(arms.get(base_arm, {}))]
+        row = {
+            "arm": arm,
+            "seeds": sorted(by_seed),
+            "val_SR": scores,
+            **screen.seed_stats(scores, "SR"),
+            "labels": samples[arm],
+            "iqm": screen.iqm(scores) if len(scores) > 1 else None,
+            "vs": base_arm,
+            "improvement": screen.improvement(scores, base)
+            if base and base_arm != arm and len(scores) > 1 and len(base) > 1
+            else None,
+        }
+        rows.append(row)
+
+    def fmt(x: float | None) -> str:
+        return "-" if x is None else f"{x:.2f}"
+
+    lines = [
+        "# DAgger clones of the MPC by representation",
+        "",
+        "`python -m lab.diagnostics.dagger --relative --sorted [--encoder attention] [--forecast 5"
+        " --stride 2] --seed S --out DIR`, then `python -m lab.diagnostics.dagger --report DIR`"
+        " (this page and report.json). The clone alone on the 192 validation tasks of task"
+        " seeds 1-8 after 12 DAgger rounds on the 120 training layouts (the same tasks and crowds"
+        " for every arm and seed); mean +- standard error over seeds, the worst seed, IQM"
+        " [95 % bootstrap interval] and P(a seed of the arm beats a seed of the MLP arm).",
+        "",
+        "| arm | seeds | val SR per seed | mean +- se | worst | IQM [95 %] | P(improvement) "
+        "vs mlp | labels |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        iq = r["iqm"]
+        pi = r["improvement"]
+        lines.append(
+            f"| {r['arm']} | {len(r['seeds'])} | {' '.join(f'{x:.2f}' for x in r['val_SR'])} | "
+            f"{fmt(r['mean'])} +- {fmt(r['se'])} | {fmt(r['worst'])} | "
+            + (f"{iq['value']:.2f} [{iq['ci'][0]:.2f}, {iq['ci'][1]:.2f}]" if iq else "-")
+            + " | "
+            + (f"{pi['value']:.2f} [{pi['ci'][0]:.2f}, {pi['ci'][1]:.2f}]" if pi else "-")
+            + f" | {min(r['labels'])}-{max(r['labels'])} |"
+        )
+    (folder / "README.md").write_text("\n".join(lines) + "\n")
+    (folder / "report.json").write_text(json.dumps({"arms": rows}, indent=1) + "\n")
+    print("\n".join(lines[-len(rows) - 2 :]), flush=True)
+    return {"arms": rows}
+
+
 def make_rollout(env, bridge, net):
     """`rollout(key, params, tasks [B], beta) -> (obs [T, B, O], mpc action [T, B, 2], label
     mask [T, B], collision [T, B], in_goal [T, B])`: the DAgger mixture, MPC solved every step."""
@@ -117,6 +206,17 @@ def make_rollout(env, bridge, net):
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    argv = list(argv) if argv is not None else None
+    import sys
+
+    args_in = sys.argv[1:] if argv is None else argv
+    if args_in[:1] == ["--report"]:
+        if len(args_in) != 2:
+            raise SystemExit("--report: give one folder of DAgger records, and nothing else")
+        try:
+            return report(Path(args_in[1]))
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
     p = harness.common_parser(__doc__.splitlines()[0])
     p.add_argument("--run", type=Path, default=DEFAULT_RUN, help="run directory (load_policy)")
     p.add_argument("--relative", action="store_true", help="add env.observe_relative")

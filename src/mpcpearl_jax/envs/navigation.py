@@ -136,8 +136,8 @@ class NavEnv:
         points and goal in the robot's frame (extension `observe_relative`)], [people's
         forecast (extension `observe_forecast`)], [presence (extension `observe_presence`)], [the
         elapsed time 2 t / T - 1 (extension `observe_time`)]. With the extension
-        `sensing_radius` a person farther than it from the robot counts as absent throughout. With `observe_sorted` the people are
-        listed nearest first in every part."""
+        `sensing_radius` a person farther than it from the robot counts as absent throughout.
+        With `observe_sorted` the people are listed nearest first in every part."""
         humans, mask = self.humans_at(params, state.t)
         prev, prev_mask = self.humans_at(params, jnp.maximum(state.t - 1, 0))
         lo, hi = params.static_lo, params.static_hi

@@ -7,7 +7,6 @@ from typing import Any
 
 from mpcpearl_jax import validate as v
 
-
 CROWD_ENCODERS = ("none", "attention")
 
 

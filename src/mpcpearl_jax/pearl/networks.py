@@ -245,6 +245,20 @@ NETWORK_FIELDS = (
 CROWD_FIELDS = ("crowd_encoder", "crowd_dim", "crowd_heads")
 
 
+def check_crowd_inputs(cfg: PearlConfig, part_names: Sequence[str]) -> None:
+    """ConfigError naming the env options a crowd encoder needs when the observation's parts
+    `part_names` lack them (nothing to check without one)."""
+    if cfg.crowd_encoder == "none":
+        return
+    need = {"people_ego": "env.observe_relative", "people_present": "env.observe_presence"}
+    missing = [opt for part, opt in need.items() if part not in part_names]
+    if missing:
+        raise ConfigError(
+            f"pearl.crowd_encoder={cfg.crowd_encoder} reads each person's egocentric position "
+            f"and presence: set {' and '.join(f'{m}=true' for m in missing)}"
+        )
+
+
 def crowd_spec(
     cfg: PearlConfig, obs_dim: int, obs_layout: Sequence[dict] | None
 ) -> CrowdSpec | None:
@@ -258,14 +272,7 @@ def crowd_spec(
             "(Networks(..., obs_layout=env.obs_layout(tasks)))"
         )
     layout = tuple((str(p["name"]), int(p["start"]), int(p["size"])) for p in obs_layout)
-    names = {n for n, _, _ in layout}
-    need = {"people_ego": "env.observe_relative", "people_present": "env.observe_presence"}
-    missing = [opt for part, opt in need.items() if part not in names]
-    if missing:
-        raise ConfigError(
-            f"pearl.crowd_encoder={cfg.crowd_encoder} reads each person's egocentric position "
-            f"and presence: set {' and '.join(f'{m}=true' for m in missing)}"
-        )
+    check_crowd_inputs(cfg, [n for n, _, _ in layout])
     end = max(s + k for _, s, k in layout)
     if end != obs_dim:
         raise ConfigError(f"observation layout covers {end} entries, the observation has {obs_dim}")
