@@ -77,6 +77,31 @@ def test_policy_on_each_split(tmp_path, split):
     assert (tmp_path / f"trajectory_{split}5.png").is_file()
 
 
+def test_a_full_disk_while_writing_a_figure_names_the_figure(tmp_path, capsys, monkeypatch):
+    """A full disk during the figures (after results.json): "[Errno 28] No space left on
+    device", naming no file. The line names the figure and says results.json was written; no
+    partial figure is left."""
+    import errno
+    import os
+
+    import mpcpearl_jax.envs
+
+    def full_disk(env_name, path, *args, **kwargs):
+        Path(path).write_bytes(b"\x89PNG partial")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as a write() raises it
+
+    monkeypatch.setattr(mpcpearl_jax.envs, "save_trajectory", full_disk)
+    argv = [str(RESTAURANT_RUN), "--tasks", "0", "--figures", "0", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    png = tmp_path / "trajectory_test0.png"
+    assert err == (
+        f"error: {png}: cannot write (No space left on device); {tmp_path / 'results.json'} was "
+        "written, this figure was not"
+    )
+    assert (tmp_path / "results.json").is_file() and not png.exists()
+
+
 @pytest.mark.slow  # (~13 s) pooling is also checked in the GrBAL command's test
 def test_task_seeds_pool_the_splits_of_several_task_set_seeds(tmp_path, capsys, monkeypatch):
     evaluators: dict = {}

@@ -7,6 +7,7 @@ an error here is a `UsageError` (a bad command line or input file, one line, exi
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -282,14 +283,33 @@ def write_figures(s: Setup, result: dict, animate: bool) -> list[Path]:
         pos, col = np.asarray(result["position"][0, j]), np.asarray(result["collision"][0, j])
         title = f"{s.label}{f' ({who})' if s.seed_ids else ''}, {s.env_name} {s.split} task {t}"
         png = s.out / f"trajectory_{s.split}{t}.png"
-        save_trajectory(s.env_name, png, task, {who: (pos, col)}, s.env_config, title)
+        with _names_the_file(png, s.out):
+            save_trajectory(s.env_name, png, task, {who: (pos, col)}, s.env_config, title)
         written.append(png)
         if animate:
-            gif = anim_lib.animate_result(
-                s.out / f"episode_{s.split}{t}.gif", result, s.tasks, s.env_config, j, 0, title
-            )
+            path = s.out / f"episode_{s.split}{t}.gif"
+            with _names_the_file(path, s.out):
+                gif = anim_lib.animate_result(path, result, s.tasks, s.env_config, j, 0, title)
             written.append(gif)
     return written
+
+
+@contextlib.contextmanager
+def _names_the_file(path: Path, out: Path):
+    """An OSError while writing the figure `path` (a full disk: "[Errno 28] No space left on
+    device", naming no file) raised again naming it, and saying that results.json was written
+    first; a partly written figure is removed."""
+    try:
+        yield
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            path.unlink(missing_ok=True)
+        why = e.strerror or str(e) or type(e).__name__
+        raise OSError(
+            e.errno,
+            f"cannot write ({why}); {out / 'results.json'} was written, this figure was not",
+            str(path),
+        ) from e
 
 
 def evaluate(
