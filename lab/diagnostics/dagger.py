@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from lab import harness
+from lab.diagnostics.crowd_cause import intervened_env
 from lab.diagnostics.imitation import DEFAULT_RUN, bc_mlp, closed_loop, run_name
 
 SIZES: dict[str, dict[str, Any]] = {
@@ -103,6 +104,7 @@ def report(folder: Path) -> dict[str, Any]:
 
     arms: dict[str, dict[int, float]] = {}
     samples: dict[str, list[int]] = {}
+    blinds: dict[str, dict[int, float]] = {}
     for path in sorted(folder.glob("dagger*.json")):
         try:
             rec = json.loads(path.read_text())
@@ -113,6 +115,8 @@ def report(folder: Path) -> dict[str, Any]:
             continue
         arm = arm_of(config)
         arms.setdefault(arm, {})[int(config.get("seed", 0))] = float(final["SR"])
+        if "SR_blind" in final:
+            blinds.setdefault(arm, {})[int(config.get("seed", 0))] = float(final["SR_blind"])
         samples.setdefault(arm, []).append(int(rec["results"]["curve"][-1]["samples"]))
     if not arms:
         raise ValueError(f"{folder}: no DAgger record of the default size")
@@ -127,6 +131,7 @@ def report(folder: Path) -> dict[str, Any]:
             "val_SR": scores,
             **screen.seed_stats(scores, "SR"),
             "labels": samples[arm],
+            "val_SR_blind": [blinds.get(arm, {}).get(k) for k in sorted(by_seed)],
             "iqm": screen.iqm(scores) if len(scores) > 1 else None,
             "vs": base_arm,
             "improvement": screen.improvement(scores, base)
@@ -146,11 +151,13 @@ def report(folder: Path) -> dict[str, Any]:
         " (this page and report.json). The clone alone on the 192 validation tasks of task"
         " seeds 1-8 after 12 DAgger rounds on the 120 training layouts (the same tasks and crowds"
         " for every arm and seed); mean +- standard error over seeds, the worst seed, IQM"
-        " [95 % bootstrap interval] and P(a seed of the arm beats a seed of the MLP arm).",
+        " [95 % bootstrap interval] and P(a seed of the arm beats a seed of the MLP arm); the"
+        " last column scores each seed's clone with nobody in its observation (the people still"
+        " collide; `lab.diagnostics.crowd_cause`'s blind condition), '-' where not measured.",
         "",
         "| arm | seeds | val SR per seed | mean +- se | worst | IQM [95 %] | P(improvement) "
-        "vs mlp | labels |",
-        "|---|---|---|---|---|---|---|---|",
+        "vs mlp | labels | SR with nobody observed |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         iq = r["iqm"]
@@ -161,7 +168,9 @@ def report(folder: Path) -> dict[str, Any]:
             + (f"{iq['value']:.2f} [{iq['ci'][0]:.2f}, {iq['ci'][1]:.2f}]" if iq else "-")
             + " | "
             + (f"{pi['value']:.2f} [{pi['ci'][0]:.2f}, {pi['ci'][1]:.2f}]" if pi else "-")
-            + f" | {min(r['labels'])}-{max(r['labels'])} |"
+            + f" | {min(r['labels'])}-{max(r['labels'])} | "
+            + " ".join(fmt(x) for x in r["val_SR_blind"])
+            + " |"
         )
     (folder / "README.md").write_text("\n".join(lines) + "\n")
     (folder / "report.json").write_text(json.dumps({"arms": rows}, indent=1) + "\n")
@@ -344,6 +353,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         bridge.close()
     per_seed = {int(ts): drive(prm, val[ts]) for ts in sz["final_seeds"]}
     pooled = {k: float(np.mean([x[k] for x in per_seed.values()])) for k in ("SR", "CFR")}
+    # the same clone with nobody in its observation (the people still collide): what it
+    # keeps without seeing anyone is what it does from memory (lab.diagnostics.crowd_cause)
+    blind = closed_loop(intervened_env(env.config, blind=True), net)
+    blind_seed = {int(ts): blind(prm, val[ts]) for ts in sz["final_seeds"]}
+    pooled.update(
+        {f"{k}_blind": float(np.mean([x[k] for x in blind_seed.values()])) for k in ("SR", "CFR")}
+    )
     n_tasks = sum(int(val[ts].start.shape[0]) for ts in per_seed)
     pooled["SR_stderr"] = float(np.sqrt(pooled["SR"] * (1 - pooled["SR"]) / n_tasks))
     harness.print_table(
@@ -351,14 +367,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     print(
         f"clone alone on val task seeds {list(per_seed)}: SR {pooled['SR']:.2f} +- "
-        f"{pooled['SR_stderr']:.2f}, CFR {pooled['CFR']:.2f}",
+        f"{pooled['SR_stderr']:.2f}, CFR {pooled['CFR']:.2f}; with nobody in its observation "
+        f"SR {pooled['SR_blind']:.2f}, CFR {pooled['CFR_blind']:.2f}",
         flush=True,
     )
     results = {
         "run": run_name(args.run),
         "observation": overrides,
         "curve": curve,
-        "final": {"per_task_seed": per_seed, "mean": pooled},
+        "final": {"per_task_seed": per_seed, "blind_per_task_seed": blind_seed, "mean": pooled},
     }
     config = {
         "size": size,
