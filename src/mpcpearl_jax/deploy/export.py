@@ -130,6 +130,9 @@ def sidecar(policy, run_dir: Path, seed_index: int, blobs: dict[str, bytes], pla
         "sensing_radius",
         "observe_time",
         "observe_sorted",
+        "observe_forecast",
+        "forecast_stride",
+        "observe_presence",
     )
     return {
         "format": FORMAT,
