@@ -20,7 +20,14 @@ import threading
 from collections.abc import Callable
 from typing import Any, NoReturn
 
-from mpcpearl_jax.training.stopping import install, received, restore, signal_name
+from mpcpearl_jax.training.stopping import (
+    compile_abandoned,
+    install,
+    interrupt,
+    received,
+    restore,
+    signal_name,
+)
 
 _finished: list[bool] = []  # a `stoppable` command returned (its output is complete)
 
@@ -37,10 +44,11 @@ def stop_signals_interrupt():
     KeyboardInterrupt as Ctrl-C does, and is recorded for `stop_exit_code`; inside
     `Session.train` the first one only asks the loop to stop (`training.stopping.stop_flag`)."""
     received.clear()
+    compile_abandoned.clear()
 
     def handler(signum, frame):
         received.append(signum)
-        raise KeyboardInterrupt
+        interrupt(signum, frame)
 
     old = install(handler)
     try:
@@ -50,14 +58,20 @@ def stop_signals_interrupt():
 
 
 def stoppable(main: Callable[..., int]) -> Callable[..., int]:
-    """A command's `main` run inside `stop_signals_interrupt`."""
+    """A command's `main` run inside `stop_signals_interrupt`. Where a stop signal left a JAX
+    compilation running (`training.stopping.compile_abandoned`), the process ends with main's
+    exit code once main has returned (its files closed, its pool shut down), without the
+    interpreter's teardown: tearing JAX's runtime down under the compilation crashed the
+    process (a segmentation fault in XLA's compiling thread, after the command's last line)."""
 
     @functools.wraps(main)
     def wrapper(*args: Any, **kwargs: Any) -> int:
         with stop_signals_interrupt():
             code = main(*args, **kwargs)
             _finished.append(True)
-            return code
+        if compile_abandoned:
+            _end(code)
+        return code
 
     return wrapper
 
@@ -104,6 +118,15 @@ def stops_with(line: str):
         return run
 
     return decorate
+
+
+def _end(code: int) -> NoReturn:
+    """End the process with `code` now, its output flushed, without the interpreter's
+    teardown."""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):  # closed, or mid-write
+            stream.flush()
+    os._exit(code)
 
 
 def exit_interrupted(line: str) -> NoReturn:

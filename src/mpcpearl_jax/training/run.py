@@ -49,7 +49,7 @@ from mpcpearl_jax.training.checkpoint import (
 from mpcpearl_jax.training.loop import Progress, train_loop
 from mpcpearl_jax.training.resources import check_state_fits
 from mpcpearl_jax.training.runlock import LOCK_FILE, RunLock
-from mpcpearl_jax.training.stopping import stop_flag
+from mpcpearl_jax.training.stopping import StopNow, stop_flag
 from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer, TrainState
 from mpcpearl_jax.validate import not_writable
 
@@ -260,7 +260,7 @@ class Session:
                     stop=stop,
                     clock=clock,
                 )
-            except IterationAbandoned:
+            except (IterationAbandoned, StopNow):  # StopNow: a first stop in a compilation
                 self.state = None  # consumed by the abandoned iteration
                 saved = max(where.saved, 0)
                 raise RunInterrupted(saved, where.iterations - saved) from None

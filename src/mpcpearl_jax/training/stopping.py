@@ -9,11 +9,21 @@ MPC's worker processes leave the process group and ignore these signals
 (`mpc.host.pool_worker_init`): the training process ends them. The commands' half (every stop
 signal as KeyboardInterrupt for a command's whole life, its one line and exit code) is
 `mpcpearl_jax.cli.stopping`.
+
+Where a signal raises, it raises through `interrupt`. JAX's compiler call
+(`backend_compile_and_load`) checks for signals while XLA compiles in a thread of its own: a
+KeyboardInterrupt raised there returns at once, and the compilation goes on in that thread.
+`interrupt` records it (`compile_abandoned`), and a command then ends without the interpreter's
+teardown, which, run under the live compilation, crashed the process (a segmentation fault in
+that thread) after its last line. A KeyboardInterrupt raised inside JAX's garbage-collection
+callback would be swallowed there ("Exception ignored"): `interrupt` sends the signal again
+instead, to be raised at the next line.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import threading
 from typing import Any
@@ -27,6 +37,38 @@ STOP_SIGNALS = tuple(
     getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)
 )
 received: list[int] = []  # the stop signals received (cleared when a command starts)
+# a stop signal raised KeyboardInterrupt inside JAX's compiler call: XLA goes on compiling
+compile_abandoned: list[bool] = []
+
+
+class StopNow(KeyboardInterrupt):
+    """The first stop signal, raised inside a JAX compilation when stopping there loses no
+    finished iteration (`stop_flag`): the stop takes effect at once instead of after the
+    compilation (seconds to minutes)."""
+
+
+def in_compile(frame) -> bool:
+    """Whether a signal handler's `frame` is JAX's call into XLA's compiler (where a
+    KeyboardInterrupt returns at once and leaves the compilation running)."""
+    code = getattr(frame, "f_code", None)
+    return (
+        code is not None
+        and code.co_name == "backend_compile_and_load"
+        and code.co_filename.endswith(os.path.join("jax", "_src", "compiler.py"))
+    )
+
+
+def interrupt(signum: int, frame, exc: type[KeyboardInterrupt] = KeyboardInterrupt) -> None:
+    """Raise `exc` from a stop signal's handler (module doc): recorded in `compile_abandoned`
+    where it leaves a compilation running; inside JAX's garbage-collection callback, which would
+    swallow it, the signal is sent to the main thread again (it raises at the next line)."""
+    if getattr(getattr(frame, "f_code", None), "co_name", "") == "_xla_gc_callback":
+        main = threading.main_thread().ident
+        threading.Timer(0.01, signal.pthread_kill, (main, signum)).start()
+        return
+    if in_compile(frame):
+        compile_abandoned.append(True)
+    raise exc
 
 
 def signal_name(signum: int) -> str:
@@ -60,7 +102,10 @@ class StopFlag:
 def stop_flag(enabled: bool, where: Progress):
     """A stop flag set by the first stop signal (Ctrl-C, SIGTERM, SIGHUP): the loop saves and
     stops (`loop.train_loop`); a second one raises KeyboardInterrupt at once. The first signal
-    is reported (`notices.warn`): what is saved, and what a second signal does."""
+    is reported (`notices.warn`): what is saved, and what a second signal does. Where no
+    finished iteration is unsaved, a first signal that arrives during a JAX compilation raises
+    `StopNow` there (the compilation of the first iteration's programs takes a minute or more,
+    and the flag is read only between phases)."""
     if not enabled or threading.current_thread() is not threading.main_thread():
         yield None
         return
@@ -69,11 +114,14 @@ def stop_flag(enabled: bool, where: Progress):
     def handler(signum, frame):
         received.append(signum)
         if flag.asked:
-            raise KeyboardInterrupt
+            interrupt(signum, frame)
+            return
         flag.asked = True
         name = signal_name(signum)
         if where.iterations == max(where.saved, 0):  # nothing unsaved: at the next boundary
             warn(f"\n{name}: stopping at the next phase boundary ({name} again: at once)")
+            if in_compile(frame):
+                interrupt(signum, frame, StopNow)
             return
         back = f"iteration {where.saved}" if where.saved >= 0 else "the start"
         warn(

@@ -54,6 +54,16 @@ class IterationAbandoned(Exception):
     was consumed (its buffers donated) and must not be used: restore a checkpoint."""
 
 
+def _poll(state: TrainState, stop: Callable[[], bool] | None) -> None:
+    """Between two collection phases: once the phase dispatched last has run, raise
+    IterationAbandoned if stop() is true (a stop in the first iteration then waits for one phase
+    at most, not for the whole collection)."""
+    if stop is not None:
+        jax.block_until_ready(state.rl.size)
+        if stop():
+            raise IterationAbandoned
+
+
 # gradient steps per jitted update call: the update phase runs in chunks of this many steps (the
 # same keys and results as one scan), so a stop request is answered between chunks (~7 s at the
 # paper's sizes on a 2-core CPU)
@@ -424,7 +434,8 @@ class Trainer:
         when an event fires and rand <= eps (lines 8-11; `collection`), else by pi_theta (line
         13). The extensions (docs/extensions.md) hook in where named: re-drawn or delayed crowds
         per visit, exploring-start rows in the posterior phase. stop (e.g. set by
-        Ctrl-C) is polled before the updates and between update chunks; once true the iteration
+        Ctrl-C) is polled between the collection phases, before the updates and between update
+        chunks; once true the iteration
         is abandoned with IterationAbandoned (the state passed in is consumed). With
         `train.pipeline` the collection runs beside the updates instead, one iteration ahead
         (`_pipelined_iteration`)."""
@@ -436,8 +447,9 @@ class Trainer:
         it = int(first_local(state.iteration))
         if it == 0:
             state, _ = self.initial_collection(state)
+            _poll(state, stop)
         # data collection (lines 4-17)
-        state, prior, post = self._collect_visit(state, it + 1)
+        state, prior, post = self._collect_visit(state, it + 1, stop)
         jax.block_until_ready(state.rl.size)
         t1 = time.perf_counter()
         # training (lines 18-23): N_train gradient steps
@@ -446,16 +458,19 @@ class Trainer:
         t2 = time.perf_counter()
         return self._finish_iteration(state, it, losses, prior, post, t1 - t0, t2 - t1)
 
-    def _collect_visit(self, state: TrainState, visit: int) -> tuple[TrainState, dict, Any]:
+    def _collect_visit(
+        self, state: TrainState, visit: int, stop: Callable[[], bool] | None = None
+    ) -> tuple[TrainState, dict, Any]:
         """Algorithm 1 lines 4-17 for every seed: `tasks_per_iteration` training tasks drawn at
         random, visited (`visit` numbers the visit for the extensions that change a task), their
         prior-phase then posterior-phase episodes stored -> (state, prior stats, posterior stats
-        or None)."""
+        or None); stop is polled after each phase (`_poll`)."""
         state, ids = self._choose_tasks(state, self.cfg.train.tasks_per_iteration)
         state = self._visit_tasks(state, ids, visit)
         state, prior = self.prior_collection(state, ids)  # lines 5-15: z ~ N(0, I)
         post = None
         if self.cfg.train.posterior_episodes > 0:
+            _poll(state, stop)
             state, post = self.posterior_collection(state, ids)  # lines 16-17: z ~ q_phi(z | c)
         return state, prior, post
 
@@ -488,7 +503,9 @@ class Trainer:
         it = int(first_local(state.iteration))
         if it == 0:  # the first iteration's episodes, acted by the initial policy
             state, _ = self.initial_collection(state)
-            state, _, _ = self._collect_visit(state, 1)
+            _poll(state, stop)
+            state, _, _ = self._collect_visit(state, 1, stop)
+            _poll(state, stop)
         keys, sub = _split_keys(state.key, 1)  # the collection's own key stream
         state = state.replace(key=keys)
         acting = self._copy_jit(
