@@ -3,12 +3,12 @@
 
 Runs the `cpu-explore` preset on the restaurant tasks (one seed, eps 0.2 unless set) for at most
 `--seconds`, and records every SQP problem the bridge hands to its host solver (`RowProblem`)
-with the warm-start plan it got (the shifted previous plan, or a cold start). The file keeps, per
-problem, the pose, goal, static obstacles, the GP prediction's per-stage mean and variance of each
-person (estimated from the row's M samples) and the warm-start plan, all float32; the samples are
-regenerated from them with a stored per-problem key (`regenerate`, `gp.sample_predictions`). The
-host solver on OSQP then solves every regenerated problem, and its first input, reason and
-decision are stored too.
+with the warm-start plan it got (the shifted previous plan, or a cold start), in the format that
+`mpcpearl_jax.mpc.recorded` reads: per problem, the pose, goal, static obstacles, the GP
+prediction's per-stage mean and variance of each person (estimated from the row's M samples) and
+the warm-start plan, all float32; the samples are regenerated from them with a stored per-problem
+key (`recorded.regenerate`). The host solver on OSQP then solves every regenerated problem, and
+its first input, reason and decision are stored too.
 
     python -m benchmarks.record_mpc_problems [--seconds 90] [--count 1200]
         [--out tests/data/mpc_problems.npz]
@@ -24,6 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
+from mpcpearl_jax.mpc.recorded import (
+    Recorded,
+    params_record,
+    qp_settings_of,
+    regenerate,
+    solver_params_of,
+)
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "tests" / "data" / "mpc_problems.npz"
 
@@ -33,6 +41,7 @@ def record(seconds: float, count: int, eps: float) -> tuple[list, list, dict]:
     from mpcpearl_jax.config import resolve
     from mpcpearl_jax.mpc.host import HostSolver
     from mpcpearl_jax.mpc.problem import solver_params
+    from mpcpearl_jax.mpc.qp_osqp import OSQPSettings
     from mpcpearl_jax.training.trainer import Trainer
 
     cfg = resolve("cpu-explore", env="restaurant")
@@ -61,7 +70,7 @@ def record(seconds: float, count: int, eps: float) -> tuple[list, list, dict]:
         tr.close()
     finally:
         HostSolver.solve_rows = original  # type: ignore[method-assign]
-    return probs, inits, dataclasses.asdict(params)
+    return probs, inits, params_record(params, OSQPSettings.from_config(cfg.mpc))
 
 
 def compress(probs: list, inits: list, params: dict) -> dict[str, np.ndarray]:
@@ -86,52 +95,17 @@ def compress(probs: list, inits: list, params: dict) -> dict[str, np.ndarray]:
     return out
 
 
-def solver_params_of(data) -> object:
-    """The SolverParams stored in a problem file (fields added since: the MPCConfig default)."""
-    from mpcpearl_jax.mpc.problem import SolverParams
-
-    d = {"multi_start": "off", **json.loads(str(data["params"]))}
-    d["osqp_settings"] = tuple(tuple(x) for x in d["osqp_settings"])
-    return SolverParams(**d)
-
-
-def regenerate(data, num_samples: int):
-    """RowProblem batch (float32, leading axis N) of a problem file: samples drawn from the stored
-    mean and variance with key PRNGKey(seed) per problem (`gp.sample_predictions`)."""
-    import jax
-
-    from mpcpearl_jax.mpc.gp import sample_predictions
-    from mpcpearl_jax.mpc.problem import RowProblem
-
-    keys = jax.vmap(jax.random.PRNGKey)(np.asarray(data["seed"]))
-    draw = jax.vmap(lambda k, m, v: sample_predictions(k, m, v, num_samples))
-    samples = np.asarray(draw(keys, data["mean"], data["var"]))
-    return RowProblem(
-        np.asarray(data["x0"]),
-        np.asarray(data["goal"]),
-        samples,
-        np.asarray(data["valid"]),
-        np.asarray(data["static_lo"]),
-        np.asarray(data["static_hi"]),
-        np.asarray(data["static_radius"]),
-    )
-
-
 def solve_reference(data) -> dict[str, np.ndarray]:
     """The host solver on OSQP on every regenerated problem: first input, reason, ok."""
-    from mpcpearl_jax.mpc.host import SQPSolver
-    from mpcpearl_jax.mpc.problem import RowProblem
+    from mpcpearl_jax.mpc.sqp import SQPSolver
 
     params = solver_params_of(data)
-    solver = SQPSolver(params)
+    solver = SQPSolver(params, qp_settings_of(data))
     batch = regenerate(data, params.num_samples)
+    rec = Recorded(data, params, solver.qp, batch)
     first, reason, ok = [], [], []
-    for i in range(batch.x0.shape[0]):
-        row = RowProblem(
-            *(np.asarray(a[i], np.float64 if a.dtype.kind == "f" else None) for a in batch)
-        )
-        init = np.asarray(data["u_init"][i], np.float64) if data["has_init"][i] else None
-        res = solver.solve(row, init)
+    for i in range(len(rec)):
+        res = solver.solve(*rec.row(i))
         first.append(res.u[0])
         reason.append(res.reason)
         ok.append(res.ok)

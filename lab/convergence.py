@@ -108,48 +108,33 @@ def _write(path: Path, record: dict) -> None:
 
 # ----------------------------------------------------------------------------- recorded problems
 def _load_problems(count: int):
-    from benchmarks.record_mpc_problems import regenerate, solver_params_of
-    from mpcpearl_jax.mpc.problem import RowProblem
+    from mpcpearl_jax.mpc import recorded
 
-    with np.load(PROBLEMS) as f:
-        data = {k: f[k] for k in f.files}
-    base = solver_params_of(data)
-    batch = regenerate(data, base.num_samples)
-    n = batch.x0.shape[0]
-    ids = np.linspace(0, n - 1, min(count, n)).round().astype(int)
-    rows = []
-    for i in ids:
-        row = RowProblem(
-            *(np.asarray(a[i], np.float64 if a.dtype.kind == "f" else None) for a in batch)
-        )
-        init = np.asarray(data["u_init"][i], np.float64) if data["has_init"][i] else None
-        rows.append((int(i), row, init))
-    return base, rows, data
+    rec = recorded.load(PROBLEMS)
+    ids = np.linspace(0, len(rec) - 1, min(count, len(rec))).round().astype(int)
+    return rec, [(int(i), *rec.row(i)) for i in ids]
 
 
-def _params(base, fields: dict):
-    """The recorded problems' SolverParams with MPCConfig-named fields replaced."""
+def _solver(rec, fields: dict):
+    """The SQP on the recorded problems' params and OSQP settings, MPCConfig-named fields
+    replaced (`osqp_*` in OSQP's settings)."""
+    from mpcpearl_jax.mpc.sqp import SQPSolver
+
     osqp_keys = {
         "osqp_eps_abs": "eps_abs",
         "osqp_eps_rel": "eps_rel",
         "osqp_max_iter": "max_iter",
         "osqp_polish": "polishing",
     }
-    settings = dict(base.osqp_settings)
+    qp = {osqp_keys[k]: v for k, v in fields.items() if k in osqp_keys}
     plain = {"unsafe_recovery": False, "multi_start": "off"}
-    for k, v in fields.items():
-        if k in osqp_keys:
-            settings[osqp_keys[k]] = v
-        else:
-            plain[k] = v
-    return dataclasses.replace(base, osqp_settings=tuple(settings.items()), **plain)
+    plain.update({k: v for k, v in fields.items() if k not in osqp_keys})
+    return SQPSolver(dataclasses.replace(rec.params, **plain), dataclasses.replace(rec.qp, **qp))
 
 
 def part_problems(args) -> None:
-    from mpcpearl_jax.mpc.host import SQPSolver
-
-    base, rows, _ = _load_problems(args.count)
-    ref_solver = SQPSolver(_params(base, REFERENCE))
+    rec, rows = _load_problems(args.count)
+    ref_solver = _solver(rec, REFERENCE)
     t0 = time.perf_counter()
     ref = [ref_solver.solve(row, init) for _, row, init in rows]
     print(f"reference on {len(rows)} problems: {time.perf_counter() - t0:.1f} s", flush=True)
@@ -167,7 +152,7 @@ def part_problems(args) -> None:
         "settings": {},
     }
     for name in _selected(args):
-        solver = SQPSolver(_params(base, SETTINGS[name]))
+        solver = _solver(rec, SETTINGS[name])
         with _CPUClock() as clock:
             res = [solver.solve(row, init) for _, row, init in rows]
         out["settings"][name] = _problem_stats(SETTINGS[name], res, ref_merit, ref_first)
@@ -233,9 +218,9 @@ class _CPUClock:
         self.cpu_s: list[float] = []
 
     def __enter__(self):
-        from mpcpearl_jax.mpc import host
+        from mpcpearl_jax.mpc import sqp
 
-        self._orig = orig = host.SQPSolver.solve
+        self._orig = orig = sqp.SQPSolver.solve
         clock = self
 
         def timed(self_, *a, **kw):
@@ -244,13 +229,13 @@ class _CPUClock:
             clock.cpu_s.append(time.thread_time() - t0)
             return res
 
-        host.SQPSolver.solve = timed
+        sqp.SQPSolver.solve = timed
         return self
 
     def __exit__(self, *exc):
-        from mpcpearl_jax.mpc import host
+        from mpcpearl_jax.mpc import sqp
 
-        host.SQPSolver.solve = self._orig
+        sqp.SQPSolver.solve = self._orig
 
 
 def _cpu_stats(cpu_s) -> dict:

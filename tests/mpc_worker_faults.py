@@ -11,9 +11,9 @@ import time
 from mpcpearl_jax.mpc.host import solve_in_worker
 
 
-def faulty_solve(params, prob, u_init):
+def faulty_solve(params, prob, u_init, qp=None):
     if prob.goal[0] > 100:
         os.kill(os.getpid(), signal.SIGKILL)
     if prob.goal[0] < -100:
         time.sleep(600)
-    return solve_in_worker(params, prob, u_init)
+    return solve_in_worker(params, prob, u_init, qp)

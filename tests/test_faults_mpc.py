@@ -160,7 +160,7 @@ def test_mpc_pool_workers_exit_when_the_training_process_is_killed(tmp_path):
         "import os, time\n"
         "from concurrent.futures import ProcessPoolExecutor\n"
         "from multiprocessing import get_context\n"
-        "from mpcpearl_jax.mpc.host import watch_parent\n"
+        "from mpcpearl_jax.mpc.pool import watch_parent\n"
         "if __name__ == '__main__':\n"
         "    pool = ProcessPoolExecutor(2, mp_context=get_context('spawn'),\n"
         "                               initializer=watch_parent, initargs=(os.getpid(), 0.2))\n"

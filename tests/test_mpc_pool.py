@@ -13,7 +13,8 @@ import pytest
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.mpc import HostSolver, MPCConfig
 from mpcpearl_jax.mpc.bridge import pack_rows
-from mpcpearl_jax.mpc.host import MAX_AUTO_WORKERS, pool_size, unpack_rows
+from mpcpearl_jax.mpc.host import unpack_rows
+from mpcpearl_jax.mpc.pool import MAX_AUTO_WORKERS, pool_size
 
 PROBLEMS = Path(__file__).parent / "data" / "mpc_problems.npz"
 
@@ -62,12 +63,11 @@ def test_rows_solved_in_the_pool_equal_rows_solved_here():
     """A call's outputs do not depend on where its rows are solved (each row's result depends
     only on its problem and start); the pool started ahead (`start`) serves the first call, and
     a call in the pool records its send and return times; one row is solved here."""
-    from benchmarks.record_mpc_problems import regenerate, solver_params_of
     from mpcpearl_jax.envs import make_env
+    from mpcpearl_jax.mpc import recorded
 
-    with np.load(PROBLEMS) as f:
-        data = {k: f[k] for k in f.files}
-    probs = regenerate(data, solver_params_of(data).num_samples)
+    rec = recorded.load(PROBLEMS)
+    data, probs = rec.data, rec.batch
     nav = make_env("restaurant").config
     cfg = MPCConfig(sqp_iters=2, sqp_step_tol=0.05, line_search_steps=3, unsafe_recovery=True)
     rows = np.array([3, 150, 420, 700, 1010])

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.record_mpc_problems import regenerate, solver_params_of
 from mpcpearl_jax.errors import ConfigError
-from mpcpearl_jax.mpc import MPCConfig, RowProblem, SQPSolver
+from mpcpearl_jax.mpc import MPCConfig, SQPSolver
 from mpcpearl_jax.mpc.problem import SQP_STOPS, START_NAMES, merit, starts
+from mpcpearl_jax.mpc.recorded import load
 from tests.test_mpc_model import _row_problem
 
 PICK = (3, 150, 420, 700, 1010)  # recorded problems, spread over the recording
@@ -20,19 +20,9 @@ PICK = (3, 150, 420, 700, 1010)  # recorded problems, spread over the recording
 
 @pytest.fixture(scope="module")
 def recorded():
-    path = Path(__file__).parent / "data" / "mpc_problems.npz"
-    with np.load(path) as f:
-        data = {k: f[k] for k in f.files}
-    base = dataclasses.replace(solver_params_of(data), unsafe_recovery=False)
-    batch = regenerate(data, base.num_samples)
-    rows = []
-    for i in PICK:
-        row = RowProblem(
-            *(np.asarray(a[i], np.float64 if a.dtype.kind == "f" else None) for a in batch)
-        )
-        init = np.asarray(data["u_init"][i], np.float64) if data["has_init"][i] else None
-        rows.append((row, init))
-    return base, rows
+    rec = load(Path(__file__).parent / "data" / "mpc_problems.npz")
+    base = dataclasses.replace(rec.params, unsafe_recovery=False)
+    return base, [rec.row(i) for i in PICK]
 
 
 def _solve(base, row, init, **fields):

@@ -109,7 +109,7 @@ def test_a_stop_signal_to_the_whole_process_group_saves_and_resumes(tmp_path, si
 _POOL_PARENT = """
 import os, signal, sys, time
 from multiprocessing import resource_tracker
-from mpcpearl_jax.mpc.host import make_pool, stop_signals_blocked
+from mpcpearl_jax.mpc.pool import make_pool, stop_signals_blocked
 
 if __name__ == "__main__":
     got = []
@@ -470,7 +470,7 @@ def test_the_sqp_passes_on_a_ctrl_c_that_osqp_took_and_solves_again(monkeypatch)
 _OSQP_STOP = """
 import os, signal, subprocess, sys
 import numpy as np, scipy.sparse as sp, osqp
-from mpcpearl_jax.mpc.host import solve_through_stops
+from mpcpearl_jax.mpc.qp_osqp import solve_through_stops
 
 
 def problem():  # a QP OSQP takes about a second or more for
@@ -509,7 +509,7 @@ if __name__ == "__main__":
     print("flag", st == status and np.array_equal(x, clean), got == [signal.SIGINT], flush=True)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     print("raise", solve(True)[2], flush=True)
-    from mpcpearl_jax.mpc.host import make_pool
+    from mpcpearl_jax.mpc.pool import make_pool
 
     pool = make_pool(1)
     st, x, raised = pool.submit(in_worker).result()
@@ -520,7 +520,7 @@ if __name__ == "__main__":
 
 @pytest.mark.slow  # (~15 s: five solves of a large QP)
 def test_a_ctrl_c_osqp_takes_during_a_solve_reaches_python_and_the_solve_is_redone(tmp_path):
-    """A real SIGINT during a real OSQP solve (`mpc.host.solve_through_stops`): in the
+    """A real SIGINT during a real OSQP solve (`mpc.qp_osqp.solve_through_stops`): in the
     training process it reaches Python's handler (a stop flag records it; the default handler
     raises KeyboardInterrupt) and the QP is solved again to the same solution; in an MPC pool
     worker, which ignores SIGINT, the solution is the same as without the signal."""

@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
         def solve_rows(self, probs, inits, num_static):
             results = super().solve_rows(probs, inits, num_static)
             params = solver_params(self.cfg, self.nav, num_static)
-            solver = SQPSolver(params)
+            solver = SQPSolver(params, self.qp)
             step = []
             for prob, u0, res in zip(probs, inits, results, strict=True):
                 others = {}

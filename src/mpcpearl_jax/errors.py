@@ -28,4 +28,16 @@ class RunDirError(RuntimeError):
     folder."""
 
 
-__all__ = ["CheckpointError", "ConfigError", "DataFormatError", "RunDirError", "TrainingDiverged"]
+class WorkerPoolError(RuntimeError):
+    """The MPC's worker pool cannot start (`mpc.pool`): the message says why and what to change
+    (e.g. the main guard a spawned process needs, or `mpc.n_workers=1`)."""
+
+
+__all__ = [
+    "CheckpointError",
+    "ConfigError",
+    "DataFormatError",
+    "RunDirError",
+    "TrainingDiverged",
+    "WorkerPoolError",
+]

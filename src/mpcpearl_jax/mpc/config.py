@@ -38,7 +38,7 @@ class MPCConfig:
     v_max: float | None = 5.0
     steer_max: float = 1.5  # |delta| cap of the MPC (< pi/2, where tan(delta) diverges)
     terminal_weight: float = 20.0  # Q_f = terminal_weight * Q
-    # SQP (on the host, on OSQP: `mpc.host`). The defaults run it to convergence, as
+    # SQP (on the host, its QPs on OSQP: `mpc.sqp`). The defaults run it to convergence, as
     # the paper's NLP solver: it ends on a step below `sqp_step_tol` or where the line search
     # finds no decrease, median 0.03 % above the best plan known on problems recorded from
     # training (docs/method.md §6); the presets other than `paper` cap it at 5 QPs
@@ -58,6 +58,7 @@ class MPCConfig:
     # extension (off = method §6): also run the SQP from a cold start and from standing still
     # (MULTI_STARTS), keeping the safe plan of lowest exact merit
     multi_start: str = "off"
+    # the QP backend OSQP's own settings (read by `mpc.qp_osqp.OSQPSettings.from_config` only)
     osqp_eps_abs: float = 1e-3
     osqp_eps_rel: float = 1e-3
     osqp_max_iter: int = 200
@@ -75,7 +76,7 @@ class MPCConfig:
     gp_noise_std: float = 0.01  # m per step
     gp_static_tol: float = 1e-4  # a person who moved less than this in the last step is static
     # execution
-    # worker processes that solve a call's fired rows side by side (`mpc.host.pool_size`): 1, in
+    # worker processes that solve a call's fired rows side by side (`mpc.pool.pool_size`): 1, in
     # the calling process; N > 1, a pool of N, at most one per core this process may use; 0, one
     # per core, at most 8. A call with one fired row solves it in the calling process
     n_workers: int = 1

@@ -1,5 +1,5 @@
-"""The risk-aware MPC's problem (paper eq. (4), method §6) in NumPy: what the host SQP solves,
-without the QP solver itself (`mpc.host`, on OSQP).
+"""The risk-aware MPC's problem (paper eq. (4), method §6) in NumPy: what the host SQP solves
+(`mpc.sqp`), without the QP solver itself or its settings (`mpc.qp`, `mpc.qp_osqp`).
 
 One row's problem (`RowProblem`) and the solver's settings resolved against the env
 (`SolverParams`, `solver_params`); the SQP's starting plans (`cold_start`, `stop_start`,
@@ -60,24 +60,13 @@ class SolverParams:
     unsafe_tol: float
     unsafe_recovery: bool
     multi_start: str
-    osqp_settings: tuple[tuple[str, float | int | bool], ...]
 
 
 def solver_params(cfg: MPCConfig, nav: NavConfig, num_static: int) -> SolverParams:
-    """Resolve the MPC config against the env config (r_safe, v_max, weights, thresholds)."""
+    """Resolve the MPC config against the env config (r_safe, v_max, weights, thresholds); the
+    QP solver's own settings are not part of the problem (`qp_osqp.OSQPSettings.from_config`)."""
     r_safe = nav.r_safe if cfg.r_safe is None else cfg.r_safe
     v_max = nav.v_max if cfg.v_max is None else min(cfg.v_max, nav.v_max)
-    osqp_settings = (
-        ("eps_abs", cfg.osqp_eps_abs),
-        ("eps_rel", cfg.osqp_eps_rel),
-        ("max_iter", cfg.osqp_max_iter),
-        ("rho", cfg.osqp_rho),
-        ("check_termination", cfg.osqp_check_termination),
-        ("adaptive_rho_interval", cfg.osqp_adaptive_rho_interval),
-        ("polishing", cfg.osqp_polish),
-        ("warm_starting", True),
-        ("verbose", False),
-    )
     return SolverParams(
         horizon=cfg.horizon,
         num_samples=cfg.num_samples,
@@ -104,7 +93,6 @@ def solver_params(cfg: MPCConfig, nav: NavConfig, num_static: int) -> SolverPara
         unsafe_tol=cfg.unsafe_tol,
         unsafe_recovery=cfg.unsafe_recovery,
         multi_start=cfg.multi_start,
-        osqp_settings=osqp_settings,
     )
 
 
