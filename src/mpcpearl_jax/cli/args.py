@@ -91,7 +91,8 @@ def field_comments(cls: type) -> dict[str, tuple[str, str]]:
     for node in ast.parse(src).body[0].body:  # type: ignore[attr-defined]
         if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
             continue
-        above, line = [], node.lineno - 1
+        above: list[str] = []
+        line = node.lineno - 1
         while line in comments and comments[line][1]:
             above.insert(0, comments[line][0])
             line -= 1
@@ -133,7 +134,7 @@ def config_help(cls: type = ExperimentConfig, width: int = 100) -> str:
                 continue
             default = f.default
             if default is dataclasses.MISSING:
-                default = f.default_factory()  # type: ignore[misc]
+                default = f.default_factory()  # type: ignore[misc,operator]
             heading, text = notes.get(f.name, ("", ""))
             if heading:
                 lines += textwrap.wrap(f"-- {heading}", width, initial_indent="  ")
@@ -309,7 +310,7 @@ def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfi
     base: str | ExperimentConfig = args.preset
     run = _resumed_run(args, env)
     if run is not None and isinstance(args.preset, DefaultPreset):  # the run's own config
-        base, args.preset = run, DefaultPreset(recorded_preset(run))
+        base, args.preset = run, DefaultPreset(recorded_preset(run).split()[0])
     if getattr(args, "config", None) is not None:
         base = read_config(args.config)
         if base.env != env:
@@ -367,9 +368,9 @@ def recorded_preset(cfg: ExperimentConfig) -> str:
     and the task source left out), as 'NAME', or 'NAME plus N changed field(s)'."""
     from mpcpearl_jax.training.checkpoint import config_differences
 
-    ignore = ("train.iterations", "train.eps", "seeds", "seed", "devices", "pearl.use_context")
-    ignore += ("scenarios", "hold_out_val", "data", "env_overrides")
-    counts = {}
+    ignore: tuple[str, ...] = ("train.iterations", "train.eps", "seeds", "seed", "devices")
+    ignore += ("pearl.use_context", "scenarios", "hold_out_val", "data", "env_overrides")
+    counts: dict[str, int] = {}
     for name in sorted(PRESETS):
         try:
             counts[name] = len(config_differences(cfg, resolve(name, cfg.env), ignore=ignore))

@@ -111,7 +111,7 @@ def train(
     t_wall0 = time.perf_counter()
     with open_session(
         cfg,
-        out,
+        Path(out),
         opts.resume,
         until_budget=curve,
         kind=kind,
