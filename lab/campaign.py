@@ -240,8 +240,11 @@ def check_unchanged(run: CampaignRun, folder: Path) -> None:
         then = Config.from_dict(json.loads(recorded.read_text()))
     except (ConfigError, TypeError, ValueError) as e:
         raise ValueError(f"{run.name}: cannot compare its argv with {recorded}: {e}") from e
-    # a learning run records the iterations it did (its budget is time); devices never matter
-    ignore = ("devices", "train.iterations") if run.trainer == "learning" else ("devices",)
+    # a learning run records the iterations it did (its budget is time); where a run computed
+    # never matters (`config.RESULT_NEUTRAL`: devices, the MPC's worker processes)
+    from mpcpearl_jax.config import RESULT_NEUTRAL
+
+    ignore = (*RESULT_NEUTRAL, "train.iterations") if run.trainer == "learning" else RESULT_NEUTRAL
     diff = config_differences(then, now, ignore)
     if diff:
         raise ValueError(

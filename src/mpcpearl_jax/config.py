@@ -215,6 +215,14 @@ class ExperimentConfig(SerializableConfig):
         )
 
 
+# Fields that choose where a run computes, never what: the devices its seeds are split over
+# (per-seed results do not depend on it) and the MPC's worker processes (each row's solve
+# depends only on its own problem and warm start, never on the worker that solves it or what
+# that worker solved before: tests/test_worker_count.py). A run resumes, and a committed run's
+# config is rebuilt, with them changed (`training.checkpoint.config_differences`).
+RESULT_NEUTRAL: tuple[str, ...] = ("devices", "mpc.n_workers")
+
+
 # Options removed after they measured no gain (docs/extensions.md, "Removed options"), with
 # their off value: section -> {field: off value}. Every one of them acted on training only
 # (what the critics learned; `keep_best`, which of the trained policies was saved; the MPC's
@@ -444,8 +452,9 @@ _OBSERVATION: dict[str, Any] = dict(
 _EXPERT: dict[str, Any] = dict(
     sqp_iters=2, sqp_step_tol=0.05, line_search_steps=3, unsafe_recovery=True
 )
-# the expert and two host processes for the MPC solves
-_MPC_RECOVERY: dict[str, Any] = dict(_EXPERT, n_workers=2)
+# the expert, its rows solved by one host process per core (at most 8; `RESULT_NEUTRAL`: the
+# committed runs of these presets were trained with 2, to the same results)
+_MPC_RECOVERY: dict[str, Any] = dict(_EXPERT, n_workers=0)
 
 # name -> {section: {field: value}}: the differences from `paper`
 PRESET_CHANGES: dict[str, dict[str, dict[str, Any]]] = {

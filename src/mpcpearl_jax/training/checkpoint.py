@@ -32,9 +32,12 @@ def check_resumable(
     saved: Any, cfg: Any, run_dir: Path, iterations: str = "train.iterations"
 ) -> None:
     """Resuming needs the same config except for the number of iterations (the field
-    `iterations`, e.g. 'grbal.iterations' for GrBAL) and the number of devices (per-seed results
-    do not depend on it, orbax restores onto the new layout)."""
-    diff = config_differences(saved, cfg, ignore=(iterations, "devices"))
+    `iterations`, e.g. 'grbal.iterations' for GrBAL) and the fields that do not change results
+    (`config.RESULT_NEUTRAL`: the devices, orbax restores onto the new layout; the MPC's worker
+    processes)."""
+    from mpcpearl_jax.config import RESULT_NEUTRAL
+
+    diff = config_differences(saved, cfg, ignore=(iterations, *RESULT_NEUTRAL))
     if diff:
         raise CheckpointError(
             f"{run_dir}: the saved config differs from the requested one in {diff}; "
