@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     except (NotARun, OSError) as e:
         if args.debug:
             raise
-        from experiments.common import error_line
+        from mpcpearl_jax.cli.errors import error_line
 
         print(f"error: {error_line(e)}", file=sys.stderr)
         return 2

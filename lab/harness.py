@@ -1,6 +1,7 @@
-"""What the lab's diagnostics share (`lab.diagnostics.imitation`, `lab.diagnostics.crowd_cause`):
-their command line (--tiny, --full, --out, --threads), the cores they use and their JSON record
-(`mpcpearl_jax.training.machine`), and a one-off timing."""
+"""What the lab's diagnostics share (`lab.diagnostics.imitation`, `lab.diagnostics.crowd_cause`,
+`lab.diagnostics.shield`): their command line (--tiny, --full, --out, --threads), the cores they
+use, their table and JSON record (`mpcpearl_jax.training.machine`, `report`), and a one-off
+timing."""
 
 from __future__ import annotations
 
@@ -49,6 +50,22 @@ def configure_threads(n: int | None) -> dict[str, Any]:
 def size_of(args: argparse.Namespace) -> str:
     """'tiny', 'default' or 'full' from the parsed flags."""
     return next(s for s, on in (("tiny", args.tiny), ("full", args.full), ("default", True)) if on)
+
+
+def report(
+    name: str,
+    title: str,
+    rows: list[dict],
+    cols: list[str],
+    config: dict[str, Any],
+    record_rows: list[dict],
+    out: Path,
+) -> dict[str, Any]:
+    """A diagnostic's end: its table printed, its record written (out/name.json); returns
+    {"config", "rows"}."""
+    print_table(rows, cols, title)
+    write_record(name, config, record_rows, out)
+    return {"config": config, "rows": record_rows}
 
 
 def timed(fn: Callable[[], Any]) -> tuple[Any, float]:

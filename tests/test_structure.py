@@ -166,6 +166,44 @@ def test_offenders_finds_an_import_of_the_lab(tmp_path, monkeypatch):
     assert _offenders((tmp_path,), ("lab",)) == ["m.py:3 lab.tables"]
 
 
+def test_the_lab_stands_on_the_library_alone():
+    """lab/ (screens, campaigns, tables, diagnostics) imports neither benchmarks/ nor
+    experiments/: it calls the library (the command layer `mpcpearl_jax.cli` included) and its
+    own `lab.harness`, as a user's script would."""
+    offenders = _offenders((ROOT / "lab",), ("benchmarks", "experiments"))
+    assert not offenders, offenders
+
+
+def test_both_trainers_follow_the_trainer_protocol():
+    """MPC-PEARL's and GrBAL's trainers have every member of `training.protocol.TrainerProtocol`
+    (what the session, the loop, the minutes mode and the end of a run use), its methods with
+    the protocol's parameters in its order."""
+    import inspect
+    import typing
+
+    from mpcpearl_jax.grbal.trainer import GrbalTrainer
+    from mpcpearl_jax.training.protocol import TrainerProtocol
+    from mpcpearl_jax.training.trainer import Trainer
+
+    attrs = set(typing.get_type_hints(TrainerProtocol, include_extras=False)) - {"return"}
+    methods = [m for m in ("init_state", "iteration", "evaluate") if hasattr(TrainerProtocol, m)]
+    assert attrs == {"cfg", "env", "train_tasks", "test_tasks", "horizon"} and len(methods) == 3
+    for cls in (Trainer, GrbalTrainer):
+        init = ast.parse(inspect.getsource(cls))
+        assigned = {
+            t.attr
+            for n in ast.walk(init)
+            if isinstance(n, ast.Assign)
+            for t in n.targets
+            if isinstance(t, ast.Attribute) and getattr(t.value, "id", None) == "self"
+        }
+        assert attrs <= assigned, (cls.__name__, attrs - assigned)
+        for m in methods:
+            want = list(inspect.signature(getattr(TrainerProtocol, m)).parameters)
+            got = list(inspect.signature(getattr(cls, m)).parameters)
+            assert got[: len(want)] == want, (cls.__name__, m, got)
+
+
 class _Closable:
     def __init__(self, log, name):
         self.log, self.name = log, name

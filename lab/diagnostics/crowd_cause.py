@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from lab import harness
-from lab.diagnostics.shield import _relative, episode_outcomes, pool
+from lab.diagnostics.shield import _relative, episode_outcomes, pool, val_config
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository
 DEFAULT_RUNS = [
@@ -185,18 +185,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         f"contact in steps 1-{k}",
         "path shift (m)",
     ]
-    harness.print_table(rows, cols, title)
-    config = {
-        "size": size,
-        "threads": threads,
-        "split": "val",
-        "task_seeds": seeds,
-        "tasks_per_seed": sz["tasks"] or "all",
-        "delay": k,
-        "runs": [_relative(r) for r in args.runs],
-    }
-    harness.write_record("crowd_cause", config, record_rows, args.out)
-    return {"config": config, "rows": record_rows}
+    config = {**val_config(size, threads, seeds, sz["tasks"], args.runs), "delay": k}
+    return harness.report("crowd_cause", title, rows, cols, config, record_rows, args.out)
 
 
 if __name__ == "__main__":

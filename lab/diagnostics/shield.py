@@ -27,7 +27,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from benchmarks import harness
+from lab import harness
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository
 DEFAULT_RUNS = [
@@ -119,6 +119,19 @@ def _relative(path: Path) -> str:
         return str(Path(path).resolve().relative_to(ROOT))
     except ValueError:
         return Path(path).name
+
+
+def val_config(size: str, threads: Any, seeds: list[int], tasks: int | None, runs) -> dict:
+    """The record's config of a diagnostic on the val split of task seeds `seeds` (the first
+    `tasks` tasks of each, None: all) for the runs `runs`."""
+    return {
+        "size": size,
+        "threads": threads,
+        "split": "val",
+        "task_seeds": seeds,
+        "tasks_per_seed": tasks or "all",
+        "runs": [_relative(r) for r in runs],
+    }
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -230,21 +243,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     first = "" if sz["tasks"] is None else f" (first {sz['tasks']} tasks each)"
     title = f"shield on restaurant/val, task seeds {seeds[0]}-{seeds[-1]}{first}"
     cols = ["controller", "shield", "SR", "CFR", "timeout", "shielded steps"]
-    harness.print_table(rows, cols, title)
     config = {
-        "size": size,
-        "threads": threads,
-        "split": "val",
-        "task_seeds": seeds,
-        "tasks_per_seed": sz["tasks"] or "all",
-        "runs": [_relative(r) for r in args.runs],
+        **val_config(size, threads, seeds, sz["tasks"], args.runs),
         "env_from": _relative(args.env_from),
         "margins": list(sz["margins"]),
         "lookaheads": list(sz["lookaheads"]),
         "goal_seeking": "direction of motion at the goal, full speed (lab.diagnostics.shield doc)",
     }
-    harness.write_record("shield", config, record_rows, args.out)
-    return {"config": config, "rows": record_rows}
+    return harness.report("shield", title, rows, cols, config, record_rows, args.out)
 
 
 if __name__ == "__main__":

@@ -48,6 +48,7 @@ from mpcpearl_jax.grbal.model import (
 from mpcpearl_jax.grbal.planner import Planner
 from mpcpearl_jax.pearl import buffers
 from mpcpearl_jax.pearl.types import Transitions
+from mpcpearl_jax.training.protocol import split_keys
 
 
 class GrbalState(struct.PyTreeNode):
@@ -59,11 +60,6 @@ class GrbalState(struct.PyTreeNode):
     buffer: buffers.TaskBuffer
     key: Array
     iteration: Array  # [S] int32 completed iterations
-
-
-def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
-    both = jax.vmap(lambda k: jax.random.split(k, n + 1))(keys)
-    return both[:, 0], both[:, 1:]
 
 
 class GrbalTrainer:
@@ -106,7 +102,7 @@ class GrbalTrainer:
     def _init_state(self) -> GrbalState:
         cfg = self.cfg
         keys = jnp.stack([jax.random.PRNGKey(cfg.seed + s) for s in range(cfg.seeds)])
-        keys, sub = _split_keys(keys, 1)
+        keys, sub = split_keys(keys, 1)
         params = jax.vmap(self.model.init)(sub[:, 0])
         opt_state = jax.vmap(self.optimizer.init)(params)
         norm = jax.tree_util.tree_map(
@@ -183,7 +179,7 @@ class GrbalTrainer:
         """`episodes` episodes for each task of task_ids [S, k], stored in the buffers; random
         (a traced flag): uniform random actions instead of the planner."""
         g = self.cfg.grbal
-        keys, sub = _split_keys(state.key, 1)
+        keys, sub = split_keys(state.key, 1)
         rows = jnp.repeat(task_ids, episodes, axis=1)  # [S, R]
         online = jnp.ones((), bool)
 
@@ -249,7 +245,7 @@ class GrbalTrainer:
             last = jax.tree_util.tree_map(jnp.mean, ms)
             return params, opt_state, norm, first, last
 
-        keys, sub = _split_keys(state.key, 1)
+        keys, sub = split_keys(state.key, 1)
         params, opt_state, norm, first, mean = jax.vmap(per_seed)(
             state.params, state.opt_state, state.buffer, sub[:, 0]
         )
@@ -284,7 +280,7 @@ class GrbalTrainer:
                 f"non-finite model losses {bad} at iteration {it + 1}; the last good checkpoint "
                 "is kept (lower grbal.lr or grbal.inner_lr)"
             )
-        keys, sub = _split_keys(state.key, 1)
+        keys, sub = split_keys(state.key, 1)
         n = min(g.tasks_per_iteration, self.num_train)
         ids = jax.vmap(lambda k: jax.random.choice(k, self.num_train, (n,), replace=False))(
             sub[:, 0]

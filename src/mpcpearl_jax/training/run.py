@@ -47,6 +47,7 @@ from mpcpearl_jax.training.checkpoint import (
     resume_hint,
 )
 from mpcpearl_jax.training.loop import Progress, train_loop
+from mpcpearl_jax.training.protocol import TrainerProtocol
 from mpcpearl_jax.training.resources import check_state_fits
 from mpcpearl_jax.training.runlock import LOCK_FILE, RunLock
 from mpcpearl_jax.training.stopping import StopNow, stop_flag
@@ -156,7 +157,7 @@ class Session:
 
     cfg: Any
     run_dir: Path
-    trainer: Any
+    trainer: TrainerProtocol
     state: Any
     rows: list[dict] = dataclasses.field(default_factory=list)
     ckpt: Checkpointer | None = None

@@ -47,6 +47,7 @@ from mpcpearl_jax.pearl.learner import (
 )
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.pearl.types import context_from
+from mpcpearl_jax.training.protocol import split_keys
 
 
 class IterationAbandoned(Exception):
@@ -104,12 +105,6 @@ class TrainState(struct.PyTreeNode):
     tasks: TaskParams  # [S, N, ...] training tasks as collected (redraw_behaviours changes them)
     key: Array  # [S, 2] PRNG keys
     iteration: Array  # [S] int32 completed iterations (0 = only the initial collection pending)
-
-
-def _split_keys(keys: Array, n: int) -> tuple[Array, Array]:
-    """keys [S, 2] -> (new carry keys [S, 2], subkeys [S, n, 2])."""
-    both = jax.vmap(lambda k: jax.random.split(k, n + 1))(keys)
-    return both[:, 0], both[:, 1:]
 
 
 def _set_tasks(tasks: TaskParams, ids: Array, new: TaskParams) -> TaskParams:
@@ -233,7 +228,7 @@ class Trainer:
     def _init_state(self) -> TrainState:
         cfg = self.cfg
         keys = jnp.stack([jax.random.PRNGKey(cfg.seed + s) for s in range(cfg.seeds)])
-        keys, sub = _split_keys(keys, 1)
+        keys, sub = split_keys(keys, 1)
         learner = jax.vmap(lambda k: init_learner(k, self.nets))(sub[:, 0])
         # phases donate their input state: give the learner's aliased leaves (target V = V at
         # init) their own buffers; the replay buffers are created unaliased and at full size once
@@ -300,7 +295,7 @@ class Trainer:
         and encoder, [S]), with the encoder buffers `enc` cleared and refilled as the phase says:
         -> (enc, the carried keys [S, 2], the transitions per task [S, k, E * T, ...] for the
         replay buffers, stats [S])."""
-        keys, sub = _split_keys(key, 2)
+        keys, sub = split_keys(key, 2)
         rows = jnp.repeat(task_ids, phase.episodes, axis=1)  # [S, k * E]
         if phase.clear_encoder:
             enc = jax.vmap(buffers.clear)(enc, task_ids)
@@ -323,7 +318,7 @@ class Trainer:
     # ------------------------------------------------------ tasks of a visit
     def _choose_tasks(self, state: TrainState, k: int) -> tuple[TrainState, Array]:
         """k training tasks per seed, drawn without replacement: ids [S, k]."""
-        keys, sub = _split_keys(state.key, 1)
+        keys, sub = split_keys(state.key, 1)
         n = self.num_train
         pick = lambda key: jax.random.choice(key, n, (min(k, n),), replace=False)
         return state.replace(key=keys), jax.vmap(pick)(sub[:, 0])
@@ -367,7 +362,7 @@ class Trainer:
         return self._delay_crowds_jit(state, ids)
 
     def _delay_crowds_impl(self, state: TrainState, ids: Array) -> TrainState:
-        keys, sub = _split_keys(state.key, 1)
+        keys, sub = split_keys(state.key, 1)
         if self.cfg.train.redraw_behaviours:  # the crowds just re-drawn
             visited = jax.vmap(collect_lib.rows_of)(state.tasks, ids)  # [S, k, ...]
         else:  # the original training tasks
@@ -401,7 +396,7 @@ class Trainer:
 
     def _update_keys(self, state: TrainState) -> tuple[Array, Array]:
         """(new carry keys [S, 2], one key per gradient step [S, N_train, 2])."""
-        keys, sub = _split_keys(state.key, 1)
+        keys, sub = split_keys(state.key, 1)
         steps = self.cfg.train.updates_per_iteration
         return keys, jax.vmap(lambda k: jax.random.split(k, steps))(sub[:, 0])
 
@@ -506,7 +501,7 @@ class Trainer:
             _poll(state, stop)
             state, _, _ = self._collect_visit(state, 1, stop)
             _poll(state, stop)
-        keys, sub = _split_keys(state.key, 1)  # the collection's own key stream
+        keys, sub = split_keys(state.key, 1)  # the collection's own key stream
         state = state.replace(key=keys)
         acting = self._copy_jit(
             {"policy": state.learner.params["policy"], "encoder": state.learner.params["encoder"]}
