@@ -134,7 +134,7 @@ def exit_interrupted(line: str) -> NoReturn:
     interpreter's teardown: a stop signal can land inside JAX's compiler, which goes on
     compiling, and tearing the runtime down under it crashed the process at exit (a segmentation
     fault after the line). The caller has closed what it opened; MPC pool workers end themselves
-    when this process is gone (`mpc.host.watch_parent`)."""
+    when this process is gone (`mpc.pool.watch_parent`)."""
     print(line, file=sys.stderr, flush=True)
     sys.stdout.flush()
     os._exit(stop_exit_code())

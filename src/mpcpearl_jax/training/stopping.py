@@ -6,7 +6,7 @@ While `Session.train` trains with `handle_sigint`, `stop_flag` holds these signa
 one asks the loop to save and stop (`loop.train_loop`), a second one raises KeyboardInterrupt at
 once. Every signal received is recorded (`received`), for the exit code a command chooses. The
 MPC's worker processes leave the process group and ignore these signals
-(`mpc.host.pool_worker_init`): the training process ends them. The commands' half (every stop
+(`mpc.pool.pool_worker_init`): the training process ends them. The commands' half (every stop
 signal as KeyboardInterrupt for a command's whole life, its one line and exit code) is
 `mpcpearl_jax.cli.stopping`.
 
