@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import sys
 import threading
 from typing import Any
 
@@ -103,25 +104,52 @@ def stop_flag(enabled: bool, where: Progress):
     """A stop flag set by the first stop signal (Ctrl-C, SIGTERM, SIGHUP): the loop saves and
     stops (`loop.train_loop`); a second one raises KeyboardInterrupt at once. The first signal
     is reported (`notices.warn`): what is saved, and what a second signal does. Where no
-    finished iteration is unsaved, a first signal that arrives during a JAX compilation raises
-    `StopNow` there (the compilation of the first iteration's programs takes a minute or more,
-    and the flag is read only between phases)."""
+    finished iteration is unsaved, a first signal during a JAX compilation, or one that came
+    before a compilation that then starts, raises `StopNow` in it (compiling the first
+    iteration's programs takes a minute or more, and the flag is read only between phases)."""
     if not enabled or threading.current_thread() is not threading.main_thread():
         yield None
         return
     flag = StopFlag()
+    main = threading.main_thread().ident
+    resent = [0]  # signals `watch` sent, not yet handled
+    done = threading.Event()  # the flag is released, or the stop raised
+
+    def nothing_unsaved() -> bool:
+        return where.iterations == max(where.saved, 0)
+
+    def watch(signum: int) -> None:
+        """After a first stop with nothing unsaved that came outside a compilation: once the
+        main thread is in one (a compilation that started after the signal), the signal is sent
+        to it again, so that the compilation is stopped too."""
+        while not done.wait(0.2):
+            if not nothing_unsaved():
+                return
+            if in_compile(sys._current_frames().get(main)):
+                resent[0] += 1
+                signal.pthread_kill(main, signum)
+                done.wait(1.0)  # the handler's turn
 
     def handler(signum, frame):
+        if resent[0]:  # sent again by `watch`
+            resent[0] -= 1
+            if nothing_unsaved() and in_compile(frame):
+                done.set()
+                interrupt(signum, frame, StopNow)
+            return
         received.append(signum)
         if flag.asked:
+            done.set()
             interrupt(signum, frame)
             return
         flag.asked = True
         name = signal_name(signum)
-        if where.iterations == max(where.saved, 0):  # nothing unsaved: at the next boundary
+        if nothing_unsaved():  # nothing unsaved: at the next boundary
             warn(f"\n{name}: stopping at the next phase boundary ({name} again: at once)")
             if in_compile(frame):
+                done.set()
                 interrupt(signum, frame, StopNow)
+            threading.Thread(target=watch, args=(signum,), daemon=True, name="stop-watch").start()
             return
         back = f"iteration {where.saved}" if where.saved >= 0 else "the start"
         warn(
@@ -133,4 +161,5 @@ def stop_flag(enabled: bool, where: Progress):
     try:
         yield flag
     finally:
+        done.set()
         restore(old)
