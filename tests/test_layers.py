@@ -16,7 +16,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "mpcpearl_jax"
 # evaluation, which import it downward (the trainer, and the evaluation command's policy with MPC
 # infusion); the run folder's files (`runfolder`) below every reader of a run folder.
 LAYERS = [
-    ["errors", "validate", "distributed", "notices"],
+    ["errors", "validate", "distributed", "notices", "compilation_cache"],
     ["envs.types", "envs.dynamics", "envs.physics", "pearl.types", "pearl.config", "mpc.config"],
     ["envs", "pearl", "evaluation.metrics"],
     ["mpc", "collection"],
@@ -105,6 +105,6 @@ def test_the_command_layer_is_the_top_floor():
     assert RANK["cli"] == max(RANK.values())
     assert [m for m in RANK if RANK[m] == RANK["cli"]] == ["cli"]
     below = [(m, p) for m, p in _modules() if m.split(".")[0] != "cli"]
-    assert below and all(_rank(m) < RANK["cli"] for m, _ in below)
+    assert below and all((_rank(m) or 0) < RANK["cli"] for m, _ in below)
     for m, path in below:
         assert not [i for i in _imports(path) if i.split(".")[0] == "cli"], m
