@@ -46,7 +46,7 @@ def main(mode):
             lowered.compile()
             print("compiled", flush=True)
     except KeyboardInterrupt as e:
-        print(type(e).__name__, "abandoned" if getattr(stopping, "compile_abandoned", 0) else "", flush=True)
+        print(type(e).__name__, "abandoned" if stopping.compile_abandoned else "", flush=True)
     return stop_exit_code()
 
 atexit.register(lambda: print("teardown", flush=True))
