@@ -355,10 +355,15 @@ def validate(cfg: ExperimentConfig) -> ExperimentConfig:
             "seed count that is a multiple of it",
         )
     try:
-        make_env(cfg.env, **cfg.env_overrides)
+        env = make_env(cfg.env, **cfg.env_overrides)
     except ValueError as e:
         msg = str(e) if isinstance(e, ConfigError) else f"ExperimentConfig.env: {e}"
         raise ConfigError(msg) from e
+    if cfg.pearl.crowd_encoder != "none":
+        from mpcpearl_jax.envs.observation import layout
+        from mpcpearl_jax.pearl.networks import check_crowd_inputs
+
+        check_crowd_inputs(cfg.pearl, [p["name"] for p in layout(env.config, 1, 1)])
     if cfg.train.redraw_behaviours and not can_redraw(cfg.env):
         raise ConfigError(
             f"TrainConfig.redraw_behaviours: env {cfg.env!r} cannot redraw its training "
