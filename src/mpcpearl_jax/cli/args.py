@@ -10,7 +10,7 @@ import math
 import sys
 from pathlib import Path
 
-from mpcpearl_jax.config import PRESETS, ExperimentConfig, read_config, resolve
+from mpcpearl_jax.config import PRESETS, RESULT_NEUTRAL, ExperimentConfig, read_config, resolve
 from mpcpearl_jax.errors import ConfigError
 
 
@@ -368,7 +368,7 @@ def recorded_preset(cfg: ExperimentConfig) -> str:
     and the task source left out), as 'NAME', or 'NAME plus N changed field(s)'."""
     from mpcpearl_jax.training.checkpoint import config_differences
 
-    ignore: tuple[str, ...] = ("train.iterations", "train.eps", "seeds", "seed", "devices")
+    ignore: tuple[str, ...] = ("train.iterations", "train.eps", "seeds", "seed", *RESULT_NEUTRAL)
     ignore += ("pearl.use_context", "scenarios", "hold_out_val", "data", "env_overrides")
     counts: dict[str, int] = {}
     for name in sorted(PRESETS):
@@ -388,7 +388,7 @@ def _check_same_run(run: ExperimentConfig, cfg: ExperimentConfig, args: argparse
     run's own preset, the session's check names the differing fields)."""
     from mpcpearl_jax.training.checkpoint import config_differences
 
-    diff = config_differences(run, cfg, ignore=("train.iterations", "devices"))
+    diff = config_differences(run, cfg, ignore=("train.iterations", *RESULT_NEUTRAL))
     started = recorded_preset(run)
     if not diff or started.split()[0] == args.preset:  # the session lists the fields
         return
