@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {run}: not a run directory (no config.json)", file=sys.stderr)
             return 2
 
-    from experiments import evaluate
+    from mpcpearl_jax.cli import evaluate
 
     failed = []
     for run in runs:

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from experiments.evaluate import UsageError, main, parse_indices
+from mpcpearl_jax.cli.evaluate import UsageError, main, parse_indices
 from mpcpearl_jax.evaluation import runners
 from mpcpearl_jax.mpc.config import MPCConfig
 
@@ -249,7 +249,7 @@ def test_parse_indices():
 def test_long_index_lists_and_huge_seed_ranges_are_short_errors(tmp_path, capsys):
     """`--tasks 0-1000` used to list 977 indices in its error; `--task-seeds 0-100000` had no
     cap (each seed is a whole evaluation)."""
-    from experiments.evaluate import MAX_TASK_SEEDS, UsageError, main, parse_indices
+    from mpcpearl_jax.cli.evaluate import MAX_TASK_SEEDS, UsageError, main, parse_indices
 
     with pytest.raises(UsageError, match=r"task\(s\) \[24, 25, 26\] and 974 more out of range"):
         parse_indices("0-1000", 24, "--tasks")

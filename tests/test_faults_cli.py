@@ -170,7 +170,7 @@ def test_size_fields_are_bounded_before_anything_is_written(tmp_path, capsys):
 
 def test_evaluate_checks_its_output_folder_and_ranges_first(tmp_path, ref0, capsys):
     """An unwritable --out stops before the evaluation; reversed ranges are one-line errors."""
-    from experiments import evaluate
+    from mpcpearl_jax.cli import evaluate
 
     locked = tmp_path / "locked"
     locked.mkdir()

@@ -55,7 +55,7 @@ def _nan_policy(run: Path) -> Path:
 
 
 def test_non_finite_parameters_are_refused_on_save_and_load(tmp_path, ref0, capsys):
-    from experiments import evaluate
+    from mpcpearl_jax.cli import evaluate
     from mpcpearl_jax.runfolder import save_params
     from mpcpearl_jax.training.checkpoint import Checkpointer
 
@@ -91,7 +91,7 @@ def _strict(text: str):
 def test_results_json_never_holds_nan_or_infinity(tmp_path, ref0, capsys):
     """One task: the standard error over tasks is undefined (NaN); results.json says null and
     why, in strict JSON."""
-    from experiments import evaluate
+    from mpcpearl_jax.cli import evaluate
     from mpcpearl_jax.runfolder import strict_json
 
     doc = _strict(strict_json({"a": float("nan"), "b": [1.0, float("-inf")], "c": 2}))
@@ -105,7 +105,7 @@ def test_results_json_never_holds_nan_or_infinity(tmp_path, ref0, capsys):
 
 
 def test_load_policy_on_a_grbal_run_says_what_it_is(tmp_path, capsys):
-    from experiments import evaluate
+    from mpcpearl_jax.cli import evaluate
     from mpcpearl_jax.grbal.config import GrbalExperimentConfig, preset
 
     run = tmp_path / "grbal"

@@ -260,7 +260,7 @@ def test_grbal_run_compares_and_evaluates_from_its_folder(grbal_run, tmp_path):
 
     # experiments.evaluate reproduces the run's own numbers from config.json + policy.msgpack,
     # and scores it on other task sets (pooled over task seeds)
-    from experiments import evaluate
+    from mpcpearl_jax.cli import evaluate
 
     for online, key in ((False, "test_adapt"), (True, "test_online")):
         ev = tmp_path / f"ev{online}"

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from faults_helpers import _make_unwritable
 
-import experiments.evaluate as evaluate
+import mpcpearl_jax.cli.evaluate as evaluate
 import mpcpearl_jax.evaluation.command as evaluation_command
 from experiments import export, gp_mpc
 

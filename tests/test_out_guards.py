@@ -76,7 +76,7 @@ def test_overwrite_replaces_only_what_a_run_writes(finished):
 def test_evaluate_never_writes_into_a_run_folder(finished, capsys):
     """`experiments.evaluate RUN --split val --tasks 0-1 --out RUN` used to replace the run's
     own results.json by a 2-task record."""
-    from experiments.evaluate import main
+    from mpcpearl_jax.cli.evaluate import main
 
     before = _snapshot(finished)
     argv = [str(finished), "--split", "val", "--tasks", "0-1", "--figures", "none"]

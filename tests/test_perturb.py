@@ -149,7 +149,7 @@ def test_parse_and_bad_values():
 
 @pytest.mark.slow  # the command line of --perturb (~13 s); perturb_tasks is tested fast
 def test_evaluate_cli_perturb(tmp_path, capsys):
-    from experiments import evaluate
+    from mpcpearl_jax.cli import evaluate
 
     base = [str(RUN), "--split", "val", "--tasks", "0-3", "--figures", "none"]
     assert evaluate.main([*base, "--out", str(tmp_path / "a")]) == 0

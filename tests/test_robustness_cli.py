@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from experiments import evaluate
 from lab import robustness
+from mpcpearl_jax.cli import evaluate
 
 ROOT = Path(__file__).resolve().parents[1]
 HEADLINE = ROOT / "results" / "restaurant" / "mpc-pearl-eps0.2"

@@ -217,7 +217,7 @@ def test_training_cli_on_a_bad_folder_writes_nothing(tmp_path, capsys):
 
 
 def test_evaluate_a_committed_policy_on_scenarios(tmp_path, synthetic, capsys):
-    from experiments import evaluate
+    from mpcpearl_jax.cli import evaluate
 
     out = tmp_path / "ev"
     argv = [str(RUN), "--scenarios", str(synthetic), "--split", "ood", "--tasks", "0-2"]
@@ -273,9 +273,9 @@ def test_a_run_trained_on_scenarios_records_its_source_and_evaluates(tmp_path, c
     records its source, its final evaluation says the OOD file is missing (not scoring the
     generated OOD tasks), `load_policy` and `experiments.evaluate` work on it (val allowed: held
     out), and a resume on a changed file is refused by its recorded sha256."""
-    from experiments import evaluate
     from experiments.common import main
     from mpcpearl_jax import load_policy
+    from mpcpearl_jax.cli import evaluate
 
     scen = write_scenarios(tmp_path / "scen", with_ood=False)
     out = tmp_path / "run"

@@ -203,7 +203,7 @@ def test_evaluate_cli_shield(tmp_path, capsys):
     holds the shield settings and the replaced share; bad combinations are one-line errors."""
     from pathlib import Path
 
-    from experiments import evaluate
+    from mpcpearl_jax.cli import evaluate
 
     run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "mpc-pearl-eps0.2"
     out = tmp_path / "ev"
