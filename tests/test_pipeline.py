@@ -31,7 +31,8 @@ from faults_helpers import (
 )
 
 from mpcpearl_jax.runfolder import LOG_FILE, read_log
-from mpcpearl_jax.training.trainer import Trainer, _split_keys
+from mpcpearl_jax.training.protocol import split_keys
+from mpcpearl_jax.training.trainer import Trainer
 
 PIPE = ("--set", "train.pipeline=true")
 
@@ -62,7 +63,7 @@ def test_pipelined_collection_acts_with_the_parameters_from_before_the_updates()
 
     # the reference, in one thread: the collection's keys, then the episodes of the parameters
     # before the updates stored behind the updates' buffers
-    keys, sub = _split_keys(ref.key, 1)
+    keys, sub = split_keys(ref.key, 1)
     from mpcpearl_jax.training.trainer import TrainState
 
     def ahead(params):
