@@ -215,10 +215,9 @@ def make_rollout(env, bridge, net):
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    argv = list(argv) if argv is not None else None
     import sys
 
-    args_in = sys.argv[1:] if argv is None else argv
+    args_in = sys.argv[1:] if argv is None else list(argv)
     if args_in[:1] == ["--report"]:
         if len(args_in) != 2:
             raise SystemExit("--report: give one folder of DAgger records, and nothing else")
