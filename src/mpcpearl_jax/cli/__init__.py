@@ -11,8 +11,9 @@ benchmarks/ shares, and nothing below imports.
 
 `setup()` is where every command starts (done on importing this package, and again by each
 command: it does its work once): the library's notices (`mpcpearl_jax.notices`) are shown as
-one line each on stderr, and JAX's persistent compilation cache is on
-(`mpcpearl_jax.compilation_cache`).
+one line each on stderr, JAX's persistent compilation cache is on
+(`mpcpearl_jax.compilation_cache`), and stdout and stderr write what their encoding lacks as
+escapes (`\\xa7`) instead of raising (an ASCII locale: PYTHONIOENCODING=ascii).
 """
 
 from __future__ import annotations
@@ -34,11 +35,23 @@ class _StderrLines(logging.Handler):
 _done: list[bool] = []
 
 
+def tolerant_streams() -> None:
+    """stdout and stderr write a character their encoding lacks (the help's "§", a folder's
+    name, under an ASCII locale) as a backslash escape instead of raising UnicodeEncodeError."""
+    for stream in (sys.stdout, sys.stderr):
+        if getattr(stream, "errors", None) == "strict" and hasattr(stream, "reconfigure"):
+            try:
+                stream.reconfigure(errors="backslashreplace")
+            except (OSError, ValueError):  # closed, or not a text stream that can change
+                pass
+
+
 def setup() -> None:
     """The commands' start (once per process): the library's notices as lines on stderr, and
     JAX's persistent compilation cache (`mpcpearl_jax.compilation_cache`: MPCPEARL_JAX_CACHE)."""
     if _done:
         return
+    tolerant_streams()
     from mpcpearl_jax import compilation_cache
     from mpcpearl_jax.notices import LOGGER
 
