@@ -10,7 +10,12 @@ names another preset, whose MPC is taken (e.g. `default`: 2 QPs per solve and th
 recovery, the expert the learned presets train with); --set changes them further.
 
 Prints the method §8 metrics next to the paper's numbers, the MPC status counts and solve times, and
-writes a JSON record and a trajectory figure (one task) under --out. A stop signal (Ctrl-C,
+writes a JSON record and a trajectory figure (one task) under --out. The record is named
+`ENV_SPLIT[_tasksA-B][_preset-NAME][_seedN][_sample-seedN][_set-...].json`: the task range when
+not the whole split (--tasks, --max-tasks), then each of --preset (other than paper), --seed,
+--sample-seed (other than 0) and --set, so runs with other settings keep their own records; a
+record of the same name made with other settings (another --scenarios, --data or --env module) is
+never replaced without --overwrite, checked before the rollout. A stop signal (Ctrl-C,
 SIGTERM, SIGHUP) ends it with one line and exit code 128 + the signal, nothing written; the
 rollout of all tasks is one program, so the stop takes effect when it ends (--tasks makes it
 shorter).
@@ -19,7 +24,9 @@ shorter).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -111,6 +118,11 @@ def main(argv: list[str] | None = None) -> int:
         metavar="START:STOP",
         help="only the split's tasks START to STOP - 1, e.g. --tasks 0:30 (default: all)",
     )
+    ap.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace a record of the same name made with other settings",
+    )
     add_task_source_options(ap)
     args = ap.parse_args(argv)
 
@@ -121,8 +133,13 @@ def main(argv: list[str] | None = None) -> int:
         cfg = mpc_settings(args.env, args.preset, args.set)
         source = task_source(args.env, args.scenarios, data=args.data)
         tasks = tasks_for(ExperimentConfig(env=args.env, **source), args.split, seed=args.seed)
+        n_split = tasks.num_tasks
         tasks, first, plot = select_tasks(tasks, args.tasks, args.max_tasks, args.plot_task)
+        last = first + tasks.num_tasks - 1
+        path = args.out / record_name(args, first, last + 1, n_split)
+        settings = record_settings(args, source, first, last + 1, cfg)
         probe_out(args.out)  # before the rollout, not after it
+        check_replace(path, settings, args.overwrite)
     if failed.code is not None:
         return failed.code
     bridge = make_mpc_bridge(env, cfg)
@@ -136,7 +153,6 @@ def main(argv: list[str] | None = None) -> int:
     )
     stats = bridge.stats()
     paper = PAPER.get(args.env, {}).get("GP-MPC", {})
-    last = first + tasks.num_tasks - 1
     print(
         f"GP-MPC on {args.env}/{args.split}: {tasks.num_tasks} tasks ({first} to {last}), "
         f"{wall:.1f} s"
@@ -152,15 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"solve ms: median {med:.2f}, p95 {p95:.2f}")
 
     record = {
-        "env": args.env,
-        "split": args.split,
-        "tasks": [first, last + 1],  # the split's tasks first to last
-        "data": str(args.data) if args.data else None,
-        "scenarios": source.get("task_options"),
-        "seed": None if args.scenarios is not None else args.seed,
-        "sample_seed": args.sample_seed,
-        "preset": args.preset,
-        "mpc": cfg.to_dict(),
+        **settings,
         "metrics": m,
         "paper": paper,
         "status": stats["status"],
@@ -172,13 +180,63 @@ def main(argv: list[str] | None = None) -> int:
         "wall_s": wall,
         "per_task": {k: traj[k].sum(axis=1).tolist() for k in ("collision", "in_goal")},
     }
-    part = f"_tasks{first}-{last + 1}" if args.tasks else ""
-    path = args.out / f"{args.env}_{args.split}{part}.json"
     with one_line_errors(interrupted=None) as failed:
         path.write_text(json.dumps(record, indent=2))
         print(f"wrote {path}")
         _plot(args, env, tasks, traj, plot, first + plot)
     return failed.code or 0
+
+
+def record_settings(args, source: dict, start: int, stop: int, cfg: MPCConfig) -> dict:
+    """The record's fields that say what was run (its first fields, in this order)."""
+    return {
+        "env": args.env,
+        "split": args.split,
+        "tasks": [start, stop],  # the split's tasks start to stop - 1
+        "data": str(args.data) if args.data else None,
+        "scenarios": source.get("task_options"),
+        "seed": None if args.scenarios is not None else args.seed,
+        "sample_seed": args.sample_seed,
+        "preset": args.preset,
+        "mpc": cfg.to_dict(),
+    }
+
+
+def record_name(args, start: int, stop: int, n_split: int) -> str:
+    """The record's file name: ENV_SPLIT, the task range when not the whole split, then each
+    setting that is not the default (module doc)."""
+    name = f"{args.env}_{args.split}"
+    if args.tasks or (start, stop) != (0, n_split):
+        name += f"_tasks{start}-{stop}"
+    if args.preset != "paper":
+        name += f"_preset-{args.preset}"
+    if args.scenarios is None and args.seed != 0:
+        name += f"_seed{args.seed}"
+    if args.sample_seed != 0:
+        name += f"_sample-seed{args.sample_seed}"
+    if args.set:
+        text = "+".join(re.sub(r"[^A-Za-z0-9._=-]", "-", s.strip()) for s in args.set)
+        if len(text) > 80:  # a name the file system takes; the record holds every field
+            text = hashlib.sha1("\n".join(args.set).encode()).hexdigest()[:12]
+        name += f"_set-{text}"
+    return re.sub(r"[^A-Za-z0-9._=+-]", "-", name) + ".json"
+
+
+def check_replace(path: Path, settings: dict, overwrite: bool) -> None:
+    """FileExistsError in one line when `path` holds a record made with other `settings` (or
+    something that is not a record of this command), unless `overwrite`."""
+    if overwrite or not path.exists():
+        return
+    try:
+        old = json.loads(path.read_text())
+        differ = [k for k in settings if old.get(k) != json.loads(json.dumps(settings[k]))]
+    except (OSError, ValueError, AttributeError):
+        differ = ["(not a record of this command)"]
+    if differ:
+        raise FileExistsError(
+            f"{path}: holds a record made with other settings ({', '.join(differ)}); "
+            "choose another --out, or add --overwrite to replace it"
+        )
 
 
 def probe_out(out: Path) -> None:

@@ -48,7 +48,7 @@ def test_gp_mpc_cli(tmp_path):
     gp_mpc.main(
         ["--env", "restaurant", "--split", "test", "--max-tasks", "2", "--out", str(tmp_path)]
     )
-    rec = json.loads((tmp_path / "restaurant_test.json").read_text())
+    rec = json.loads((tmp_path / "restaurant_test_tasks0-2.json").read_text())
     assert set(rec["metrics"]) >= {"SR", "TT", "CFR", "SPL", "MGD"}
     assert rec["status"].get("solved", 0) > 0
 
@@ -67,6 +67,60 @@ def test_gp_mpc_preset_takes_that_presets_mpc():
     assert mpc_settings("restaurant", "paper", []) == MPCConfig()
     assert mpc_settings("restaurant", "default", ["alpha=0.9"]) == teacher.replace(alpha=0.9)
     assert mpc_settings("sidewalk", "default", []).v_max != teacher.v_max  # the family's cap
+
+
+def test_gp_mpc_names_its_record_by_its_settings(tmp_path):
+    """Another --preset, --seed, --sample-seed, --set, --tasks or --max-tasks into the same --out
+    named the same record (`ENV_SPLIT.json`) and replaced the earlier one; each now has a name of
+    its own, and the defaults keep the committed records' names."""
+    from experiments import gp_mpc
+
+    def name(stop=24, **kw):
+        args = {"env": "restaurant", "split": "test", "tasks": None, "preset": "paper"}
+        args.update(seed=0, sample_seed=0, set=[], scenarios=None)
+        return gp_mpc.record_name(gp_mpc.argparse.Namespace(**{**args, **kw}), 0, stop, 24)
+
+    assert name() == "restaurant_test.json"
+    assert name(scenarios="x") == "restaurant_test.json"
+    names = {
+        name(preset="default"),
+        name(seed=3),
+        name(sample_seed=1),
+        name(set=["v_max=5.0"]),
+        name(set=["alpha=0.9"]),
+        name(stop=2),  # --max-tasks 2
+        name(tasks="0:24"),
+        name(preset="default", seed=3),
+    }
+    assert len(names) == 8 and "restaurant_test.json" not in names
+    assert name(set=["v_max=5.0"]) == "restaurant_test_set-v_max=5.0.json"
+    assert name(seed=3, scenarios="x") == "restaurant_test.json"  # no seed with scenarios
+    assert len(name(set=[f"alpha=0.{i}" for i in range(20)])) < 60
+
+
+def test_gp_mpc_never_replaces_a_record_of_other_settings(tmp_path, capsys):
+    """A record of the same name made with other settings (another --scenarios or --data) is
+    refused before the rollout, in one line naming the file and --overwrite; nothing changes."""
+    from experiments import gp_mpc
+
+    out = tmp_path / "g"
+    out.mkdir()
+    old = out / "restaurant_test.json"
+    old.write_text(json.dumps({"env": "restaurant", "split": "test", "scenarios": {"x": 1}}))
+    before = old.read_text()
+    assert gp_mpc.main(["--split", "test", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: {old}: holds a record made with other settings") and (
+        "--overwrite" in err and "\n" not in err
+    )
+    argv = ["--split", "test", "--set", "alpha=0.9", "--out", str(out)]
+    (out / "restaurant_test_set-alpha=0.9.json").write_text("[1, 2]")  # not a record
+    assert gp_mpc.main(argv) == 2
+    assert "not a record of this command" in capsys.readouterr().err
+    assert old.read_text() == before and sorted(p.name for p in out.iterdir()) == [
+        "restaurant_test.json",
+        "restaurant_test_set-alpha=0.9.json",
+    ]
 
 
 def test_compare_names_the_runs_with_labels(tmp_path, capsys):

@@ -245,7 +245,7 @@ def test_gp_mpc_cli_on_scenarios(tmp_path, synthetic, capsys):
     out = tmp_path / "g"
     argv = ["--scenarios", str(synthetic), "--split", "test", "--max-tasks", "1"]
     assert gp_mpc.main([*argv, "--out", str(out)]) == 0
-    rec = json.loads((out / "restaurant_test.json").read_text())
+    rec = json.loads((out / "restaurant_test_tasks0-1.json").read_text())
     assert rec["scenarios"]["scenarios"] == str(synthetic) and rec["seed"] is None
     assert gp_mpc.main(["--scenarios", str(tmp_path / "absent"), "--out", str(out)]) == 2
     assert "no such directory" in capsys.readouterr().err
