@@ -12,10 +12,12 @@ per iteration for `default`, a point costing r times as much per step gets
 width-cost.json measures C and U).
 
 With `--encoders` the points are instead `default`'s learner on its own observation (the
-restaurant's, with `default`'s observation options), and the same learner with the crowd encoder
-(`pearl.crowd_encoder` "attention", which adds the people's presence to the observation) without
-and with the forecast (`env.observe_forecast` 5, `env.forecast_stride` 2): the price of the
-encoder per gradient step, for comparing it with `default` at equal wall time.
+restaurant's, with `default`'s observation options), and the same learner with a crowd encoder
+(`pearl.crowd_encoder` "attention" or "deepsets", which add the people's presence to the
+observation) without and with the forecast (`env.observe_forecast` 5, `env.forecast_stride` 2),
+at several widths, one encoder per network or one shared by the critics (`pearl.crowd_shared`),
+the tables pooled or as plain features (`pearl.crowd_static`): the price of each encoder per
+gradient step, for comparing it with `default` at equal wall time.
 
     python -m benchmarks.learner_sizes [--tiny] [--encoders] [--out DIR] [--threads N]
 """
@@ -44,14 +46,20 @@ SIZES: dict[str, dict[str, Any]] = {
     "full": dict(points=POINTS, steps_per_sample=100, rounds=10),
 }
 DEFAULT_ITERATIONS = 75
-# (crowd encoder, forecast points, crowd_dim) of the --encoders points, at `default`'s sizes
-ENCODERS: tuple[tuple[str, int, int], ...] = (
-    ("none", 0, 64),
-    ("attention", 0, 64),
-    ("attention", 5, 64),
-    ("attention", 5, 32),
-    ("attention", 5, 16),
+# (crowd encoder, forecast points, crowd_dim, shared, static) of the --encoders points, at
+# `default`'s sizes
+ENCODERS: tuple[tuple[str, int, int, bool, str], ...] = (
+    ("none", 0, 64, False, "pool"),
+    ("attention", 5, 64, False, "pool"),
+    ("attention", 5, 16, False, "pool"),
+    ("attention", 5, 32, True, "pool"),
+    ("attention", 5, 32, True, "flat"),
+    ("attention", 5, 16, True, "flat"),
+    ("deepsets", 5, 32, False, "flat"),
+    ("deepsets", 5, 32, True, "flat"),
+    ("deepsets", 5, 16, True, "flat"),
 )
+TINY_ENCODERS = (ENCODERS[0], ENCODERS[2], ENCODERS[7])
 
 
 class Point:
@@ -65,6 +73,8 @@ class Point:
         encoder: str | None = None,
         forecast: int = 0,
         crowd_dim: int = 64,
+        shared: bool = False,
+        static: str = "pool",
     ):
         """`encoder` None: the fixed benchmark observation; "none" or "attention": the
         restaurant's observation under `default`'s options (+ presence and `forecast` points
@@ -86,6 +96,8 @@ class Point:
             crowd_encoder=encoder or "none",
             crowd_dim=crowd_dim,
             crowd_heads=min(4, crowd_dim // 8),
+            crowd_shared=shared,
+            crowd_static=static,
         )
         if encoder is None:
             nets = Networks(self.cfg, OBS_DIM, ACTION_DIM)
@@ -150,12 +162,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     sz = dict(SIZES[size])
     if args.encoders:
         w, layers, t = sz["points"][0]
-        sz["points"] = tuple((w, layers, t, enc, f, d) for enc, f, d in ENCODERS)
+        encoders = TINY_ENCODERS if size == "tiny" else ENCODERS
+        sz["points"] = tuple((w, layers, t, *e) for e in encoders)
         names = [
             f"crowd {enc}"
             + (f" (dim {d})" if enc != "none" else "")
             + (f" + forecast {f}" if f else "")
-            for enc, f, d in ENCODERS
+            + (", shared" if shared else "")
+            + (", tables flat" if enc != "none" and static == "flat" else "")
+            for enc, f, d, shared, static in encoders
         ]
     else:
         names = [f"{w}x{layers}, {t} tasks" for w, layers, t in sz["points"]]

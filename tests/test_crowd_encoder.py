@@ -195,7 +195,7 @@ def test_spec_round_trip_and_errors():
     with pytest.raises(ConfigError, match="crowd_encoder"):
         PearlConfig(crowd_encoder="transformer")
     with pytest.raises(ConfigError, match="crowd_dim"):
-        PearlConfig(crowd_dim=30, crowd_heads=4)
+        PearlConfig(crowd_encoder="attention", crowd_dim=30, crowd_heads=4)
 
 
 def test_jitted_act_traces_once():

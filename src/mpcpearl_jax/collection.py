@@ -48,6 +48,7 @@ def make_collector(
     eps: float = 0.0,
     deterministic: bool = False,
     mesh=None,
+    mark_expert: bool = False,
 ) -> Callable:
     """Build `collect(key, policy_params [S], z [S, R, L], tasks [S, R], explore=None) ->
     Episodes`.
@@ -58,7 +59,9 @@ def make_collector(
     exploring-starts extension, `TrainConfig.explore_start_share`) starts those rows at
     `env.random_start` instead of the task's start pose. `mesh` (`mpcpearl_jax.distributed`):
     the seed axis, hence the flat rows, is split over its devices; the bridge then runs per
-    shard (`MPCBridge.on_mesh`).
+    shard (`MPCBridge.on_mesh`). `mark_expert`: the transitions carry the `used_mpc` log as
+    their `expert` mark (1.0 where the MPC acted), for a learner that imitates the MPC
+    (`pearl.imitation`).
     """
     horizon = env.config.horizon
     # eps = 0 never calls the MPC: its guard and callback stay out of the program (on a GPU each
@@ -109,8 +112,9 @@ def make_collector(
             nobs, nstate, rew, _, info = jax.vmap(env.step)(
                 jax.random.split(k, s * r), state, action, flat
             )
+            expert = used.astype(jnp.float32) if mark_expert else None
             out = (
-                Transitions(obs, action, rew, nobs, jnp.zeros_like(rew)),
+                Transitions(obs, action, rew, nobs, jnp.zeros_like(rew), expert),
                 info.position,
                 info.collision,
                 info.in_goal,

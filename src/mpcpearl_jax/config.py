@@ -364,6 +364,13 @@ def validate(cfg: ExperimentConfig) -> ExperimentConfig:
         from mpcpearl_jax.pearl.networks import check_crowd_inputs
 
         check_crowd_inputs(cfg.pearl, [p["name"] for p in layout(env.config, 1, 1)])
+    if cfg.pearl.imitation > 0 and not cfg.train.uses_mpc:
+        v.fail(
+            cfg.pearl,
+            "imitation",
+            f"imitates the MPC's actions, and train.eps={cfg.train.eps:g} never calls the MPC: "
+            "set train.eps above 0 or pearl.imitation=0",
+        )
     if cfg.train.redraw_behaviours and not can_redraw(cfg.env):
         raise ConfigError(
             f"TrainConfig.redraw_behaviours: env {cfg.env!r} cannot redraw its training "

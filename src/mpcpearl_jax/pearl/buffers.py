@@ -28,11 +28,17 @@ class TaskBuffer(struct.PyTreeNode):
 
 
 def init_buffer(
-    num_tasks: int, capacity: int, obs_dim: int, action_dim: int, lead: tuple[int, ...] = ()
+    num_tasks: int,
+    capacity: int,
+    obs_dim: int,
+    action_dim: int,
+    lead: tuple[int, ...] = (),
+    expert: bool = False,
 ) -> TaskBuffer:
-    """Empty buffers [*lead, N, cap, ...]; every leaf is its own device array (no aliasing)."""
+    """Empty buffers [*lead, N, cap, ...]; every leaf is its own device array (no aliasing).
+    `expert`: the buffers also keep each transition's `expert` mark (`pearl.imitation`)."""
     z = lambda *s: jnp.zeros((*lead, num_tasks, capacity, *s), jnp.float32)  # noqa: E731
-    data = Transitions(z(obs_dim), z(action_dim), z(), z(obs_dim), z())
+    data = Transitions(z(obs_dim), z(action_dim), z(), z(obs_dim), z(), z() if expert else None)
     count = lambda: jnp.zeros((*lead, num_tasks), jnp.int32)  # noqa: E731
     return TaskBuffer(data, count(), count())
 

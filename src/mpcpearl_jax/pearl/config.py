@@ -7,7 +7,8 @@ from typing import Any
 
 from mpcpearl_jax import validate as v
 
-CROWD_ENCODERS = ("none", "attention")
+CROWD_ENCODERS = ("none", "attention", "deepsets")
+CROWD_STATIC = ("pool", "flat")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,9 +51,24 @@ class PearlConfig:
     # features, and pooled by attention queried by the robot's state and goal, absent people
     # masked out, as crowd-navigation policies such as SARL do). "attention" needs the
     # observation's egocentric entries and presence (env.observe_relative, env.observe_presence)
+    # "deepsets": the same entities embedded by one shared MLP each and pooled by their masked
+    # mean and max (cheaper: no attention)
     crowd_encoder: str = "none"
     crowd_dim: int = 64  # width of the per-entity embeddings and of each pooled feature
-    crowd_heads: int = 4  # attention heads (crowd_dim must be a multiple)
+    crowd_heads: int = 4  # attention heads (crowd_dim must be a multiple; "attention" only)
+    # the static obstacles (tables), fixed in number and order: "pool" (pooled as the people
+    # are) or "flat" (their centres and nearest points as plain features beside the pools)
+    crowd_static: str = "pool"
+    # one crowd encoder shared by the twin critics and trained by their loss only; the policy
+    # and V read its features with stopped gradients (as SAC-AE and DrQ do) and the target V
+    # reads the target copy (an exponential average of it), so each observation is encoded
+    # once per gradient step. false: the policy, each critic and V own an encoder
+    crowd_shared: bool = False
+    # the MPC as a teacher: the actor's loss adds `imitation` x a behaviour-cloning term toward
+    # the MPC's action on the replay transitions the MPC acted on, kept where the critic rates
+    # the MPC's action at least as high as the policy's (the Q-filter of Nair et al., ICRA
+    # 2018). 0 = off (the paper)
+    imitation: float = 0.0
 
     def __post_init__(self) -> None:
         v.ints(self, "latent_dim", "meta_batch", "batch_size", "context_size")
@@ -60,7 +76,8 @@ class PearlConfig:
         v.positive(self, "lr", "reward_scale", "min_posterior_var")
         v.interval(self, "gamma", "tau", lo=0.0, hi=1.0)
         v.nonnegative(self, "kl_weight", "policy_mean_reg", "policy_std_reg")
-        v.flags(self, "use_context", "layer_norm", "auto_entropy")
+        v.flags(self, "use_context", "layer_norm", "auto_entropy", "crowd_shared")
+        v.nonnegative(self, "imitation")
         v.check(
             self.target_entropy is None or v.is_number(self.target_entropy),
             self,
@@ -88,9 +105,15 @@ class PearlConfig:
             "crowd_encoder",
             f"must be one of {', '.join(CROWD_ENCODERS)}, got {self.crowd_encoder!r}",
         )
+        v.check(
+            self.crowd_static in CROWD_STATIC,
+            self,
+            "crowd_static",
+            f"must be one of {', '.join(CROWD_STATIC)}, got {self.crowd_static!r}",
+        )
         v.ints(self, "crowd_dim", "crowd_heads")
         v.check(
-            self.crowd_dim % self.crowd_heads == 0,
+            self.crowd_encoder != "attention" or self.crowd_dim % self.crowd_heads == 0,
             self,
             "crowd_dim",
             f"must be a multiple of crowd_heads ({self.crowd_heads}), got {self.crowd_dim}",

@@ -94,16 +94,26 @@ def make_update(nets: Networks, jit: bool = True):
         q_enc, os_qe = opt_step(q_enc, grads, opt_in["q_enc"])
         z = jax.lax.stop_gradient(aux["z"])
         zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])
+        # what the actor and V read: the observation, or (`pearl.crowd_shared`) the updated
+        # critics' crowd features, computed once and detached
+        x = batch.obs
+        if nets.shared:
+            x = jax.lax.stop_gradient(nets.encode(q_enc["q"], batch.obs))
+        # extension `imitation`: the MPC's actions in the batch, marked by the collection
+        expert = None
+        if nets.cfg.imitation > 0:
+            if batch.expert is None:
+                raise ValueError("pearl.imitation needs the batch's expert marks")
+            expert = (batch.expert, batch.action)
         # 2. policy L_theta (line 22), z detached, with the updated Q
         (pi_loss, pi_aux), g_pi = jax.value_and_grad(loss.policy, has_aux=True)(
-            p["policy"], q_enc["q"], batch.obs, zb, k_pi, alpha
+            p["policy"], q_enc["q"], x, zb, k_pi, alpha, expert
         )
         policy, os_pi = opt_step(p["policy"], g_pi, opt_in["policy"])
         # 3. value (line 23), target from the same policy sample and the updated Q
         v_target = jax.lax.stop_gradient(pi_aux["v_target"])
-        v_loss, g_v = jax.value_and_grad(loss.value)(p["v"], batch.obs, zb, v_target)
+        v_loss, g_v = jax.value_and_grad(loss.value)(p["v"], x, zb, v_target)
         v, os_v = opt_step(p["v"], g_v, opt_in["v"])
-        target_v = optax.incremental_update(v, state.target_v, nets.cfg.tau)
         opt_state = {"q_enc": os_qe, "policy": os_pi, "v": os_v}
         # 4. entropy weight (extension `auto_entropy`), from the same policy sample's log pi
         log_alpha = state.log_alpha
@@ -111,6 +121,10 @@ def make_update(nets: Networks, jit: bool = True):
             g_a = jax.grad(loss.temperature)(log_alpha, pi_aux["log_pi"])
             log_alpha, opt_state["alpha"] = opt_step(log_alpha, g_a, opt_in["alpha"])
         params = {"policy": policy, "q": q_enc["q"], "v": v, "encoder": q_enc["encoder"]}
+        if nets.shared:  # the policy and V act with the critics' updated encoder
+            params = nets.share_crowd(params)
+        # the target V (with a shared encoder, its copy too: the target encoder)
+        target_v = optax.incremental_update(params["v"], state.target_v, nets.cfg.tau)
         new = LearnerState(params, target_v, opt_state, state.steps + 1, log_alpha)
         metrics = {
             "q_loss": aux["q_loss"],
@@ -123,6 +137,8 @@ def make_update(nets: Networks, jit: bool = True):
         }
         if alpha is not None:
             metrics["alpha"] = alpha
+        if expert is not None:
+            metrics["bc_loss"], metrics["bc_kept"] = pi_aux["bc_loss"], pi_aux["bc_kept"]
         return new, metrics
 
     return jax.jit(update) if jit else update

@@ -24,9 +24,11 @@ class Losses(NamedTuple):
     # (q_enc_params {q, encoder}, target_v_params, batch [MB, B], context [MB, C, D], key)
     # -> (L_phi, aux): the critic loss L_psi plus the encoder's KL term
     critic_encoder: Callable
-    # (policy_params, q_params, obs [MB, B, O], z [MB, B, L], key, alpha=None) -> (L_theta, aux)
+    # (policy_params, q_params, x [MB, B, O], z [MB, B, L], key, alpha=None, expert=None)
+    # -> (L_theta, aux); x is the observation, or the shared crowd encoder's features [MB, B, F]
+    # (`pearl.crowd_shared`); expert = (mark [MB, B], action [MB, B, A]) with `pearl.imitation`
     policy: Callable
-    # (v_params, obs [MB, B, O], z [MB, B, L], v_target [MB, B]) -> the SAC value loss
+    # (v_params, x [MB, B, O], z [MB, B, L], v_target [MB, B]) -> the SAC value loss
     value: Callable
     # (log_alpha, log_pi) -> the entropy weight's loss (extension `auto_entropy`)
     temperature: Callable
@@ -43,15 +45,29 @@ def make_losses(nets: Networks) -> Losses:
     """The losses of the agent `nets`, with its config's constants bound."""
     cfg = nets.cfg
     entropy_target = target_entropy(nets)
+    # the networks on what the actor and V losses read: the observation, or the shared crowd
+    # encoder's features (`pearl.crowd_shared`, computed once per step by the learner)
+    if nets.shared:
+        pi_out, q_out, v_out = nets.policy_head, nets.q_heads, nets.value_head
+    else:
+        pi_out, q_out, v_out = nets.policy_out, nets.q_values, nets.value
 
     def critic_encoder(q_enc_params, target_v_params, batch, context, key):
         """L_phi = L_psi + beta KL(q(z|c) || N(0, I)) (paper Sec. III-A), L_psi the Q TD error
         against reward_scale * c + gamma V_bar(s', z). The encoder gets gradients from the Q
-        loss and the KL only."""
+        loss and the KL only. With a shared crowd encoder (`pearl.crowd_shared`) each
+        observation is encoded once: s by the critics' encoder (trained by this loss), s' by
+        the target V's copy (an exponential average of it), forward only."""
         z, mean, var = nets.posterior_sample(q_enc_params["encoder"], context, key)  # [MB, L]
         zb = jnp.broadcast_to(z[:, None, :], batch.obs.shape[:2] + z.shape[-1:])  # [MB, B, L]
-        q1, q2 = nets.q_values(q_enc_params["q"], batch.obs, batch.action, zb)
-        target_v = nets.value(target_v_params, batch.next_obs, jax.lax.stop_gradient(zb))
+        if nets.shared:
+            feats = nets.encode(q_enc_params["q"], batch.obs)
+            q1, q2 = nets.q_heads(q_enc_params["q"], feats, batch.action, zb)
+            next_feats = nets.encode(target_v_params, batch.next_obs)
+            target_v = nets.value_head(target_v_params, next_feats, jax.lax.stop_gradient(zb))
+        else:
+            q1, q2 = nets.q_values(q_enc_params["q"], batch.obs, batch.action, zb)
+            target_v = nets.value(target_v_params, batch.next_obs, jax.lax.stop_gradient(zb))
         return td_and_kl(q1, q2, td_target(batch, target_v), z, mean, var)
 
     def td_target(batch, next_v):
@@ -66,25 +82,44 @@ def make_losses(nets: Networks) -> Losses:
         loss = q_loss + cfg.kl_weight * kl
         return loss, {"q_loss": q_loss, "kl": kl, "z": z, "q1_mean": jnp.mean(q1)}
 
-    def policy(policy_params, q_params, obs, z, key, alpha=None):
+    def policy(policy_params, q_params, x, z, key, alpha=None, expert=None):
         """L_theta = KL(pi || exp(Q)/Z) = E[log pi - min_i Q_i] + the mean and log-std
         regularisers (paper Sec. III-A). z is detached (no policy gradient into the encoder).
         Extension `auto_entropy`: alpha (a detached scalar) weighs log pi in the loss and in
-        the V target, E[alpha log pi - min_i Q_i]; None = 1 as in the paper."""
-        mean, log_std = nets.policy_out(policy_params, obs, z)
+        the V target, E[alpha log pi - min_i Q_i]; None = 1 as in the paper. Extension
+        `imitation` (`expert` given): + imitation x `behaviour_cloning`."""
+        mean, log_std = pi_out(policy_params, x, z)
         action, log_pi = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=key)
-        q1, q2 = nets.q_values(q_params, obs, action, z)
+        q1, q2 = q_out(q_params, x, action, z)
         min_q = jnp.minimum(q1, q2)
         entropy_term = log_pi if alpha is None else alpha * log_pi
         loss = jnp.mean(entropy_term - min_q)
         loss += cfg.policy_mean_reg * jnp.mean(mean**2) + cfg.policy_std_reg * jnp.mean(log_std**2)
-        return loss, {"log_pi": jnp.mean(log_pi), "v_target": min_q - entropy_term}
+        aux = {"log_pi": jnp.mean(log_pi), "v_target": min_q - entropy_term}
+        if expert is not None:
+            bc, kept = behaviour_cloning(q_params, x, z, mean, min_q, *expert)
+            loss += cfg.imitation * bc
+            aux.update(bc_loss=bc, bc_kept=kept)
+        return loss, aux
 
-    def value(v_params, obs, z, v_target):
+    def behaviour_cloning(q_params, x, z, mean, min_q, mark, expert_action):
+        """The MPC as a teacher (extension `imitation`; Nair et al., ICRA 2018, eq. (3)-(4)):
+        sum over the batch's MPC transitions of ||tanh(mean(s)) - a_MPC||^2, each kept only
+        where min_i Q_i(s, a_MPC) >= min_i Q_i(s, a~pi) (the Q-filter, critic detached), divided
+        by the number of MPC transitions in the batch (1 if none). Returns (the term, the share
+        of MPC transitions kept)."""
+        q1, q2 = q_out(q_params, x, expert_action, z)
+        better = jnp.minimum(q1, q2) >= min_q
+        keep = jax.lax.stop_gradient(mark * better.astype(mark.dtype))
+        err = jnp.sum((jnp.tanh(mean) - expert_action) ** 2, axis=-1)
+        n = jnp.maximum(jnp.sum(mark), 1.0)
+        return jnp.sum(keep * err) / n, jnp.sum(keep) / n
+
+    def value(v_params, x, z, v_target):
         """SAC value loss (V_bar's source; method §7): (V(s, z) - [min_i Q_i(s, a~pi, z) -
         log pi(a|s, z)])^2, z detached. `v_target` comes from the policy loss's sample and
         min-Q (the authors' code reuses the same `min_q_new_actions` for both losses)."""
-        v = nets.value(v_params, obs, z)
+        v = v_out(v_params, x, z)
         return jnp.mean((v - jax.lax.stop_gradient(v_target)) ** 2)
 
     def temperature(log_alpha, log_pi):

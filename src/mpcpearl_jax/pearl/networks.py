@@ -61,13 +61,17 @@ STATIC_PARTS = ("static_centres", "static_ego")
 
 @dataclasses.dataclass(frozen=True)
 class CrowdSpec:
-    """What shapes a crowd encoder: the observation's parts as (name, start, size) and the
-    embedding sizes. The number of people is the size of `people_present`, the number of
-    static obstacles half the size of `static_ego`."""
+    """What shapes a crowd encoder: the observation's parts as (name, start, size), the kind of
+    pool ("attention" or "deepsets"), the embedding sizes and how the static obstacles enter
+    ("pool": pooled like the people; "flat": their entries as plain features). The number of
+    people is the size of `people_present`, the number of static obstacles half the size of
+    `static_ego`."""
 
     layout: tuple[tuple[str, int, int], ...]
     dim: int = 64
     heads: int = 4
+    kind: str = "attention"
+    static: str = "pool"
 
     @property
     def parts(self) -> dict[str, tuple[int, int]]:
@@ -106,12 +110,38 @@ class AttentionPool(nn.Module):
         return out
 
 
+class DeepSetPool(nn.Module):
+    """Entities [..., N, F] (mask [..., N], None = all present) -> [..., 2 dim]: each entity
+    embedded with the robot's features [..., R] by one shared 2-layer ReLU MLP, then the masked
+    mean and the masked max over the present entities (Deep Sets, Zaheer et al. 2017; the mean
+    and max pools of crowd-navigation encoders). The first layer's robot term is computed once
+    per observation, not once per entity (the same affine map of [entity, robot]). 0 when no
+    entity is present: the embeddings are non-negative, so 0 is the max's neutral element."""
+
+    dim: int
+
+    @nn.compact
+    def __call__(self, ent: Array, mask: Array | None, robot: Array, own: Array) -> Array:
+        del own
+        h = nn.Dense(self.dim, name="entity")(ent)
+        h = h + nn.Dense(self.dim, use_bias=False, name="robot")(robot)[..., None, :]
+        e = nn.relu(nn.Dense(self.dim)(nn.relu(h)))
+        if mask is None:
+            return jnp.concatenate([jnp.mean(e, axis=-2), jnp.max(e, axis=-2)], axis=-1)
+        m = mask[..., None].astype(e.dtype)
+        count = jnp.maximum(jnp.sum(m, axis=-2), 1.0)
+        mean = jnp.sum(e * m, axis=-2) / count
+        top = jnp.max(e * m, axis=-2)
+        return jnp.concatenate([mean, top], axis=-1)
+
+
 class CrowdEncoder(nn.Module):
-    """Flat observation [..., O] -> [..., R + dim (+ dim)]: the robot's own features (pose,
-    goal, time), the people pooled by attention and the static obstacles pooled by attention
-    (`pearl.crowd_encoder` "attention"; SARL, Chen et al. 2019, with HEIGHT's two entity kinds).
-    Each person's entries (arena and egocentric position, displacement, forecast, presence) form
-    one entity; the people's presence entry is the mask. Invariant to the order of the people."""
+    """Flat observation [..., O] -> features [...,F]: the robot's own features (pose, goal,
+    time), the people pooled and the static obstacles pooled or as plain features
+    (`pearl.crowd_encoder`: "attention", SARL, Chen et al. 2019, with HEIGHT's two entity kinds;
+    "deepsets", mean and max pools). Each person's entries (arena and egocentric position,
+    displacement, forecast, presence) form one entity; the people's presence entry is the mask.
+    Invariant to the order of the people."""
 
     spec: CrowdSpec
 
@@ -120,22 +150,30 @@ class CrowdEncoder(nn.Module):
         batch = obs.shape[:-1]
         parts = {n: obs[..., s : s + k] for n, (s, k) in self.spec.parts.items()}
         robot = jnp.concatenate([parts[n] for n in ROBOT_PARTS if n in parts], axis=-1)
-        own = nn.relu(nn.Dense(self.spec.dim, name="robot")(robot))
+        attention = self.spec.kind == "attention"
+        own = nn.relu(nn.Dense(self.spec.dim, name="robot")(robot)) if attention else robot
         feats = [robot]
 
         def entities(names: Sequence[str], n: int) -> Array:
+            # explicit sizes: a batch of 0 observations has no -1 to infer
             return jnp.concatenate(
-                [parts[x].reshape(*batch, n, -1) for x in names if x in parts], axis=-1
+                [parts[x].reshape(*batch, n, parts[x].shape[-1] // n) for x in names if x in parts],
+                axis=-1,
             )
+
+        def pool(name: str) -> nn.Module:
+            if attention:
+                return AttentionPool(self.spec.dim, self.spec.heads, name=name)
+            return DeepSetPool(self.spec.dim, name=name)
 
         h, s = self.spec.num_people, self.spec.num_static
         if h > 0:
             present = parts["people_present"] > 0
-            pool = AttentionPool(self.spec.dim, self.spec.heads, name="people")
-            feats.append(pool(entities(PEOPLE_PARTS, h), present, robot, own))
-        if s > 0:
-            pool = AttentionPool(self.spec.dim, self.spec.heads, name="static")
-            feats.append(pool(entities(STATIC_PARTS, s), None, robot, own))
+            feats.append(pool("people")(entities(PEOPLE_PARTS, h), present, robot, own))
+        if s > 0 and self.spec.static == "pool":
+            feats.append(pool("static")(entities(STATIC_PARTS, s), None, robot, own))
+        elif s > 0:
+            feats.extend(parts[n] for n in STATIC_PARTS if n in parts)
         return jnp.concatenate(feats, axis=-1)
 
 
@@ -150,11 +188,16 @@ class TwinQ(nn.Module):
     hidden: Sequence[int]
     layer_norm: bool = False
     crowd: CrowdSpec | None = None
+    # one crowd encoder ("crowd") read by both heads (`pearl.crowd_shared`), else one per head
+    shared: bool = False
 
     @nn.compact
     def __call__(self, obs: Array, action: Array, z: Array) -> tuple[Array, Array]:
+        seen = _see(self.crowd, obs, "crowd") if self.shared else None
+
         def head(name: str) -> Array:
-            x = jnp.concatenate([_see(self.crowd, obs, f"{name}_crowd"), action, z], axis=-1)
+            x = seen if seen is not None else _see(self.crowd, obs, f"{name}_crowd")
+            x = jnp.concatenate([x, action, z], axis=-1)
             return MLP(self.hidden, 1, self.layer_norm, name=name)(x)[..., 0]
 
         return head("q1"), head("q2")
@@ -242,7 +285,7 @@ NETWORK_FIELDS = (
     "use_context",
 )
 # the fields of the crowd encoder, saved only when it is on (a spec without them has none)
-CROWD_FIELDS = ("crowd_encoder", "crowd_dim", "crowd_heads")
+CROWD_FIELDS = ("crowd_encoder", "crowd_dim", "crowd_heads", "crowd_static", "crowd_shared")
 
 
 def check_crowd_inputs(cfg: PearlConfig, part_names: Sequence[str]) -> None:
@@ -276,7 +319,7 @@ def crowd_spec(
     end = max(s + k for _, s, k in layout)
     if end != obs_dim:
         raise ConfigError(f"observation layout covers {end} entries, the observation has {obs_dim}")
-    return CrowdSpec(layout, cfg.crowd_dim, cfg.crowd_heads)
+    return CrowdSpec(layout, cfg.crowd_dim, cfg.crowd_heads, cfg.crowd_encoder, cfg.crowd_static)
 
 
 class Networks:
@@ -299,7 +342,9 @@ class Networks:
         self.policy = PolicyNet(
             cfg.hidden, action_dim, cfg.log_std_min, cfg.log_std_max, crowd=self.crowd
         )
-        self.q = TwinQ(cfg.hidden, cfg.layer_norm, crowd=self.crowd)
+        # `pearl.crowd_shared`: the critics' one encoder, read by the policy and V as features
+        self.shared = self.crowd is not None and cfg.crowd_shared
+        self.q = TwinQ(cfg.hidden, cfg.layer_norm, crowd=self.crowd, shared=self.shared)
         self.v = ValueNet(cfg.hidden, cfg.layer_norm, crowd=self.crowd)
         self.encoder = ContextEncoder(cfg.encoder_hidden, cfg.latent_dim, cfg.min_posterior_var)
 
@@ -357,12 +402,57 @@ class Networks:
         act = jnp.zeros((1, self.action_dim))
         z = jnp.zeros((1, self.cfg.latent_dim))
         ctx = jnp.zeros((1, 1, self.context_dim))
-        return {
+        params = {
             "policy": self.policy.init(k_pi, obs, z),
             "q": self.q.init(k_q, obs, act, z),
             "v": self.v.init(k_v, obs, z),
             "encoder": self.encoder.init(k_e, ctx),
         }
+        return self.share_crowd(params) if self.shared else params
+
+    # ---- the shared crowd encoder (`pearl.crowd_shared`): the critics own it; the policy and
+    # V hold copies of it (so each still acts from the observation alone) and read its features
+    # with stopped gradients
+    def share_crowd(self, params: dict) -> dict:
+        """`params` with the policy's and V's crowd encoders set to the critics' (copies)."""
+        crowd = params["q"]["params"]["crowd"]
+        out = dict(params)
+        for name in ("policy", "v"):
+            inner = dict(out[name]["params"])
+            inner["crowd"] = jax.tree_util.tree_map(jnp.copy, crowd)
+            out[name] = {**out[name], "params": inner}
+        return out
+
+    def encode(self, params: Any, obs: Array) -> Array:
+        """The crowd encoder's features [..., F] of obs [..., O] under the encoder in `params`
+        (a policy's, critics' or V's parameters)."""
+        assert self.crowd is not None
+        enc = CrowdEncoder(self.crowd)
+        return cast(Array, enc.apply({"params": params["params"]["crowd"]}, obs))
+
+    def policy_head(self, params: Any, feats: Array, z: Array) -> tuple[Array, Array]:
+        """`policy_out` on features [..., F] (`encode`): policy_out(p, o, z) = policy_head(p,
+        encode(p, o), z)."""
+        mlp = MLP(self.cfg.hidden, 2 * self.action_dim)
+        out = mlp.apply({"params": params["params"]["MLP_0"]}, jnp.concatenate([feats, z], -1))
+        mean, log_std = jnp.split(cast(Array, out), 2, axis=-1)
+        return mean, jnp.clip(log_std, self.cfg.log_std_min, self.cfg.log_std_max)
+
+    def q_heads(self, params: Any, feats: Array, action: Array, z: Array) -> tuple[Array, Array]:
+        """`q_values` of the shared-encoder critics on features [..., F]."""
+        x = jnp.concatenate([feats, action, z], axis=-1)
+
+        def head(name: str) -> Array:
+            mlp = MLP(self.cfg.hidden, 1, self.cfg.layer_norm)
+            return cast(Array, mlp.apply({"params": params["params"][name]}, x))[..., 0]
+
+        return head("q1"), head("q2")
+
+    def value_head(self, params: Any, feats: Array, z: Array) -> Array:
+        """`value` on features [..., F]."""
+        mlp = MLP(self.cfg.hidden, 1, self.cfg.layer_norm)
+        x = jnp.concatenate([feats, z], axis=-1)
+        return cast(Array, mlp.apply({"params": params["params"]["MLP_0"]}, x))[..., 0]
 
     # typed applies: flax's `apply` is untyped
     def policy_out(self, params: Any, obs: Array, z: Array) -> tuple[Array, Array]:

@@ -18,6 +18,9 @@ class Transitions(NamedTuple):
     reward: Array  # [...] unscaled
     next_obs: Array  # [..., O]
     done: Array  # [...] 1.0 on true termination (never in these tasks: time limits bootstrap)
+    # [...] 1.0 where the MPC acted: kept only when the learner imitates it (`pearl.imitation`);
+    # None (no leaf) otherwise
+    expert: Array | None = None
 
 
 def context_from(t: Transitions) -> Array:

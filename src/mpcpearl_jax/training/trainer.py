@@ -198,8 +198,9 @@ class Trainer:
             from mpcpearl_jax.mpc import make_mpc_bridge
 
             self.bridge = make_mpc_bridge(self.env, cfg.mpc)
+        self.imitates = cfg.pearl.imitation > 0
         self._collector = collect_lib.make_collector(
-            self.env, self.nets, self.bridge, tc.eps, mesh=self.mesh
+            self.env, self.nets, self.bridge, tc.eps, mesh=self.mesh, mark_expert=self.imitates
         )
         self._update_body = make_update(self.nets, jit=False)
         self.collect_phase = jax.jit(self._collect_phase, static_argnums=2, donate_argnums=0)
@@ -234,8 +235,9 @@ class Trainer:
         # init) their own buffers; the replay buffers are created unaliased and at full size once
         learner = jax.tree_util.tree_map(lambda x: jnp.array(x, copy=True), learner)
         n, od, ad, lead = self.num_train, self.obs_dim, self.action_dim, (cfg.seeds,)
-        rl = buffers.init_buffer(n, cfg.train.rl_capacity, od, ad, lead)
-        enc = buffers.init_buffer(n, self.enc_capacity, od, ad, lead)
+        mark = self.imitates  # the buffers keep the MPC's mark (`pearl.imitation`)
+        rl = buffers.init_buffer(n, cfg.train.rl_capacity, od, ad, lead, expert=mark)
+        enc = buffers.init_buffer(n, self.enc_capacity, od, ad, lead, expert=mark)
         tasks = jax.tree_util.tree_map(
             lambda x: jnp.array(jnp.broadcast_to(x, (cfg.seeds, *x.shape))), self.train_tasks
         )
