@@ -235,7 +235,12 @@ def _register_builtin() -> None:
 
 _register_builtin()
 
-_LAZY = {"BraxNavEnv": "brax_adapter"}  # brax is imported only when the adapter is used
+# brax and gymnasium are imported only when an adapter is used
+_LAZY = {
+    "BraxNavEnv": "brax_adapter",
+    "GymNavEnv": "gymnasium_adapter",
+    "GymNavVectorEnv": "gymnasium_adapter",
+}
 
 
 def __getattr__(name: str) -> Any:
@@ -252,6 +257,8 @@ __all__ = [
     "BraxNavEnv",
     "ConfigError",
     "EnvState",
+    "GymNavEnv",
+    "GymNavVectorEnv",
     "NavConfig",
     "NavEnv",
     "NumpyNavEnv",
