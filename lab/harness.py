@@ -10,7 +10,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from mpcpearl_jax.cli.platform import PlatformError, check_platform
 from mpcpearl_jax.cli.tables import print_table, write_record  # noqa: F401 (re-exported)
@@ -19,9 +19,73 @@ from mpcpearl_jax.training import machine
 SIZES = ("tiny", "default", "full")
 
 
+class DiagnosticParser(argparse.ArgumentParser):
+    """An ArgumentParser whose `parse_args` also checks, before the diagnostic runs, the flags
+    every diagnostic shares (`check_common`): a wrong value ends it with one line and exit 2."""
+
+    def parse_args(self, args=None, namespace=None):  # type: ignore[override]
+        parsed = super().parse_args(args, namespace)
+        why = check_common(parsed)
+        if why is not None:
+            print(f"error: {why}", file=sys.stderr, flush=True)
+            raise SystemExit(2)
+        return parsed
+
+
+def check_common(args: argparse.Namespace) -> str | None:
+    """The one-line error of a --threads outside 1 to the cores this process may use, or of an
+    --out that is not a writable folder (created if missing); None when both are good."""
+    from mpcpearl_jax.validate import unwritable_folder
+
+    threads = getattr(args, "threads", None)
+    if threads is not None:
+        cores = machine.available_cores()
+        if not 1 <= threads <= cores:
+            return f"--threads {threads}: this process may use 1 to {cores} cores (default: all)"
+    out = getattr(args, "out", None)
+    if out is not None:
+        why = unwritable_folder(out)
+        if why is not None:
+            return f"--out {out}: not writable ({why}); choose another --out"
+    return None
+
+
+def record_name(base: str, size: str, **settings: tuple[Any, Any]) -> str:
+    """A record's file stem: `base`, then the size when not the default one, then `-KEYVALUE`
+    (`-KEY-VALUE` when the value starts with a letter) for each setting given as (value,
+    default) whose value is not its default (paths by their folder's name, lists joined by '+',
+    a long value by a short hash), so that runs of other sizes or settings write records of
+    their own instead of replacing each other's."""
+    import hashlib
+    import re
+
+    def same(a: Any, b: Any) -> bool:
+        if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+            return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b, strict=True))
+        if isinstance(a, Path) and isinstance(b, Path):
+            return a.resolve() == b.resolve()
+        return a == b
+
+    def text(v: Any) -> str:
+        if isinstance(v, list | tuple):
+            return "+".join(text(x) for x in v)
+        return Path(v).name if isinstance(v, Path) else str(v)
+
+    name = base + ("" if size in ("default", None) else f"-{size}")
+    for key, (value, default) in settings.items():
+        if not same(value, default):
+            part = re.sub(r"[^A-Za-z0-9._+=-]", "-", text(value))
+            if len(part) > 40:
+                part = hashlib.sha1(part.encode()).hexdigest()[:10]
+            sep = "" if part[:1].isdigit() else "-"  # -delay6, -run-NAME
+            name += f"-{key.replace('_', '-')}{sep}{part}"
+    return name
+
+
 def common_parser(description: str) -> argparse.ArgumentParser:
-    """A diagnostic's parser: its size (--tiny for the tests, --full), --out and --threads."""
-    p = argparse.ArgumentParser(description=description)
+    """A diagnostic's parser: its size (--tiny for the tests, --full), --out and --threads,
+    checked when parsed (`DiagnosticParser`)."""
+    p = DiagnosticParser(description=description)
     size = p.add_mutually_exclusive_group()
     size.add_argument("--tiny", action="store_true", help="a seconds-long check (the tests)")
     size.add_argument("--full", action="store_true", help="every task (slow)")
@@ -31,7 +95,9 @@ def common_parser(description: str) -> argparse.ArgumentParser:
         default=Path("."),
         help="folder of the JSON record (default: the current one)",
     )
-    p.add_argument("--threads", type=int, help="CPU cores (default: all this process may use)")
+    p.add_argument(
+        "--threads", type=int, help="CPU cores, 1 to all (default: all this process may use)"
+    )
     return p
 
 
@@ -45,6 +111,34 @@ def configure_threads(n: int | None) -> dict[str, Any]:
         print(f"error: {e}", file=sys.stderr, flush=True)
         raise SystemExit(2) from None
     return info
+
+
+def fail(line: str) -> NoReturn:
+    """End a diagnostic on a bad input: `line` on stderr as one error line, exit code 2."""
+    print(f"error: {line}", file=sys.stderr, flush=True)
+    raise SystemExit(2)
+
+
+def load_runs(flag: str, runs: list[Path]) -> list[Any]:
+    """`load_policy` of each run folder given by `flag` (--run, --runs), checked first: none
+    given, a folder that is not there or a run that does not load is one line naming the flag
+    and the folder (`fail`), not a traceback."""
+    from mpcpearl_jax import load_policy
+    from mpcpearl_jax.cli.errors import error_line
+    from mpcpearl_jax.errors import CheckpointError, ConfigError
+
+    if not runs:
+        fail(f"{flag}: no run folder given (give one or more)")
+    for run in runs:
+        if not run.is_dir():
+            fail(f"{flag} {run}: " + ("not a folder" if run.exists() else "no such folder"))
+    policies = []
+    for run in runs:
+        try:
+            policies.append(load_policy(run))
+        except (CheckpointError, ConfigError, OSError, ValueError, KeyError) as e:
+            fail(f"{flag}: {error_line(e)}")
+    return policies
 
 
 def size_of(args: argparse.Namespace) -> str:

@@ -94,7 +94,7 @@ def test_imitation_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     from lab.diagnostics import imitation
 
     res = imitation.main(["--tiny", "--out", str(tmp_path)])
-    record = json.loads((tmp_path / "imitation.json").read_text())
+    record = json.loads((tmp_path / "imitation-tiny.json").read_text())
     assert record["config"]["size"] == "tiny" and record["results"]["bc_selected_steps"] in (5, 10)
     assert [row["steps"] for row in res["bc_curve"]] == [5, 10]
     errors = [res["label_variance"], res["train_label_variance"]]
@@ -115,7 +115,7 @@ def test_dagger_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     from lab.diagnostics import dagger
 
     res = dagger.main(["--tiny", "--relative", "--sorted", "--out", str(tmp_path)])
-    record = json.loads((tmp_path / "dagger-relative-sorted.json").read_text())
+    record = json.loads((tmp_path / "dagger-relative-sorted-tiny.json").read_text())
     assert record["config"]["size"] == "tiny" and record["config"]["sorted"]
     assert res["observation"]["observe_relative"] and res["observation"]["observe_sorted"]
     curve = res["curve"]
@@ -134,9 +134,8 @@ def test_dagger_diagnostic_runs_tiny_with_the_crowd_encoder(tmp_path: Path, clea
 
     argv = ["--tiny", "--relative", "--sorted", "--encoder", "attention", "--forecast", "2"]
     res = dagger.main([*argv, "--labels", "2", "--seed", "1", "--out", str(tmp_path)])
-    record = json.loads(
-        (tmp_path / "dagger-relative-sorted-attention-forecast2x1-labels2-seed1.json").read_text()
-    )
+    name = "dagger-relative-sorted-attention-forecast2x1-labels2-tiny-seed1.json"
+    record = json.loads((tmp_path / name).read_text())
     assert record["config"]["encoder"] == "attention" and record["config"]["labels"] == 2
     assert res["observation"]["observe_presence"] and res["observation"]["observe_forecast"] == 2
     assert 0 < res["curve"][0]["samples"] <= 2 * 2 * 80  # two layouts x two crowds, one round
@@ -179,7 +178,7 @@ def test_shield_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
 
     run = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "mpc-pearl-eps0.2"
     res = shield.main(["--tiny", "--runs", str(run), "--out", str(tmp_path)])
-    record = json.loads((tmp_path / "shield.json").read_text())
+    record = json.loads((tmp_path / "shield-tiny.json").read_text())
     assert record["config"]["size"] == "tiny"
     assert record["config"]["runs"] == ["results/restaurant/mpc-pearl-eps0.2"]
     rows = res["rows"]
@@ -253,7 +252,8 @@ def test_crowd_cause_runs_tiny(tmp_path: Path, clean_environ) -> None:
         p = r["pooled"]
         assert 0.0 <= p["success"]["mean"] <= p["collision_free"]["mean"] <= 1.0
         assert (r["path_shift_m"] is None) == (r["delay"] == 0)
-    assert json.loads((tmp_path / "crowd_cause.json").read_text())["config"]["delay"] == 6
+    record = json.loads((tmp_path / "crowd_cause-tiny-delay6.json").read_text())
+    assert record["config"]["delay"] == 6
 
 
 @pytest.mark.slow  # (~12 s) pearl_step's tiny run is in the fast set

@@ -75,8 +75,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     p.add_argument("--delay", type=int, default=12, help="the crowd's delay in steps (K)")
     args = p.parse_args(argv)
-    if args.delay < 1:
-        raise SystemExit(f"error: --delay {args.delay}: must be >= 1")
+    from mpcpearl_jax.envs.perturb import MAX_DELAY
+
+    if not 1 <= args.delay <= MAX_DELAY:
+        harness.fail(f"--delay {args.delay}: must be in [1, {MAX_DELAY}] steps")
     threads = harness.configure_threads(args.threads)
     size = harness.size_of(args)
     sz = SIZES[size]
@@ -84,15 +86,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import jax
     import numpy as np
 
-    from mpcpearl_jax import load_policy
     from mpcpearl_jax.envs import make_env, tasks_for
     from mpcpearl_jax.envs.perturb import Perturbation, perturb_tasks
     from mpcpearl_jax.evaluation import evaluate as eval_lib
     from mpcpearl_jax.evaluation.evaluate import EVAL_SEED
 
-    policies = [load_policy(r) for r in args.runs]
-    if {pol.config.env for pol in policies} != {"restaurant"}:
-        raise SystemExit("error: --runs must be restaurant runs")
+    policies = harness.load_runs("--runs", args.runs)
+    pairs = zip(args.runs, policies, strict=True)
+    others = [str(r) for r, pol in pairs if pol.config.env != "restaurant"]
+    if others:
+        harness.fail(f"--runs: must be restaurant runs, not {', '.join(others)}")
     seeds = list(sz["task_seeds"])
     k = args.delay
     rows, record_rows = [], []
@@ -186,7 +189,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "path shift (m)",
     ]
     config = {**val_config(size, threads, seeds, sz["tasks"], args.runs), "delay": k}
-    return harness.report("crowd_cause", title, rows, cols, config, record_rows, args.out)
+    name = harness.record_name(  # --full is the default size
+        "crowd_cause",
+        "tiny" if size == "tiny" else "default",
+        delay=(k, 12),
+    )
+    return harness.report(name, title, rows, cols, config, record_rows, args.out)
 
 
 if __name__ == "__main__":

@@ -29,8 +29,13 @@ the clone's initialisation (the tasks and crowds stay the same, so arms are pair
     python -m lab.diagnostics.dagger [--tiny] [--relative] [--sorted] [--encoder mlp|attention]
     [--forecast K] [--stride S] [--labels N] [--seed S] [--rounds N] [--out DIR]
 
+The record, DIR/dagger[-relative][-sorted][-ENCODER][-forecastKxS][-labelsN][-tiny][-roundsN]
+[-hiddenAxB][-runNAME][-seedS].json, names every setting that is not the default, so runs of
+another size or setting never replace each other's records.
+
 `--report DIR` (alone) reads the records in DIR, groups them by arm (everything but the seed)
-and writes DIR/README.md and DIR/report.json: per arm the final SR of each seed on the 192
+and writes DIR/README.md and DIR/report.json (records of the tiny size are left out, and
+named as such): per arm the final SR of each seed on the 192
 validation tasks, mean +- standard error over seeds, the worst seed, IQM with its bootstrap
 interval and the probability that a seed of the arm beats a seed of the MLP arm of the same
 inputs and label scale (rliable, as `lab.screen` computes them).
@@ -80,46 +85,90 @@ def record_name(args) -> str:
     name = "dagger" + ("-relative" if args.relative else "") + ("-sorted" if args.sorted else "")
     if args.encoder != "mlp":
         name += f"-{args.encoder}"
+        if (args.encoder, args.dim) != ("attention", 64):
+            name += f"{args.dim}"
+        if args.static != "pool":
+            name += f"-tables{args.static}"
     if args.forecast:
         name += f"-forecast{args.forecast}x{args.stride}"
     if args.labels != 1:
         name += f"-labels{args.labels}"
+    rounds = SIZES["tiny" if args.tiny else "default"]["rounds"]
+    name = harness.record_name(  # --full is the default size
+        name,
+        "tiny" if args.tiny else "default",
+        rounds=(args.rounds or rounds, rounds),
+        hidden=(args.hidden.replace(" ", "").replace(",", "x"), "128x128x128"),
+        run=(Path(args.run), DEFAULT_RUN),
+    )
     return name + (f"-seed{args.seed}" if args.seed else "")
 
 
 def arm_of(config: dict) -> str:
     """A record's arm: its representation, forecast and label scale (not its seed)."""
     enc = config.get("encoder", "mlp")
+    if enc != "mlp":
+        dim = config.get("dim", 64)
+        enc += f" (dim {dim})" if (enc, dim) != ("attention", 64) else ""
+        enc += ", tables flat" if config.get("static", "pool") == "flat" else ""
     arm = enc + (
         f" + forecast {config['forecast']}x{config['stride']}" if config.get("forecast") else ""
     )
-    return arm + (f", {config['labels']}x labels" if config.get("labels", 1) != 1 else "")
+    arm += f", {config['labels']}x labels" if config.get("labels", 1) != 1 else ""
+    if config.get("rounds", 12) != 12:
+        arm += f", {config['rounds']} rounds"
+    if config.get("hidden", [128, 128, 128]) != [128, 128, 128]:
+        arm += ", hidden " + "x".join(str(h) for h in config["hidden"])
+    return arm
 
 
 def report(folder: Path) -> dict[str, Any]:
     """The arms of the records in `folder` (see the module doc): README.md and report.json."""
     import json
+    import sys
 
     from lab import screen
 
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: " + ("not a folder" if folder.exists() else "no such folder"))
+    paths = sorted(folder.glob("dagger*.json"))
+    if not paths:
+        raise ValueError(f"{folder}: no DAgger record (dagger*.json) in this folder")
     arms: dict[str, dict[int, float]] = {}
     samples: dict[str, list[int]] = {}
     blinds: dict[str, dict[int, float]] = {}
-    for path in sorted(folder.glob("dagger*.json")):
+    skipped: list[str] = []
+    for path in paths:
         try:
             rec = json.loads(path.read_text())
             config, final = rec["config"], rec["results"]["final"]["mean"]
-        except (OSError, ValueError, KeyError, TypeError) as e:
+            seed = int(config.get("seed", 0))
+            sr, blind = _score(final, "SR"), _score(final, "SR_blind")
+            curve = rec["results"].get("curve") or []
+            n = int(curve[-1]["samples"]) if curve and "samples" in curve[-1] else None
+            run = rec["results"].get("run", run_name(DEFAULT_RUN))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, IndexError) as e:
             raise ValueError(f"{path}: not a DAgger record ({type(e).__name__}: {e})") from e
-        if config.get("size") != "default":
+        if config.get("size") not in ("default", "full"):  # --full is the default size
+            skipped.append(path.name)
+            continue
+        if sr is None:  # the project writes a non-finite value as null
+            print(
+                f"skipped {path}: results.final.mean.SR is {final.get('SR')!r}, not a score",
+                file=sys.stderr,
+                flush=True,
+            )
             continue
         arm = arm_of(config)
-        arms.setdefault(arm, {})[int(config.get("seed", 0))] = float(final["SR"])
-        if "SR_blind" in final:
-            blinds.setdefault(arm, {})[int(config.get("seed", 0))] = float(final["SR_blind"])
-        samples.setdefault(arm, []).append(int(rec["results"]["curve"][-1]["samples"]))
+        arm += f", run {run}" if run != run_name(DEFAULT_RUN) else ""
+        arms.setdefault(arm, {})[seed] = sr
+        if blind is not None:
+            blinds.setdefault(arm, {})[seed] = blind
+        samples.setdefault(arm, [])
+        if n is not None:  # a record without its curve: its label count is not known
+            samples[arm].append(n)
     if not arms:
-        raise ValueError(f"{folder}: no DAgger record of the default size")
+        raise ValueError(f"{folder}: no DAgger record of the default size with a final SR")
     rows = []
     for arm, by_seed in sorted(arms.items()):
         scores = [by_seed[k] for k in sorted(by_seed)]
@@ -168,14 +217,46 @@ def report(folder: Path) -> dict[str, Any]:
             + (f"{iq['value']:.2f} [{iq['ci'][0]:.2f}, {iq['ci'][1]:.2f}]" if iq else "-")
             + " | "
             + (f"{pi['value']:.2f} [{pi['ci'][0]:.2f}, {pi['ci'][1]:.2f}]" if pi else "-")
-            + f" | {min(r['labels'])}-{max(r['labels'])} | "
+            + (f" | {min(r['labels'])}-{max(r['labels'])} | " if r["labels"] else " | - | ")
             + " ".join(fmt(x) for x in r["val_SR_blind"])
             + " |"
         )
     (folder / "README.md").write_text("\n".join(lines) + "\n")
     (folder / "report.json").write_text(json.dumps({"arms": rows}, indent=1) + "\n")
     print("\n".join(lines[-len(rows) - 2 :]), flush=True)
+    if skipped:
+        print(f"left out {len(skipped)} record(s) not of the default size: {', '.join(skipped)}")
     return {"arms": rows}
+
+
+def _score(final: dict, key: str) -> float | None:
+    """A record's final score `key` as a float; None where it is missing or null (a
+    non-finite value, as the project writes it)."""
+    x = final.get(key)
+    if x is None:
+        return None
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        raise TypeError(f"results.final.mean.{key} is {x!r}, not a number")
+    return float(x)
+
+
+def check_memory(sz: dict, labels: int, obs_dim: int, horizon: int) -> None:
+    """The DAgger data set of the last round (every labelled step of `rounds` rounds of
+    `labels` x `train_tasks` tasks, observation and MPC action in float32, held as the rounds'
+    arrays and their concatenation on the device) and one round's rollout arrays must fit in
+    the free memory: one line naming --labels and --rounds otherwise (`harness.fail`)."""
+    from mpcpearl_jax.errors import ConfigError
+    from mpcpearl_jax.training.resources import check_fits
+
+    tasks = labels * sz["train_tasks"]
+    step = 4 * (obs_dim + 2)  # an observation and its MPC action, float32
+    data = 2 * sz["rounds"] * tasks * horizon * step
+    rollout = tasks * horizon * (step + 4 * 3)  # + the label, collision and goal flags
+    what = f"{sz['rounds']} rounds of {tasks} tasks ({horizon} steps each)"
+    try:
+        check_fits(data + rollout, f"the DAgger data set of {what}", "--labels, --rounds")
+    except ConfigError as e:
+        harness.fail(str(e))
 
 
 def make_rollout(env, bridge, net):
@@ -224,7 +305,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         try:
             return report(Path(args_in[1]))
         except ValueError as e:
-            raise SystemExit(str(e)) from None
+            harness.fail(str(e))
     p = harness.common_parser(__doc__.splitlines()[0])
     p.add_argument("--run", type=Path, default=DEFAULT_RUN, help="run directory (load_policy)")
     p.add_argument("--relative", action="store_true", help="add env.observe_relative")
@@ -232,7 +313,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--rounds", type=int, default=None, help="DAgger rounds (default by size)")
     p.add_argument("--hidden", default="128,128,128", help="the clone's hidden sizes")
     p.add_argument(
-        "--encoder", choices=("mlp", "attention"), default="mlp", help="the clone's input network"
+        "--encoder",
+        choices=("mlp", "attention", "deepsets"),
+        default="mlp",
+        help="the clone's input network (a crowd encoder: pearl.crowd_encoder)",
+    )
+    p.add_argument("--dim", type=int, default=64, help="pearl.crowd_dim of a crowd encoder")
+    p.add_argument(
+        "--static", choices=("pool", "flat"), default="pool", help="pearl.crowd_static"
     )
     p.add_argument("--forecast", type=int, default=0, help="env.observe_forecast (points ahead)")
     p.add_argument("--stride", type=int, default=1, help="env.forecast_stride (steps per point)")
@@ -256,37 +344,51 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         hidden = tuple(int(h) for h in args.hidden.split(","))
     except ValueError:
         p.error(f"--hidden: comma-separated ints expected, got {args.hidden!r}")
+    if min(hidden) < 1:
+        p.error(f"--hidden: every size must be at least 1, got {args.hidden!r}")
 
     import jax
     import jax.numpy as jnp
     import numpy as np
     import optax
 
-    from mpcpearl_jax import load_policy
     from mpcpearl_jax.envs import make_env, make_tasks, redraw_tasks
+    from mpcpearl_jax.errors import ConfigError
     from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
 
-    cfg = load_policy(args.run).config
+    cfg = harness.load_runs("--run", [args.run])[0].config
     overrides = dict(cfg.env_overrides)
     if args.relative:
         overrides["observe_relative"] = True
     if args.sorted:
         overrides["observe_sorted"] = True
-    if args.encoder == "attention":
+    if args.encoder != "mlp":
         overrides.update(observe_relative=True, observe_presence=True)
     if args.forecast:
+        if not overrides.get("observe_relative"):
+            p.error(
+                f"--forecast {args.forecast}: the forecast is in the robot's frame; add "
+                f"--relative (the run {args.run} does not observe relative positions)"
+            )
         overrides.update(observe_forecast=args.forecast, forecast_stride=args.stride)
-    env = make_env(cfg.env, **overrides)
-    ids = np.arange(sz["train_tasks"])
-    if args.encoder == "attention":
-        from mpcpearl_jax.pearl.networks import PearlConfig, crowd_spec
-
+    try:
+        env = make_env(cfg.env, **overrides)
         probe = make_tasks(cfg.env, "val", 1, config=env.config)
-        layout = env.obs_layout(probe)
-        crowd = crowd_spec(PearlConfig(crowd_encoder="attention"), env.obs_dim(probe), layout)
-        net = bc_attention(hidden, crowd)
-    else:
-        net = bc_mlp(hidden)
+        if args.encoder != "mlp":
+            from mpcpearl_jax.pearl.networks import PearlConfig, crowd_spec
+
+            layout = env.obs_layout(probe)
+            pc = PearlConfig(
+                crowd_encoder=args.encoder, crowd_dim=args.dim, crowd_static=args.static
+            )
+            crowd = crowd_spec(pc, env.obs_dim(probe), layout)
+            net = bc_attention(hidden, crowd)
+        else:
+            net = bc_mlp(hidden)
+    except ConfigError as e:  # the run's observation with these flags
+        harness.fail(f"{e} (from --run {args.run} and the flags)")
+    ids = np.arange(sz["train_tasks"])
+    check_memory(sz, args.labels, env.obs_dim(probe), env.config.horizon)
     val = {ts: make_tasks(cfg.env, "val", ts, config=env.config) for ts in sz["final_seeds"]}
     drive = closed_loop(env, net)
     opt = optax.adam(1e-3)

@@ -144,11 +144,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import numpy as np
     import optax
 
-    from mpcpearl_jax import load_policy, metrics
+    from mpcpearl_jax import metrics
     from mpcpearl_jax.envs import make_env, make_tasks
     from mpcpearl_jax.mpc import MPCConfig, make_mpc_bridge
 
-    pol = load_policy(args.run)
+    pol = harness.load_runs("--run", [args.run])[0]
     cfg = pol.config
     env = make_env(cfg.env, **cfg.env_overrides)
     first = lambda tasks, n: jax.tree_util.tree_map(lambda a: a[:n], tasks)  # noqa: E731
@@ -266,7 +266,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "select_seed": args.select_seed,
         "threads": threads,
     }
-    harness.write_record("imitation", config, results, args.out)
+    name = harness.record_name("imitation", size, select_seed=(args.select_seed, 0))
+    harness.write_record(name, config, results, args.out)
     return results
 
 

@@ -152,16 +152,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     import jax
 
-    from mpcpearl_jax import load_policy
+    from mpcpearl_jax.cli.errors import error_line
     from mpcpearl_jax.config import ExperimentConfig
     from mpcpearl_jax.envs import make_env, tasks_for
+    from mpcpearl_jax.errors import CheckpointError, ConfigError
     from mpcpearl_jax.evaluation import evaluate as eval_lib
     from mpcpearl_jax.evaluation.evaluate import EVAL_SEED  # the unshielded rows reproduce it
     from mpcpearl_jax.mpc.shield import ShieldConfig
     from mpcpearl_jax.runfolder import load_config
 
-    policies = [load_policy(r) for r in args.runs]
-    env_names = {pol.config.env for pol in policies} | {load_config(args.env_from).env}
+    policies = harness.load_runs("--runs", args.runs)
+    try:
+        env_from = load_config(args.env_from)
+    except (CheckpointError, ConfigError, OSError, ValueError) as e:
+        harness.fail(f"--env-from: {error_line(e)}")
+    env_names = {pol.config.env for pol in policies} | {env_from.env}
     if env_names != {"restaurant"}:
         raise SystemExit(f"error: --runs must be restaurant runs, got {sorted(env_names)}")
     shields = [None] + [
@@ -204,7 +209,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     # the goal-seeking control, in the environment of --env-from (its sensing radius bounds what
     # the shield sees)
-    env0 = make_env("restaurant", **dict(load_config(args.env_from).env_overrides))
+    env0 = make_env("restaurant", **dict(env_from.env_overrides))
     task_sets = {s: val_tasks(env0, None, s) for s in seeds}
     for shield in shields:
         fn = goal_seeking_evaluator(env0, shield)
@@ -250,7 +255,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "lookaheads": list(sz["lookaheads"]),
         "goal_seeking": "direction of motion at the goal, full speed (lab.diagnostics.shield doc)",
     }
-    return harness.report("shield", title, rows, cols, config, record_rows, args.out)
+    name = harness.record_name("shield", size)  # --runs are the record's config
+    return harness.report(name, title, rows, cols, config, record_rows, args.out)
 
 
 if __name__ == "__main__":

@@ -79,6 +79,8 @@ def configure_threads(n: int | None) -> dict[str, Any]:
     with n == 1 XLA's multi-threaded Eigen is also switched off. PyTorch gets
     `set_num_threads(n)` when it is imported later through `torch_threads`.
     """
+    if n is not None and n < 1:  # -1 pinned all cores but the last; 0 meant all of them
+        raise ValueError(f"threads {n}: must be at least 1 (None: all cores)")
     n = n or available_cores()
     info: dict[str, Any] = {"threads": n}
     if hasattr(os, "getloadavg"):  # other work on the machine skews every timing: record it
