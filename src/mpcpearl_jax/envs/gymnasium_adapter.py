@@ -300,10 +300,10 @@ class GymNavEnv(gymnasium.Env):
         obs, reward, done, info, pose, t = jax.device_get(
             (obs, reward, done, info, self._state.pose, self._state.t)
         )
-        out = {"task": self._task, "t": int(t)}
+        out: dict[str, Any] = {"task": self._task, "t": int(t)}
         out.update({m: _metric(m, getattr(info, m)) for m in METRIC_NAMES})
         self._trail.append(np.asarray(pose))
-        self._hits.append(out["collision"])
+        self._hits.append(bool(out["collision"]))
         return np.array(obs), float(reward), False, bool(done), out
 
     def render(self) -> np.ndarray | None:
