@@ -81,6 +81,29 @@ class TrainOptions:
     on_point: Callable[[dict[str, Any]], None] | None = None
     on_trained: Callable[[dict[str, Any]], None] | None = None
 
+    def __post_init__(self) -> None:
+        """Each option's type checked at construction: TypeError naming the option."""
+
+        def wrong(name: str, expected: str) -> TypeError:
+            x = getattr(self, name)
+            return TypeError(
+                f"TrainOptions: {name} must be {expected}, not {type(x).__name__} {x!r}"
+            )
+
+        for name in ("resume", "overwrite", "policy_only", "tensorboard"):
+            if not isinstance(getattr(self, name), bool):
+                raise wrong(name, "True or False")
+        m = self.eval_minutes
+        if m is not None and (isinstance(m, bool) or not isinstance(m, (int, float))):
+            raise wrong("eval_minutes", "a number of minutes (or None: minutes / 8)")
+        if not isinstance(self.record, Mapping):
+            raise wrong("record", "a mapping of the fields curve.json records")
+        if not callable(self.clock):
+            raise wrong("clock", "a function returning seconds")
+        for name in ("on_start", "on_row", "on_point", "on_trained"):
+            if getattr(self, name) is not None and not callable(getattr(self, name)):
+                raise wrong(name, "a function (or None)")
+
 
 def train(
     cfg: Any,
