@@ -67,7 +67,8 @@ class PearlConfig:
     # the MPC as a teacher: the actor's loss adds `imitation` x a behaviour-cloning term toward
     # the MPC's action on the replay transitions the MPC acted on, kept where the critic rates
     # the MPC's action at least as high as the policy's (the Q-filter of Nair et al., ICRA
-    # 2018). 0 = off (the paper)
+    # 2018), on the critic's scale (times the batch's mean |min Q|, as TD3+BC). 0 = off (the
+    # paper)
     imitation: float = 0.0
 
     def __post_init__(self) -> None:

@@ -87,7 +87,8 @@ def make_losses(nets: Networks) -> Losses:
         regularisers (paper Sec. III-A). z is detached (no policy gradient into the encoder).
         Extension `auto_entropy`: alpha (a detached scalar) weighs log pi in the loss and in
         the V target, E[alpha log pi - min_i Q_i]; None = 1 as in the paper. Extension
-        `imitation` (`expert` given): + imitation x `behaviour_cloning`."""
+        `imitation` (`expert` given): + imitation x mean |min_i Q_i| (detached) x
+        `behaviour_cloning`, so that the weight does not depend on the scale of the returns."""
         mean, log_std = pi_out(policy_params, x, z)
         action, log_pi = tanh_gaussian(mean, log_std).sample_and_log_prob(seed=key)
         q1, q2 = q_out(q_params, x, action, z)
@@ -98,7 +99,9 @@ def make_losses(nets: Networks) -> Losses:
         aux = {"log_pi": jnp.mean(log_pi), "v_target": min_q - entropy_term}
         if expert is not None:
             bc, kept = behaviour_cloning(q_params, x, z, mean, min_q, *expert)
-            loss += cfg.imitation * bc
+            # on the critic's scale, as TD3+BC (Fujimoto and Gu, 2021) weighs its two terms
+            q_scale = jax.lax.stop_gradient(jnp.mean(jnp.abs(min_q)))
+            loss += cfg.imitation * q_scale * bc
             aux.update(bc_loss=bc, bc_kept=kept)
         return loss, aux
 
