@@ -27,7 +27,10 @@ def make_parser() -> argparse.ArgumentParser:
         description="Export a run's policy (act, infer_z) with jax.export, plus a JSON sidecar.",
     )
     p.add_argument("run", type=Path, help="run directory (config.json + policy.msgpack)")
-    p.add_argument("--out", type=Path, help="export file (default RUN_DIR/policy.export)")
+    p.add_argument(
+        "--out",
+        help="export file, or a folder for policy.export (default RUN_DIR/policy.export)",
+    )
     p.add_argument("--seed-index", type=int, default=0, help="which seed of the run (default 0)")
     p.add_argument(
         "--platforms",

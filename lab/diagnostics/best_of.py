@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -65,8 +66,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--report", type=Path, default=REPORT, help="a lab.screen report (JSON)")
     p.add_argument("--arm", default="default", help="the arm whose seeds are drawn")
     p.add_argument("--n", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="seeds per program")
-    p.add_argument("--out", type=Path, default=OUT, help="where the JSON goes")
+    p.add_argument("--out", default=str(OUT), help=f"where the JSON goes (a folder: {OUT.name})")
     args = p.parse_args(argv)
+    folder = args.out.endswith(("/", os.sep))  # "DIR/": a folder, new or not
+    args.out = Path(args.out) / OUT.name if folder or Path(args.out).is_dir() else Path(args.out)
     try:
         report = json.loads(args.report.read_text())
         seeds = arm_seeds(report, args.arm)

@@ -12,6 +12,7 @@ import contextlib
 import hashlib
 import io
 import json
+import os
 import zipfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -262,7 +263,8 @@ def export_policy(
     platforms: Sequence[str] = DEFAULT_PLATFORMS,
 ) -> Path:
     """Export the policy of seed `seed_index` of a run (see module doc). Returns the export
-    file's path; the sidecar is that path with `.json` appended. Both are written atomically,
+    file's path (`out` a folder, or a path ending in "/": policy.export in it); the sidecar is
+    that path with `.json` appended. Both are written atomically,
     never over a run's own records or a file that is not an earlier export (`check_target`);
     ExportError naming an unknown platform or a refused file before anything is written."""
     run_dir = Path(run_dir)
@@ -272,8 +274,9 @@ def export_policy(
             f"platforms {list(platforms)}: unknown {unknown or 'none given'}; "
             f"choose from {', '.join(PLATFORMS)}"
         )
+    folder = isinstance(out, str) and out.endswith(("/", os.sep))  # "DIR/": a folder, new or not
     out = Path(out) if out is not None else run_dir / EXPORT_FILE
-    if out.is_dir():
+    if folder or out.is_dir():
         out = out / EXPORT_FILE
     check_target(out)
     policy = load_policy(run_dir, seed_index)
