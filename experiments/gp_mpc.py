@@ -35,6 +35,7 @@ import jax
 import numpy as np
 
 from experiments.common import add_task_source_options, env_family, one_line_errors, stops_with
+from mpcpearl_jax.cli.output import broken_line, guarded_stdout
 from mpcpearl_jax.cli.platform import check_platform
 from mpcpearl_jax.config import ExperimentConfig, apply_overrides, preset, task_source
 from mpcpearl_jax.envs import make_env, mpc_defaults, tasks_for
@@ -84,6 +85,19 @@ def mpc_settings(env: str, preset_name: str, overrides: list[str]) -> MPCConfig:
 
 @stops_with("interrupted before GP-MPC finished; nothing was written")
 def main(argv: list[str] | None = None) -> int:
+    """The command. A standard output that breaks (`| head`, a full disk) loses nothing: the
+    record and the figure are written before anything is printed, then one line on stderr and
+    exit code 2."""
+    with guarded_stdout() as stdout:
+        code = _main(argv)
+    if stdout.broken is not None:
+        what = "the record and the figure are written" if code == 0 else "see above"
+        print(broken_line(stdout.broken, what), file=sys.stderr, flush=True)
+        return code or 2
+    return code
+
+
+def _main(argv: list[str] | None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.gp_mpc", description=__doc__)
     ap.add_argument("--env", default="restaurant")
     ap.add_argument("--split", default="test")
@@ -153,20 +167,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     stats = bridge.stats()
     paper = PAPER.get(args.env, {}).get("GP-MPC", {})
-    print(
-        f"GP-MPC on {args.env}/{args.split}: {tasks.num_tasks} tasks ({first} to {last}), "
-        f"{wall:.1f} s"
-    )
-    print(metrics_table([("this run", m), ("paper GP-MPC", paper)]))
     solve_ms = 1e3 * np.asarray(stats["solve_s"])  # per row on the host; none on the device
     med = float(np.median(solve_ms)) if solve_ms.size else None
     p95 = float(np.percentile(solve_ms, 95)) if solve_ms.size else None
-    print(f"status: {stats['status']}  reasons: {stats['reasons']}")
-    if stats["sqp_stops"]:  # why each row's SQP ended (capped: the cap's best iterate was used)
-        print(f"SQP ended: {stats['sqp_stops']}  plans from starts: {stats['starts']}")
-    if solve_ms.size:
-        print(f"solve ms: median {med:.2f}, p95 {p95:.2f}")
-
     record = {
         **settings,
         "metrics": m,
@@ -180,11 +183,24 @@ def main(argv: list[str] | None = None) -> int:
         "wall_s": wall,
         "per_task": {k: traj[k].sum(axis=1).tolist() for k in ("collision", "in_goal")},
     }
-    with one_line_errors(interrupted=None) as failed:
+    with one_line_errors(interrupted=None) as failed:  # written before anything is printed
         path.write_text(json.dumps(record, indent=2))
-        print(f"wrote {path}")
-        _plot(args, env, tasks, traj, plot, first + plot)
-    return failed.code or 0
+        png = _plot(args, env, tasks, traj, plot, first + plot)
+    if failed.code is not None:
+        return failed.code
+    print(
+        f"GP-MPC on {args.env}/{args.split}: {tasks.num_tasks} tasks ({first} to {last}), "
+        f"{wall:.1f} s"
+    )
+    print(metrics_table([("this run", m), ("paper GP-MPC", paper)]))
+    print(f"status: {stats['status']}  reasons: {stats['reasons']}")
+    if stats["sqp_stops"]:  # why each row's SQP ended (capped: the cap's best iterate was used)
+        print(f"SQP ended: {stats['sqp_stops']}  plans from starts: {stats['starts']}")
+    if solve_ms.size:
+        print(f"solve ms: median {med:.2f}, p95 {p95:.2f}")
+    print(f"wrote {path}")
+    print(f"wrote {png}")
+    return 0
 
 
 def record_settings(args, source: dict, start: int, stop: int, cfg: MPCConfig) -> dict:
@@ -247,8 +263,8 @@ def probe_out(out: Path) -> None:
         raise OSError(f"--out {out}: not writable ({why}); choose another --out")
 
 
-def _plot(args, env, tasks, traj, i: int, task: int) -> None:
-    """The trajectory of tasks[i], the split's task `task`."""
+def _plot(args, env, tasks, traj, i: int, task: int) -> Path:
+    """The trajectory of tasks[i], the split's task `task`: its figure's path."""
     from mpcpearl_jax.envs import save_trajectory
 
     params = jax.tree_util.tree_map(lambda a: a[i], tasks)
@@ -260,7 +276,7 @@ def _plot(args, env, tasks, traj, i: int, task: int) -> None:
         env.config,
         title=f"GP-MPC, {args.env} {args.split} task {task}",
     )
-    print(f"wrote {png}")
+    return png
 
 
 if __name__ == "__main__":

@@ -155,10 +155,10 @@ def report(
     record_rows: list[dict],
     out: Path,
 ) -> dict[str, Any]:
-    """A diagnostic's end: its table printed, its record written (out/name.json); returns
+    """A diagnostic's end: its record written (out/name.json), its table printed; returns
     {"config", "rows"}."""
+    write_record(name, config, record_rows, out)  # before the table: a broken stdout loses none
     print_table(rows, cols, title)
-    write_record(name, config, record_rows, out)
     return {"config": config, "rows": record_rows}
 
 

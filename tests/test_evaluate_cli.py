@@ -258,3 +258,51 @@ def test_long_index_lists_and_huge_seed_ranges_are_short_errors(tmp_path, capsys
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert f"100001 task sets; at most {MAX_TASK_SEEDS}" in err and len(err.splitlines()) == 1
+
+
+class _BrokenStdout:
+    """A standard output that breaks as `| head -1` (after its first line) or `> /dev/full`."""
+
+    def __init__(self, error: OSError, lines: int = 0) -> None:
+        self.error, self.lines, self.text = error, lines, ""
+
+    def write(self, text: str) -> int:
+        if self.text.count("\n") >= self.lines:
+            raise self.error
+        self.text += text
+        return len(text)
+
+    def flush(self) -> None:
+        if self.text.count("\n") > self.lines:
+            raise self.error
+
+
+@pytest.mark.parametrize("case", ["head", "full"])
+def test_a_broken_stdout_loses_no_results(case, tmp_path, capsys, monkeypatch):
+    """The table was printed before results.json was written: `| head -1` ended the command with
+    a BrokenPipeError traceback and an empty folder, `> /dev/full` with an OSError. Now the files
+    are written first, and a broken stdout is one line on stderr, exit code 2."""
+    import errno
+    import sys
+
+    error = BrokenPipeError(errno.EPIPE, "Broken pipe")
+    if case == "full":
+        error = OSError(errno.ENOSPC, "No space left on device")
+    stdout = _BrokenStdout(error, lines=1 if case == "head" else 0)
+    argv = [str(RESTAURANT_RUN), "--tasks", "0", "--figures", "0", "--out", str(tmp_path)]
+    with monkeypatch.context() as m:
+        m.setattr(sys, "stdout", stdout)
+        code = main(argv)
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert (
+        err == f"error: standard output: {error.strerror}; results.json and the figures are written"
+    )
+    assert _record(tmp_path)["tasks"] == [0] and (tmp_path / "trajectory_test0.png").is_file()
+    assert stdout.text.startswith("[evaluate]") if case == "head" else stdout.text == ""
+    if case == "full":  # the pooled record of --task-seeds: written, then printed
+        with monkeypatch.context() as m:
+            m.setattr(sys, "stdout", _BrokenStdout(error))
+            argv = ["--task-seeds", "1", "--tasks", "0", "--out", str(tmp_path / "pooled")]
+            code = main([str(RESTAURANT_RUN), *argv])
+        assert code == 2 and _record(tmp_path / "pooled")["task_seeds"] == [1]

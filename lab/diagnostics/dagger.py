@@ -319,9 +319,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         help="the clone's input network (a crowd encoder: pearl.crowd_encoder)",
     )
     p.add_argument("--dim", type=int, default=64, help="pearl.crowd_dim of a crowd encoder")
-    p.add_argument(
-        "--static", choices=("pool", "flat"), default="pool", help="pearl.crowd_static"
-    )
+    p.add_argument("--static", choices=("pool", "flat"), default="pool", help="pearl.crowd_static")
     p.add_argument("--forecast", type=int, default=0, help="env.observe_forecast (points ahead)")
     p.add_argument("--stride", type=int, default=1, help="env.forecast_stride (steps per point)")
     p.add_argument("--labels", type=int, default=1, help="tasks per round, x the size's")
@@ -463,15 +461,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     n_tasks = sum(int(val[ts].start.shape[0]) for ts in per_seed)
     pooled["SR_stderr"] = float(np.sqrt(pooled["SR"] * (1 - pooled["SR"]) / n_tasks))
-    harness.print_table(
-        curve, ["round", "beta", "samples", "rollout_SR", "fit_error", "val_SR"], "DAgger"
-    )
-    print(
-        f"clone alone on val task seeds {list(per_seed)}: SR {pooled['SR']:.2f} +- "
-        f"{pooled['SR_stderr']:.2f}, CFR {pooled['CFR']:.2f}; with nobody in its observation "
-        f"SR {pooled['SR_blind']:.2f}, CFR {pooled['CFR_blind']:.2f}",
-        flush=True,
-    )
     results = {
         "run": run_name(args.run),
         "observation": overrides,
@@ -493,7 +482,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "batch": BATCH,
         "threads": threads,
     }
-    harness.write_record(record_name(args), config, results, args.out)
+    harness.write_record(record_name(args), config, results, args.out)  # before the tables
+    harness.print_table(
+        curve, ["round", "beta", "samples", "rollout_SR", "fit_error", "val_SR"], "DAgger"
+    )
+    print(
+        f"clone alone on val task seeds {list(per_seed)}: SR {pooled['SR']:.2f} +- "
+        f"{pooled['SR_stderr']:.2f}, CFR {pooled['CFR']:.2f}; with nobody in its observation "
+        f"SR {pooled['SR_blind']:.2f}, CFR {pooled['CFR_blind']:.2f}",
+        flush=True,
+    )
     return results
 
 

@@ -6,6 +6,7 @@ benchmarks/ shares, and nothing below imports.
 - `args`: building a config from a command line (the training commands' options, `build_config`,
   `--help-config`);
 - `progress`, `tables`: the progress bar, the printed tables, records and lines;
+- `output`: a standard output that breaks (`| head`, a full disk) without losing the work;
 - `train`: the training commands (MPC-PEARL and GrBAL), which parse, call `mpcpearl_jax.train`,
   print and choose the exit code.
 

@@ -45,6 +45,7 @@ import numpy as np
 
 from mpcpearl_jax.cli.args import add_task_source_options, env_family
 from mpcpearl_jax.cli.errors import one_line_errors
+from mpcpearl_jax.cli.output import broken_line, guarded_stdout
 from mpcpearl_jax.cli.platform import check_platform
 from mpcpearl_jax.cli.stopping import exit_interrupted, stoppable
 from mpcpearl_jax.envs import SPLITS, env_names, make_env
@@ -398,6 +399,10 @@ def main_task_seeds(args: argparse.Namespace) -> int:
     if failed.code is not None:
         return failed.code
     summary = pooled_record(s, seeds, records)
+    with one_line_errors(interrupted=None) as failed:  # written before anything is printed
+        write_json(out / "results.json", summary)
+    if failed.code is not None:
+        return failed.code
     n_tasks, pool, fails = summary["num_tasks"], summary["pooled"], summary["failures"]
     protocol = records[0]["protocol"]
     crowd = "" if s.perturbation == "none" else f", crowd perturbed {s.perturbation}"
@@ -409,10 +414,6 @@ def main_task_seeds(args: argparse.Namespace) -> int:
         per = " ".join(f"{x:.2f}" for x in v["per_task_seed"])
         print(f"| {k} | {v['mean']:.2f} | {v['se']:.2f} | {per} |")
     print(failure_line(fails))
-    with one_line_errors(interrupted=None) as failed:
-        write_json(out / "results.json", summary)
-    if failed.code is not None:
-        return failed.code
     print(f"wrote {out / 'results.json'}")
     return 0
 
@@ -421,14 +422,22 @@ def main_task_seeds(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     """The command; a stop signal (Ctrl-C, SIGTERM, SIGHUP) ends it with one line and exit code
     128 + the signal. Nothing is lost: an evaluation saves only at its end, so the same command
-    (with --overwrite where its results.json was already written) starts it again."""
+    (with --overwrite where its results.json was already written) starts it again. A standard
+    output that breaks (`| head`, a full disk) loses nothing: results.json and the figures are
+    written first, and the command ends with one line on stderr and exit code 2."""
     try:
-        return _main(argv)
+        with guarded_stdout() as stdout:
+            code = _main(argv)
     except KeyboardInterrupt:
         exit_interrupted(
             "interrupted before the evaluation finished; run the same command again "
             "(with --overwrite if --out already holds its results.json)"
         )
+    if stdout.broken is not None:
+        what = "results.json and the figures are written" if code == 0 else "see above"
+        print(broken_line(stdout.broken, what), file=sys.stderr, flush=True)
+        return code or 2
+    return code
 
 
 def _main(argv: list[str] | None) -> int:
@@ -454,13 +463,13 @@ def _main(argv: list[str] | None) -> int:
         flush=True,
     )
     record, result = evaluate(s, args.eval_seed, args.episodes, args.online)
-    print(f"{record['protocol']}; {record['wall_s']:.1f} s", flush=True)
-    print(tables(record))
-    print(failure_line(record["failures"]))
     with one_line_errors(interrupted=None) as failed:  # a full disk, or --out changed under it
-        write_json(s.out / "results.json", record)
+        write_json(s.out / "results.json", record)  # written before anything is printed
         written = write_figures(s, result, args.animate)
     if failed.code is not None:
         return failed.code
+    print(f"{record['protocol']}; {record['wall_s']:.1f} s", flush=True)
+    print(tables(record))
+    print(failure_line(record["failures"]))
     print(f"wrote {s.out / 'results.json'}" + "".join(f", {p.name}" for p in written))
     return 0
