@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from mpcpearl_jax.deploy.exported import check_key
 from mpcpearl_jax.envs import physics
 from mpcpearl_jax.envs.dynamics import bicycle_step, to_physical
 from mpcpearl_jax.envs.observation import layout as observation_layout
@@ -454,7 +455,7 @@ class Adapter:
         c, d, lat = self.capacity, self.policy.context_dim, self.policy.latent_dim
         context, mask = jnp.zeros((c, d), jnp.float32), jnp.zeros((c,), jnp.float32)
         keys = None
-        if key is not None:
+        if check_key(key) is not None:
             k0, k_run = jax.random.split(key)
             z = self.policy.infer_z(context, mask, k0)  # the prior: the mask selects no row
             keys = jax.random.split(k_run, c)

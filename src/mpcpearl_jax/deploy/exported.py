@@ -107,6 +107,27 @@ def _checked(name: str, x: Any, expected: str, ok: Callable[[tuple], bool]) -> A
     return x.astype(jnp.float32)
 
 
+def check_key(key: Any, name: str = "key") -> Any:
+    """`key` if it is None or a JAX PRNG key (`jax.random.key(seed)`, or the raw uint32 key of
+    `jax.random.PRNGKey(seed)`); TypeError naming `name` otherwise (an int seed, a float array)."""
+    if key is None:
+        return None
+    dtype, shape = getattr(key, "dtype", None), tuple(getattr(key, "shape", (None,)))
+    if dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key) and shape == ():
+        return key
+    if dtype == jnp.uint32 and len(shape) == 1 and shape[0] in (2, 4):
+        return key
+    got = (
+        f"{type(key).__name__} {key!r}"
+        if dtype is None
+        else f"{dtype} array of shape {list(shape)}"
+    )
+    raise TypeError(
+        f"{name}: expected a PRNG key (jax.random.key(seed) or jax.random.PRNGKey(seed)) or "
+        f"None, got {got}"
+    )
+
+
 class ExportedPolicy:
     """A policy loaded from its export (see module doc). Mirrors `policy.LoadedPolicy`:
 
@@ -163,6 +184,7 @@ class ExportedPolicy:
         else:
             mask = _checked("mask", mask, f"[{c}] (one per context row)", lambda s: s == (c,))
         shape = (self.latent_dim,)
+        key = check_key(key)
         noise = jnp.zeros(shape, jnp.float32) if key is None else jax.random.normal(key, shape)
         return self._infer_z.call(context, mask, noise)
 

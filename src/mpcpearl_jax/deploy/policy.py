@@ -22,6 +22,7 @@ from flax import serialization
 from jax import Array
 
 from mpcpearl_jax.config import ExperimentConfig
+from mpcpearl_jax.deploy.exported import check_key
 from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.pearl.networks import Networks
 from mpcpearl_jax.runfolder import NETWORK_FILE, POLICY_FILE, load_config, non_finite_leaves
@@ -98,6 +99,7 @@ class LoadedPolicy:
         return context, mask
 
     def infer_z(self, context: Array, mask: Array | None = None, key: Array | None = None):
+        key = check_key(key)
         context, mask = self._context(context, mask)
         return self.nets.sample_z(self.params["encoder"], context, key, mask)
 
@@ -107,7 +109,7 @@ class LoadedPolicy:
         z = _check_input(
             "z", z, f"[..., {lat}] (batch shape of obs)", lambda s: s == obs.shape[:-1] + (lat,)
         )
-        return self.nets.act(self.params["policy"], obs, z, key)
+        return self.nets.act(self.params["policy"], obs, z, check_key(key))
 
     def __call__(
         self, obs: Array, context: Array, key: Array | None = None, mask: Array | None = None
