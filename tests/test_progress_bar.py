@@ -58,3 +58,41 @@ def test_a_resumed_run_counts_from_its_iteration():
     bar.row(_row(32))
     assert bar.bar.n == 32 and abs(_eta(bar) - 4.0 * 43) < 1e-6
     bar.close()
+
+
+def test_a_resumed_run_never_draws_zero_or_a_negative_rate():
+    """Resumed at 30 of 75 on tqdm's own clock: every frame drawn shows at least 30/75, and no
+    rate below zero."""
+    import re
+
+    out = io.StringIO()
+    bar = ProgressBar(75, 30, "restaurant eps=0.2", file=out, mininterval=0)
+    for it in (31, 32, 33):
+        bar.row(_row(it))
+    bar.close()
+    frames = [f for f in out.getvalue().split("\r") if "/75" in f]
+    counts = [int(m) for m in re.findall(r"(\d+)/75", "".join(frames))]
+    assert counts and min(counts) >= 30, frames
+    assert not re.search(r"-\d[\d.]*\s*(it/s|s/it)", out.getvalue()), frames
+
+
+def test_not_a_terminal_gets_lines_not_a_bar(monkeypatch, capsys):
+    """stderr a file or a pipe: one line at the first iteration and at each tenth, no bar."""
+    import types
+
+    from mpcpearl_jax.cli import progress
+
+    cfg = types.SimpleNamespace(
+        env="restaurant", train=types.SimpleNamespace(iterations=20, eps=0.2)
+    )
+    monkeypatch.setattr(progress, "_is_terminal", lambda stream: False)
+    lines = progress.progress_bar(cfg, 5)
+    assert isinstance(lines, progress.ProgressLines)
+    for it in range(6, 21):
+        lines.row(_row(it))
+    lines.close()
+    err = capsys.readouterr().err
+    assert "\r" not in err and "|" not in err
+    got = [int(x.split("iteration ")[1].split("/")[0]) for x in err.splitlines()]
+    assert got == [6, 8, 10, 12, 14, 16, 18, 20], err
+    assert "episode return=-123" not in err and "episode return -123" in err

@@ -3,6 +3,7 @@ iteration for GrBAL."""
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -10,12 +11,46 @@ from typing import Any
 from mpcpearl_jax.distributed import is_primary
 
 
-def progress_bar(cfg: Any, done: int) -> ProgressBar | None:
-    """The training command's progress bar for a run of `cfg` with `done` iterations finished
-    (process 0 only)."""
+def progress_bar(cfg: Any, done: int) -> ProgressBar | ProgressLines | None:
+    """The training command's progress for a run of `cfg` with `done` iterations finished
+    (process 0 only): a bar on a terminal, plain lines (`ProgressLines`) when stderr is a file
+    or a pipe."""
     if not is_primary():
         return None
-    return ProgressBar(cfg.train.iterations, done, f"{cfg.env} eps={cfg.train.eps}")
+    label = f"{cfg.env} eps={cfg.train.eps}"
+    if not _is_terminal(sys.stderr):
+        return ProgressLines(cfg.train.iterations, done, label)
+    return ProgressBar(cfg.train.iterations, done, label)
+
+
+def _is_terminal(stream: Any) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError, OSError):
+        return False
+
+
+class ProgressLines:
+    """The progress where stderr is not a terminal (a log file, a pipe): one line on stderr at
+    the first iteration and at each tenth of the run, with `PROGRESS_FIELDS`; no bar redrawn
+    into the file."""
+
+    def __init__(self, total: int, done: int, label: str, file: Any = None):
+        self.total, self.label, self.file = total, label, file
+        self.next = done + 1  # the first iteration of this process is always reported
+
+    def row(self, row: dict[str, Any]) -> None:
+        it = int(row["iteration"])
+        if it < self.next and it != self.total:
+            return
+        step = max(self.total // 10, 1)
+        self.next = (it // step + 1) * step
+        fields = ", ".join(f"{k} {v}" for k, v in progress_fields(row).items())
+        line = f"{self.label}: iteration {it}/{self.total}" + (f" ({fields})" if fields else "")
+        print(line, file=self.file or sys.stderr, flush=True)
+
+    def close(self) -> None:
+        pass
 
 
 class ProgressBar:
@@ -35,15 +70,23 @@ class ProgressBar:
         from tqdm import tqdm
 
         self.label, self.clock, self.t0, self.first = label, clock, clock(), True
-        self.bar = tqdm(total=total, desc=f"{label}: {COMPILING}", dynamic_ncols=True, **tqdm_kw)
+        self.bar = tqdm(
+            total=total, initial=done, desc=f"{label}: {COMPILING}", dynamic_ncols=True, **tqdm_kw
+        )
         self.bar._time = clock  # tqdm's clock, the same as ours
         self._restart(done)
 
     def _restart(self, n: int) -> None:
-        """`n` done; the clock and the smoothed rate start again from now."""
-        self.bar.reset(total=self.bar.total)
-        self.bar.initial = self.bar.n = self.bar.last_print_n = n
-        self.bar.refresh()
+        """`n` done; the clock and the smoothed rate start again from now (what tqdm's `reset`
+        does, without drawing 0/N and a negative rate in between)."""
+        from tqdm.std import EMA
+
+        bar = self.bar
+        bar.initial = bar.n = bar.last_print_n = n
+        bar.last_print_t = bar.start_t = self.clock()
+        bar._ema_dn, bar._ema_dt = EMA(bar.smoothing), EMA(bar.smoothing)
+        bar._ema_miniters = EMA(bar.smoothing)
+        bar.refresh()
 
     def row(self, row: dict[str, Any]) -> None:
         """A finished iteration's metrics row."""
