@@ -8,6 +8,7 @@ resumable)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -30,7 +31,7 @@ from mpcpearl_jax.cli.progress import grbal_line, progress_bar
 from mpcpearl_jax.cli.stopping import exit_interrupted, stop_exit_code, stoppable
 from mpcpearl_jax.cli.tables import curve_summary, print_point
 from mpcpearl_jax.config import ExperimentConfig
-from mpcpearl_jax.errors import ConfigError, TrainingDiverged
+from mpcpearl_jax.errors import ConfigError, RunDirError, TrainingDiverged
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.budget import default_label
 from mpcpearl_jax.training.final import TrainOptions, train
@@ -82,12 +83,22 @@ def main(
             if finished is not None:  # nothing to train or evaluate: no file is touched
                 print(finished, flush=True)
                 return 0
-            _print_start(args, family, cfg, label, out)
+            try:
+                _print_start(args, family, cfg, label, out)
+            except BrokenPipeError:
+                return run.output_closed(out, finished=False)
             try:
                 _, results = train(cfg, out, args.minutes, label=label, options=run.options())
             except (RunInterrupted, TrainingDiverged, KeyboardInterrupt) as e:
                 return run.stopped(e, cfg, label, out)
-            return run.report(cfg, results, label, out)
+            except (BrokenPipeError, RunDirError) as e:
+                if not output_closed(e):
+                    raise
+                return run.output_closed(out, finished=False)
+            try:
+                return run.report(cfg, results, label, out)
+            except BrokenPipeError:
+                return run.output_closed(out, finished=True)
     except KeyboardInterrupt:  # a stop before training, or a second one during it
         run.close_bar()
         if run.start is None:  # the session closed what it had opened
@@ -152,6 +163,25 @@ class _Run:
             on_trained=self.on_trained,
         )
 
+    def output_closed(self, out: Path, finished: bool) -> int:
+        """stdout closed under the command (a pipe's reader gone: `| head`): one line on stderr
+        saying what is saved and how --resume finishes it, exit code 2."""
+        if finished:
+            line = f"the run is finished: results, curves and figures in {out}"
+        elif self.info.get("stopped") in ("done", "budget"):
+            line = (
+                f"training is saved ({self.info['iterations']} iterations) but not evaluated: "
+                "the same command with --resume runs the final evaluation"
+            )
+        elif self.start is not None:
+            line = "the same command with --resume continues from the run's last checkpoint"
+        else:
+            line = "nothing was trained; the same command starts again"
+        _quiet_stdout()
+        with contextlib.suppress(OSError):
+            print(f"error: the output closed (broken pipe); {line}", file=sys.stderr, flush=True)
+        return 2
+
     def stopped(self, e: BaseException, cfg: ExperimentConfig, label: str, out: Path) -> int:
         """A stop signal or a divergence: its line and exit code (or `e` raised again for the
         error ladder: a divergence on iterations, a second stop during training)."""
@@ -189,6 +219,19 @@ class _Run:
         print(LONGER if cfg.env == "restaurant" else LONGER_ANY, flush=True)
         print(f"results, curves and figures in {out}", flush=True)
         return 0
+
+
+def output_closed(e: BaseException) -> bool:
+    """Whether `e` is the command's stdout closed under it (BrokenPipeError, also as the cause
+    of the run's write error it became inside the training loop)."""
+    return isinstance(e, BrokenPipeError) or isinstance(e.__cause__, BrokenPipeError)
+
+
+def _quiet_stdout() -> None:
+    """stdout to /dev/null, so the interpreter's exit does not flush into the closed pipe."""
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
 
 
 def finished_line(out: Path, cfg: ExperimentConfig, minutes: float | None = None) -> str | None:
