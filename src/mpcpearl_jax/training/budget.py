@@ -220,6 +220,7 @@ def train_for(
     online: bool = False,
     clock=time.perf_counter,
     on_point=None,
+    on_row=None,
     save=None,
     checkpoint_every: int = 0,
     handle_sigint: bool = False,
@@ -238,7 +239,8 @@ def train_for(
     saved, train_s, eval_s, first_iteration_s, stopped}; stopped is "budget", "interrupted" or
     "diverged: ..." (then `state` is None: the failed or abandoned iteration consumed it, and
     info["error"] is the exception; after "interrupted", `saved` is the iteration a resume starts
-    from). `on_point(point)` sees each eval point as it is made (the command prints it).
+    from). `on_point(point)` sees each eval point as it is made (the command prints it);
+    `on_row(row)` every iteration's metrics row, with the evaluation's fields when it evaluated.
     """
     from mpcpearl_jax.errors import TrainingDiverged
     from mpcpearl_jax.runfolder import append_log
@@ -277,14 +279,19 @@ def train_for(
         fields = {k: v for k, v in point.items() if k.startswith(("test_", "val_"))}
         return {**fields, "eval_s": dt}
 
+    def report(row, fields):  # the caller's on_row sees every row, with its evaluation's fields
+        if on_row is not None:
+            on_row({**row, **(fields or {})})
+        return fields
+
     state = sess.state
     if not points:
         evaluate(state, progress)  # the untrained policy at minute 0 (compiles the evaluator)
     try:
         state = sess.train(
             until=lambda p: p.train_s >= budget_s,
-            on_row=lambda row, state, p: (
-                evaluate(state, p) if p.last or p.train_s >= schedule["next_eval_s"] else None
+            on_row=lambda row, state, p: report(
+                row, evaluate(state, p) if p.last or p.train_s >= schedule["next_eval_s"] else None
             ),
             checkpoint_after=lambda p, evaluated: (
                 evaluated or bool(checkpoint_every and p.iterations % checkpoint_every == 0)
@@ -325,13 +332,15 @@ def train_minutes(
     eval_minutes: float | None = None,
     policy_only: bool = False,
     on_point=None,
+    on_row=None,
     clock=time.perf_counter,
 ) -> tuple[Any, dict[str, Any]]:
     """The minutes mode: train the open run session `sess` (`run.open_session(...,
     until_budget=True)`) for `minutes` of training with an eval point every `eval_minutes`
     (`eval_every_minutes`) on the test and validation tasks; a stop signal saves and stops.
     `policy_only` saves policy.msgpack alone (no orbax checkpoint: no resume); `on_point` sees
-    each eval point; `clock` times the training (tests give a fake one). Prints nothing.
+    each eval point, `on_row` every iteration's metrics row; `clock` times the training (tests
+    give a fake one). Prints nothing.
 
     Returns (state, info): `train_for`'s info with `iterations` those a resume continues from,
     `lost` the iterations finished after the last checkpoint of an interrupted run, `points` the
@@ -359,6 +368,7 @@ def train_minutes(
         online=cfg.online_eval,
         clock=clock,
         on_point=on_point,
+        on_row=on_row,
         # as the training command: orbax checkpoint of the TrainState + policy.msgpack
         save=save_policy if policy_only else sess.save,
         checkpoint_every=cfg.train.checkpoint_interval,

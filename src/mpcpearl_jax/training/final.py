@@ -157,6 +157,7 @@ def train(
                 eval_minutes=opts.eval_minutes,
                 policy_only=opts.policy_only,
                 on_point=opts.on_point,
+                on_row=opts.on_row,
                 clock=opts.clock,
             )
         if opts.on_trained is not None:

@@ -85,6 +85,7 @@ def train_loop(
 
     kw = {"stop": abandon} if stop is not None else {}
     t0 = clock()
+    still = 0  # iterations in a row over which the clock stood still
 
     def checkpoint() -> None:
         if save is not None and progress.saved != progress.iterations:
@@ -99,6 +100,7 @@ def train_loop(
         t = clock()
         state, it_log = trainer.iteration(state, **kw)  # IterationAbandoned, TrainingDiverged
         dt = clock() - t
+        still = _check_clock(dt, still)
         progress.train_s += dt
         if progress.first_iteration_s is None:
             progress.first_iteration_s = dt
@@ -113,3 +115,27 @@ def train_loop(
             checkpoint()
     progress.stopped = "done"
     return state
+
+
+# a clock that stands still over this many iterations in a row never ends a time budget
+STILL_ITERATIONS = 3
+
+
+def _check_clock(dt: float, still: int) -> int:
+    """An iteration's `dt` seconds by the loop's clock: a clock that runs backwards (dt < 0), or
+    stands still over `STILL_ITERATIONS` iterations in a row, would never end a time budget:
+    ValueError naming `clock`. -> the iterations in a row the clock stood still."""
+    if dt < 0:
+        raise ValueError(
+            f"clock ran backwards ({dt:.6g} s over an iteration): the training's clock (clock, "
+            "e.g. TrainOptions.clock) must return seconds that never decrease, as "
+            "time.perf_counter does"
+        )
+    still = still + 1 if dt == 0 else 0
+    if still >= STILL_ITERATIONS:
+        raise ValueError(
+            f"clock stood still over {still} iterations: the training's clock (clock, e.g. "
+            "TrainOptions.clock) must return seconds that move forward, as time.perf_counter "
+            "does"
+        )
+    return still
