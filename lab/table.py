@@ -31,6 +31,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from lab.screen import render_screen_learner
 from lab.tables.render import (
     render_main_seed_summary,
     render_main_seeds,
@@ -41,7 +42,6 @@ from lab.tables.render import (
     render_seeds,
     render_sidewalk_seeds,
 )
-from lab.tables.screen import render_screen_learner
 from lab.tables.statistics import MISSING, VAL8, Records, paired_difference
 from lab.tables.summary import (
     render_paper,

@@ -1,6 +1,6 @@
 """lab.screen: a screen file's arms over its seeds, trained through the campaign, and its
 report (lift-off, seed statistics, IQM and probability of improvement) from the run folders;
-lab.tables.screen: its table."""
+`screen.render_screen`: its table."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ import pytest
 from scipy.stats import trim_mean
 
 from lab import campaign, screen
-from lab.tables.screen import render_screen
 from lab.tables.statistics import Records
 
 VAL = "eval/policy-val-seeds1-8"
@@ -434,7 +433,7 @@ def test_reused_runs_must_hold_the_config_their_arm_builds(tmp_path, monkeypatch
 def test_the_table_is_made_from_the_records_and_marks_unfinished_arms(tmp_path):
     _screen_folders(tmp_path)
     rec = Records(tmp_path / "results")
-    text = render_screen(rec, "lab/screens/t.json")
+    text = screen.render_screen(rec, "lab/screens/t.json")
     rows = [line for line in text.splitlines() if line.startswith("| `")]
     base, new = rows[0].split(" | "), rows[1].split(" | ")
     assert base[:6] == ["| `base`", "4", "3/4", "30", "0.30 +- 0.13", "0.00"]
@@ -444,7 +443,7 @@ def test_the_table_is_made_from_the_records_and_marks_unfinished_arms(tmp_path):
     assert rows[2].startswith("| `base` | ") and rows[2].endswith("| (baseline) |")  # SPL table
     assert not rec.missing
     make_run(tmp_path / "res/screen/new-s3", [0] * 4, 0.3)  # a record changes: so does the table
-    assert render_screen(rec, "lab/screens/t.json") != text
+    assert screen.render_screen(rec, "lab/screens/t.json") != text
 
 
 def test_a_run_folder_with_broken_records_is_an_error_naming_it(tmp_path, monkeypatch, capsys):
