@@ -169,3 +169,99 @@ def test_observe_time_appends_the_elapsed_fraction_and_changes_nothing_else():
         p, q, r_ref, _, _ = plain.step(key, q, actions[t], task)
         assert float(r) == float(r_ref)
     assert bool(done) and float(o[-1]) == 1.0
+
+
+def _every_option():
+    from mpcpearl_jax.envs.types import NavConfig
+
+    return NavConfig(
+        observe_velocity=True,
+        observe_relative=True,
+        observe_time=True,
+        observe_forecast=2,
+        forecast_stride=3,
+        observe_presence=True,
+    )
+
+
+def test_the_layout_tiles_the_observation_and_each_option_adds_its_part_alone():
+    """`PARTS` alone fixes the observation: the layout's parts tile it in order, and turning a
+    part's option off removes that part's entries and leaves every other part's as they were."""
+    import dataclasses
+
+    from mpcpearl_jax.envs import make_env, make_tasks, observation
+
+    full = _every_option()
+    tasks = make_tasks("restaurant", "val", 0, config=full)
+    task = jax.tree_util.tree_map(lambda x: x[2], tasks)
+    h, s = task.human_pos.shape[-2], task.static_lo.shape[-2]
+
+    def parts_of(config):
+        env = make_env("restaurant", **{f: getattr(config, f) for f in observation.OPTIONS})
+        obs, state = env.reset(jax.random.PRNGKey(0), task)
+        obs, *_ = env.step(jax.random.PRNGKey(0), state, jnp.asarray([0.5, 0.1]), task)
+        lay = observation.layout(env.config, h, s)
+        assert [p["start"] for p in lay] == [
+            sum(q["size"] for q in lay[:i]) for i in range(len(lay))
+        ]
+        assert sum(p["size"] for p in lay) == obs.shape[0] == observation.obs_dim(env.config, h, s)
+        return {p["name"]: np.asarray(obs[p["start"] : p["start"] + p["size"]]) for p in lay}
+
+    every = parts_of(full)
+    assert list(every) == [p.name for p in observation.PARTS]
+    for p in observation.PARTS:
+        if p.option is None:
+            continue
+        off = {p.option: type(getattr(full, p.option))(0)}
+        if p.option == "observe_relative":  # the forecast is egocentric
+            off["observe_forecast"] = 0
+        fewer = parts_of(dataclasses.replace(full, **off))
+        assert p.name not in fewer
+        for name, entries in fewer.items():
+            np.testing.assert_array_equal(entries, every[name], err_msg=f"{p.option}: {name}")
+
+
+def test_every_part_is_documented_and_grouped():
+    """The observation's docstring names every part; every part belongs to one entity; the
+    options an exported policy records include every part's option and scales."""
+    from mpcpearl_jax.envs import observation
+
+    doc = observation.observation.__doc__ or ""
+    missing = [p.name for p in observation.PARTS if p.name not in doc]
+    assert not missing, f"observation's docstring lacks {missing}"
+    grouped = [n for e in observation.ENTITIES for n in observation.group(e)]
+    assert sorted(grouped) == sorted(observation.PART)
+    for p in observation.PARTS:
+        assert {p.option, *p.scales} - {None} <= set(observation.OPTIONS)
+        assert p.meaning(_every_option())
+
+
+def test_missing_options_names_the_option_of_each_absent_part():
+    from mpcpearl_jax.envs import observation
+
+    assert observation.missing_options(["people_ego"], ["people_ego", "people_present"]) == [
+        "observe_presence"
+    ]
+    assert observation.missing_options([], ["people_ego", "goal_ego"]) == ["observe_relative"]
+    assert observation.missing_options([], ["robot_xy"]) == []
+
+
+def test_config_validation_reads_the_layout_without_the_networks():
+    """Checking a crowd encoder's inputs needs the observation's layout, not flax's networks."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from mpcpearl_jax.config import resolve\n"
+        "from mpcpearl_jax.errors import ConfigError\n"
+        "try:\n"
+        "    resolve('default', overrides=['pearl.crowd_encoder=deepsets'])\n"
+        "except ConfigError as e:\n"
+        "    assert 'env.observe_presence=true' in str(e), e\n"
+        "else:\n"
+        "    raise SystemExit('no error')\n"
+        "print(sorted(m for m in ('mpcpearl_jax.pearl.networks', 'distrax') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

@@ -18,7 +18,7 @@ from mpcpearl_jax import validate as v
 from mpcpearl_jax.envs.types import NavConfig
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.mpc.config import MPCConfig
-from mpcpearl_jax.pearl.config import PearlConfig
+from mpcpearl_jax.pearl.config import CROWD_INPUTS, PearlConfig, check_crowd_options
 
 NAV_FIELDS = frozenset(f.name for f in dataclasses.fields(NavConfig))
 # fields --set does not change, by class name: what chooses them instead
@@ -345,7 +345,7 @@ def validate(cfg: ExperimentConfig) -> ExperimentConfig:
     overrides' values on the family's own NavConfig, and whether the family can re-draw its
     training crowds when `train.redraw_behaviours` asks for it (not the sidewalk's recorded
     windows, not the paper's fixed scenarios). Returns `cfg`; ConfigError naming the field."""
-    from mpcpearl_jax.envs import can_redraw, make_env
+    from mpcpearl_jax.envs import can_redraw, make_env, observation
 
     if cfg.devices and cfg.seeds % cfg.devices:
         v.fail(
@@ -359,11 +359,8 @@ def validate(cfg: ExperimentConfig) -> ExperimentConfig:
     except ValueError as e:
         msg = str(e) if isinstance(e, ConfigError) else f"ExperimentConfig.env: {e}"
         raise ConfigError(msg) from e
-    if cfg.pearl.crowd_encoder != "none":
-        from mpcpearl_jax.envs.observation import layout
-        from mpcpearl_jax.pearl.networks import check_crowd_inputs
-
-        check_crowd_inputs(cfg.pearl, [p["name"] for p in layout(env.config, 1, 1)])
+    on = [p.name for p in observation.parts(env.config)]
+    check_crowd_options(cfg.pearl, observation.missing_options(on, CROWD_INPUTS))
     if cfg.pearl.imitation > 0 and not cfg.train.uses_mpc:
         v.fail(
             cfg.pearl,

@@ -34,6 +34,7 @@ from mpcpearl_jax.deploy.exported import (
     sidecar_path,
 )
 from mpcpearl_jax.deploy.policy import load_policy
+from mpcpearl_jax.envs import observation
 from mpcpearl_jax.envs.dynamics import DELTA_MAX
 from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 from mpcpearl_jax.evaluation.report import run_label
@@ -122,19 +123,6 @@ def sidecar(policy, run_dir: Path, seed_index: int, blobs: dict[str, bytes], pla
     nav = layout.config
     o, lat, d = policy.obs_dim, policy.latent_dim, policy.context_dim
     env_config = {k: list(v) if isinstance(v, tuple) else v for k, v in vars(nav).items()}
-    options = (
-        "observe_static",
-        "observe_velocity",
-        "velocity_scale",
-        "observe_relative",
-        "relative_scale",
-        "sensing_radius",
-        "observe_time",
-        "observe_sorted",
-        "observe_forecast",
-        "forecast_stride",
-        "observe_presence",
-    )
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -152,7 +140,7 @@ def sidecar(policy, run_dir: Path, seed_index: int, blobs: dict[str, bytes], pla
             "dim": o,
             "num_people": layout.num_people,
             "num_static": layout.num_static,
-            "options": {k: getattr(nav, k) for k in options},
+            "options": {k: getattr(nav, k) for k in observation.OPTIONS},
             "frame": (
                 f"metres and radians in the training arena x in [{nav.arena_lo[0]:g}, "
                 f"{nav.arena_hi[0]:g}], y in [{nav.arena_lo[1]:g}, {nav.arena_hi[1]:g}]"

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from typing import Any
 
 from mpcpearl_jax import validate as v
+from mpcpearl_jax.errors import ConfigError
 
 CROWD_ENCODERS = ("none", "attention", "deepsets")
 CROWD_STATIC = ("pool", "flat")
+# the observation's parts a crowd encoder reads: each person's egocentric position, and the
+# people's presence as the mask (`envs.observation.PARTS`)
+CROWD_INPUTS = ("people_ego", "people_present")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,3 +127,15 @@ class PearlConfig:
 
     def replace(self, **changes: Any) -> PearlConfig:
         return dataclasses.replace(self, **changes)
+
+
+def check_crowd_options(cfg: PearlConfig, missing: Sequence[str]) -> None:
+    """ConfigError naming the env options `missing` that turn on the observation's parts a
+    crowd encoder reads (`CROWD_INPUTS`; `envs.observation.missing_options` finds them);
+    nothing without a crowd encoder or with none missing."""
+    if cfg.crowd_encoder == "none" or not missing:
+        return
+    raise ConfigError(
+        f"pearl.crowd_encoder={cfg.crowd_encoder} reads each person's egocentric position "
+        f"and presence: set {' and '.join(f'env.{m}=true' for m in missing)}"
+    )

@@ -16,8 +16,9 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from mpcpearl_jax.envs import observation
 from mpcpearl_jax.errors import ConfigError
-from mpcpearl_jax.pearl.config import PearlConfig
+from mpcpearl_jax.pearl.config import CROWD_INPUTS, PearlConfig, check_crowd_options
 
 LAST_INIT = 3e-3
 
@@ -53,10 +54,11 @@ class MLP(nn.Module):
         )(x)
 
 
-# the observation's parts (`envs.observation.layout`) as the crowd encoder reads them
-ROBOT_PARTS = ("robot_xy", "robot_heading", "goal_ego", "time")
-PEOPLE_PARTS = ("people_xy", "people_velocity", "people_ego", "people_forecast", "people_present")
-STATIC_PARTS = ("static_centres", "static_ego")
+# the observation's parts as the crowd encoder reads them: the robot's own, one entity per person
+# and one per static obstacle (`envs.observation.PARTS`)
+ROBOT_PARTS = observation.group("robot")
+PEOPLE_PARTS = observation.group("people")
+STATIC_PARTS = observation.group("static")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,7 +85,7 @@ class CrowdSpec:
 
     @property
     def num_static(self) -> int:
-        return self.parts.get("static_ego", (0, 0))[1] // 2
+        return self.parts.get("static_ego", (0, 0))[1] // observation.PART["static_ego"].width
 
 
 class AttentionPool(nn.Module):
@@ -291,15 +293,7 @@ CROWD_FIELDS = ("crowd_encoder", "crowd_dim", "crowd_heads", "crowd_static", "cr
 def check_crowd_inputs(cfg: PearlConfig, part_names: Sequence[str]) -> None:
     """ConfigError naming the env options a crowd encoder needs when the observation's parts
     `part_names` lack them (nothing to check without one)."""
-    if cfg.crowd_encoder == "none":
-        return
-    need = {"people_ego": "env.observe_relative", "people_present": "env.observe_presence"}
-    missing = [opt for part, opt in need.items() if part not in part_names]
-    if missing:
-        raise ConfigError(
-            f"pearl.crowd_encoder={cfg.crowd_encoder} reads each person's egocentric position "
-            f"and presence: set {' and '.join(f'{m}=true' for m in missing)}"
-        )
+    check_crowd_options(cfg, observation.missing_options(part_names, CROWD_INPUTS))
 
 
 def crowd_spec(
