@@ -72,13 +72,13 @@ def split_rows(n: int, workers: int) -> list[list[int]]:
     return [list(range(i, n, k)) for i in range(k)]
 
 
-def solve_share(params, rows):
-    """A pool task of several rows (the alternative to a task per row): their results, the
-    worker's process id and the task's span."""
+def solve_share(params, qp, rows):
+    """A pool task of several rows (the alternative to a task per row) under the QP settings
+    `qp`: their results, the worker's process id and the task's span."""
     from mpcpearl_jax.mpc.host import Stamped, solve_in_worker
 
     start = time.perf_counter()
-    res = [solve_in_worker(params, p, u) for p, u in rows]
+    res = [solve_in_worker(params, p, u, qp) for p, u in rows]
     end = time.perf_counter()
     return [Stamped(r, os.getpid(), start, end) for r in res]
 
@@ -127,7 +127,9 @@ def host_classes():
             t0 = time.perf_counter()
             rows = list(zip(probs, inits, strict=True))
             parts = split_rows(len(rows), self.cfg.n_workers)
-            fs = [self._pool.submit(solve_share, params, [rows[i] for i in p]) for p in parts]
+            fs = [
+                self._pool.submit(solve_share, params, self.qp, [rows[i] for i in p]) for p in parts
+            ]
             wait(fs)
             done = [f.result() for f in fs]
             self._record_pool(t0, time.perf_counter(), [r for d in done for r in d])
@@ -148,7 +150,7 @@ def host_classes():
         def _row(self, params, prob, u0):
             solver = getattr(self._local, "solver", None)
             if solver is None:
-                solver = self._local.solver = SQPSolver(params)
+                solver = self._local.solver = SQPSolver(params, self.qp)
             start = time.perf_counter()
             res = solver.solve(prob, u0)
             return Stamped(res, threading.get_ident(), start, time.perf_counter())

@@ -40,6 +40,7 @@ def test_mpc_collection_does_not_depend_on_earlier_iterations():
 def test_osqp_solver_state_does_not_carry_between_solves():
     from mpcpearl_jax.envs import make_env
     from mpcpearl_jax.mpc import MPCConfig, RowProblem, SQPSolver, solver_params
+    from mpcpearl_jax.mpc.qp_osqp import OSQPSettings
 
     cfg = MPCConfig()
     p = solver_params(cfg, make_env("restaurant").config, 1)
@@ -53,9 +54,10 @@ def test_osqp_solver_state_does_not_carry_between_solves():
         probs.append(
             RowProblem(x0, np.array([4.0, 0.0]), samples, np.ones(2, bool), box, box, np.ones(1))
         )
-    reused = SQPSolver(p)
+    qp = OSQPSettings.from_config(cfg)
+    reused = SQPSolver(p, qp)
     for prob in probs:
-        np.testing.assert_array_equal(reused.solve(prob).u, SQPSolver(p).solve(prob).u)
+        np.testing.assert_array_equal(reused.solve(prob).u, SQPSolver(p, qp).solve(prob).u)
 
 
 def test_bridge_forgets_plans_of_an_earlier_episode_batch():

@@ -23,6 +23,7 @@ from mpcpearl_jax.mpc import (
     model,
     solver_params,
 )
+from mpcpearl_jax.mpc.qp_osqp import OSQPSettings
 
 ENV = make_env("restaurant")
 T = ENV.config.horizon
@@ -97,7 +98,7 @@ def test_plan_meets_cvar_with_fresh_samples():
         np.asarray(task.static_radius, float),
     )
     params = solver_params(cfg.replace(n_adapt=1), ENV.config, num_static=1)
-    solver = SQPSolver(params)
+    solver = SQPSolver(params, OSQPSettings.from_config(cfg))
     res = solver.solve(prob, np.column_stack([np.full(10, 5.0), np.zeros(10)]))
     assert res.ok, res.reason
     assert var[-1].max() > 0.01  # the prediction is genuinely uncertain

@@ -12,21 +12,24 @@ import pytest
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.mpc import MPCConfig, SQPSolver
 from mpcpearl_jax.mpc.problem import SQP_STOPS, START_NAMES, merit, starts
+from mpcpearl_jax.mpc.qp_osqp import OSQPSettings
 from mpcpearl_jax.mpc.recorded import load
 from tests.test_mpc_model import _row_problem
 
 PICK = (3, 150, 420, 700, 1010)  # recorded problems, spread over the recording
+QP = OSQPSettings.from_config(MPCConfig())
 
 
 @pytest.fixture(scope="module")
 def recorded():
     rec = load(Path(__file__).parent / "data" / "mpc_problems.npz")
     base = dataclasses.replace(rec.params, unsafe_recovery=False)
+    assert rec.qp == QP  # recorded under the default QP settings
     return base, [rec.row(i) for i in PICK]
 
 
 def _solve(base, row, init, **fields):
-    return SQPSolver(dataclasses.replace(base, **fields)).solve(row, init)
+    return SQPSolver(dataclasses.replace(base, **fields), QP).solve(row, init)
 
 
 def test_more_iterations_never_raise_the_exact_merit(recorded):
@@ -90,8 +93,8 @@ def test_every_start_unsafe_falls_back_as_a_single_start():
     samples = np.broadcast_to(row.x0[:2], row.samples.shape).copy()
     row = row._replace(samples=samples)
     params = _params(multi_start="always")
-    res = SQPSolver(params).solve(row, None)
-    single = SQPSolver(_params()).solve(row, None)
+    res = SQPSolver(params, QP).solve(row, None)
+    single = SQPSolver(_params(), QP).solve(row, None)
     assert not res.ok and res.reason == "unsafe"
     assert res.start == single.start == "cold"
     np.testing.assert_array_equal(res.u, single.u)

@@ -430,6 +430,7 @@ def test_the_sqp_passes_on_a_ctrl_c_that_osqp_took_and_solves_again(monkeypatch)
 
     from mpcpearl_jax.envs import make_env
     from mpcpearl_jax.mpc import MPCConfig, RowProblem, SQPSolver, solver_params
+    from mpcpearl_jax.mpc.qp_osqp import OSQPSettings
 
     cfg = MPCConfig()
     p = solver_params(cfg, make_env("restaurant").config, 1)
@@ -445,7 +446,8 @@ def test_the_sqp_passes_on_a_ctrl_c_that_osqp_took_and_solves_again(monkeypatch)
         box,
         np.ones(1),
     )
-    clean = SQPSolver(p).solve(prob)
+    qp = OSQPSettings.from_config(cfg)
+    clean = SQPSolver(p, qp).solve(prob)
     solve, taken = osqp.OSQP.solve, []
 
     def swallowing(self, *a, **kw):  # the first solve is cut short by a Ctrl-C OSQP took
@@ -459,7 +461,7 @@ def test_the_sqp_passes_on_a_ctrl_c_that_osqp_took_and_solves_again(monkeypatch)
     got: list[int] = []
     old = signal.signal(signal.SIGINT, lambda s, f: got.append(s))
     try:
-        again = SQPSolver(p).solve(prob)
+        again = SQPSolver(p, qp).solve(prob)
     finally:
         signal.signal(signal.SIGINT, old)
     assert taken and got == [signal.SIGINT]

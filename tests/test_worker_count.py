@@ -91,10 +91,10 @@ def test_a_solver_keeps_nothing_from_one_row_to_the_next():
 
     rec = recorded.load(PROBLEMS)
     params = dataclasses.replace(rec.params, **EXPERT)
-    one = SQPSolver(params)
+    one = SQPSolver(params, rec.qp)
     for i in range(0, len(rec), 97):
         row, init = rec.row(i)
-        a, b = one.solve(row, init), SQPSolver(params).solve(row, init)
+        a, b = one.solve(row, init), SQPSolver(params, rec.qp).solve(row, init)
         assert np.array_equal(a.u, b.u) and a.reason == b.reason, i
         assert np.array_equal(a.merit, b.merit, equal_nan=True), i
         assert (a.qp_iters, a.n_qp, a.stop, a.start) == (b.qp_iters, b.n_qp, b.stop, b.start)

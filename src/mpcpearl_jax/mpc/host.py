@@ -49,14 +49,13 @@ from mpcpearl_jax.mpc.sqp import SQPSolver
 
 WORKER_LOST = "worker_lost"  # the reason of a row whose pool worker died or hung
 
-_WORKER_SOLVERS: dict[tuple[SolverParams, QPSettings | None], SQPSolver] = {}
+_WORKER_SOLVERS: dict[tuple[SolverParams, QPSettings], SQPSolver] = {}
 
 
 def solve_in_worker(
-    params: SolverParams, prob: RowProblem, u_init: np.ndarray | None, qp: QPSettings | None = None
+    params: SolverParams, prob: RowProblem, u_init: np.ndarray | None, qp: QPSettings
 ) -> SolveResult:
-    """One row in a pool worker: one cached solver per problem size and QP settings (None: the
-    default backend, `sqp.default_qp`)."""
+    """One row in a pool worker: one cached solver per problem size and QP settings."""
     solver = _WORKER_SOLVERS.get((params, qp))
     if solver is None:
         solver = _WORKER_SOLVERS[params, qp] = SQPSolver(params, qp)

@@ -16,7 +16,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from mpcpearl_jax.mpc import model
-from mpcpearl_jax.mpc.config import MPCConfig
 from mpcpearl_jax.mpc.problem import (
     Linearization,
     QPLayout,
@@ -35,21 +34,16 @@ from mpcpearl_jax.mpc.problem import (
     violations,
 )
 from mpcpearl_jax.mpc.qp import QPBackend, QPSettings
-from mpcpearl_jax.mpc.qp_osqp import OSQPSettings
-
-
-def default_qp() -> QPSettings:
-    """The QP backend of the config's defaults: OSQP with `MPCConfig`'s `osqp_*` defaults."""
-    return OSQPSettings.from_config(MPCConfig())
 
 
 class SQPSolver:
     """The SQP for problems of one size (K, M, N_adapt, S), with a fixed sparsity pattern; its QPs
-    by the backend of `qp` (default: `default_qp`)."""
+    by the backend of `qp`, the run's (e.g. `qp_osqp.OSQPSettings.from_config(cfg.mpc)`): no
+    default, so that no solver runs on other QP settings than its run's."""
 
-    def __init__(self, params: SolverParams, qp: QPSettings | None = None):
+    def __init__(self, params: SolverParams, qp: QPSettings):
         self.p = params
-        self.qp = default_qp() if qp is None else qp
+        self.qp = qp
         self.lay = QPLayout(params)
         self._cost_scale = 1.0 / params.slack_penalty  # QP objective in units of the penalty
         rows, cols = qp_pattern(params, self.lay)
