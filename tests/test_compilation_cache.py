@@ -66,11 +66,11 @@ def _python(code: str, cache: str | Path | None, **extra: str) -> str:
 
 def test_commands_started_by_the_tests_use_the_tests_cache(tmp_path):
     """tests/conftest.py exports its cache folder: a command the tests start (a subprocess that
-    imports the command layer) compiles into it, not into the user's home."""
+    imports a command package) compiles into it, not into the user's home."""
     import jax
 
     assert os.environ[cc.ENV] == jax.config.jax_compilation_cache_dir
-    code = "import mpcpearl_jax.cli, jax; print(jax.config.jax_compilation_cache_dir)"
+    code = "import experiments, jax; print(jax.config.jax_compilation_cache_dir)"
     got = _python(code, os.environ[cc.ENV])
     assert got.strip() == os.environ[cc.ENV]
     # and without the variable, the user's folder (here a stand-in XDG_CACHE_HOME)
@@ -79,6 +79,23 @@ def test_commands_started_by_the_tests_use_the_tests_cache(tmp_path):
     assert got.strip() == str(xdg / "mpcpearl_jax" / "jax")
     got = _python(code, "off", JAX_COMPILATION_CACHE_DIR="")
     assert got.strip() in ("", "None")  # no folder: no cache
+
+
+def test_importing_the_command_layer_changes_nothing_until_setup(tmp_path):
+    """Importing `mpcpearl_jax.cli` and every module of it installs no log handler and leaves the
+    compilation cache off; `cli.setup()` does both."""
+    code = (
+        "import importlib, pkgutil, jax, mpcpearl_jax.cli as cli\n"
+        "from mpcpearl_jax.notices import LOGGER\n"
+        "for m in pkgutil.iter_modules(cli.__path__):\n"
+        "    importlib.import_module(f'mpcpearl_jax.cli.{m.name}')\n"
+        "print(len(LOGGER.handlers), jax.config.jax_compilation_cache_dir)\n"
+        "cli.setup()\n"
+        "print(len(LOGGER.handlers), jax.config.jax_compilation_cache_dir)\n"
+    )
+    before, after = _python(code, tmp_path / "cache", JAX_COMPILATION_CACHE_DIR="").splitlines()
+    assert before.split() in (["0", "None"], ["0"])  # no handler, no cache folder
+    assert after.split() == ["1", str(tmp_path / "cache")]
 
 
 # A program that takes well over `MIN_COMPILE_TIME_S` to compile on any CPU (hundreds of

@@ -10,11 +10,12 @@ benchmarks/ shares, and nothing below imports.
 - `train`: the training commands (MPC-PEARL and GrBAL), which parse, call `mpcpearl_jax.train`,
   print and choose the exit code.
 
-`setup()` is where every command starts (done on importing this package, and again by each
-command: it does its work once): the library's notices (`mpcpearl_jax.notices`) are shown as
-one line each on stderr, JAX's persistent compilation cache is on
-(`mpcpearl_jax.compilation_cache`), and stdout and stderr write what their encoding lacks as
-escapes (`\\xa7`) instead of raising (an ASCII locale: PYTHONIOENCODING=ascii).
+`setup()` is where every command starts (the command packages experiments/, lab/ and
+benchmarks/ call it on import, the training commands again: it does its work once): the
+library's notices (`mpcpearl_jax.notices`) are shown as one line each on stderr, JAX's persistent
+compilation cache is on (`mpcpearl_jax.compilation_cache`), and stdout and stderr write what
+their encoding lacks as escapes (`\\xa7`) instead of raising (an ASCII locale:
+PYTHONIOENCODING=ascii). Importing a module of this package does none of it.
 """
 
 from __future__ import annotations
@@ -47,9 +48,10 @@ def tolerant_streams() -> None:
                 pass
 
 
-def setup() -> None:
+def setup(cache: bool = True) -> None:
     """The commands' start (once per process): the library's notices as lines on stderr, and
-    JAX's persistent compilation cache (`mpcpearl_jax.compilation_cache`: MPCPEARL_JAX_CACHE)."""
+    JAX's persistent compilation cache (`mpcpearl_jax.compilation_cache`: MPCPEARL_JAX_CACHE;
+    `cache` false: none)."""
     if _done:
         return
     tolerant_streams()
@@ -59,8 +61,6 @@ def setup() -> None:
     LOGGER.addHandler(_StderrLines())
     LOGGER.setLevel(logging.INFO)
     LOGGER.propagate = False
-    compilation_cache.enable()  # a folder it cannot write: one notice, no cache
+    if cache:
+        compilation_cache.enable()  # a folder it cannot write: one notice, no cache
     _done.append(True)
-
-
-setup()
