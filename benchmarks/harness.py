@@ -14,17 +14,23 @@ JAX computation), so that both libraries get the same number of cores.
 from __future__ import annotations
 
 import argparse
-import statistics
-import sys
-import time
-from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 from mpcpearl_jax.cli import tables
-from mpcpearl_jax.cli.platform import PlatformError, check_platform
+from mpcpearl_jax.cli.harness import (  # noqa: F401 (re-exported: the benchmarks' names)
+    SIZES,
+    calls_for,
+    check_platform_or_fail,
+    check_threads,
+    configure_threads,
+    fail,
+    size_of,
+    summarize,
+    time_fn,
+    timed,
+)
 from mpcpearl_jax.cli.tables import print_table  # noqa: F401 (re-exported)
-from mpcpearl_jax.training import machine as _machine
 from mpcpearl_jax.training.machine import (  # noqa: F401 (re-exported)
     available_cores,
     machine_info,
@@ -35,7 +41,6 @@ from mpcpearl_jax.training.machine import (  # noqa: F401 (re-exported)
 RECORDS = Path(__file__).resolve().parent / "results"
 SCRATCH = RECORDS / "scratch"
 DEFAULT_OUT = SCRATCH
-SIZES = ("tiny", "default", "full")
 
 
 # ------------------------------------------------------------------------------ CLI
@@ -49,28 +54,6 @@ class BenchmarkParser(argparse.ArgumentParser):
         if why is not None:
             fail(why)
         return parsed
-
-
-def fail(line: str) -> NoReturn:
-    """End a benchmark with `line` as its one-line error (exit 2), before it measures anything."""
-    print(f"error: {line}", file=sys.stderr, flush=True)
-    raise SystemExit(2)
-
-
-def configure_threads(n: int | None) -> dict[str, Any]:
-    """`training.machine.configure_threads` (the same cores for JAX and PyTorch), then the
-    platform JAX_PLATFORMS asks for, checked (one line, exit 2, if this machine lacks it)."""
-    info = _machine.configure_threads(n)
-    check_platform_or_fail()
-    return info
-
-
-def check_platform_or_fail() -> None:
-    """JAX_PLATFORMS naming a platform this machine does not have: one line, exit 2."""
-    try:
-        check_platform()
-    except PlatformError as e:
-        fail(str(e))
 
 
 def error_text(e: BaseException) -> str:
@@ -127,11 +110,9 @@ def check_common(args: argparse.Namespace) -> str | None:
     writable; the one-line error naming the flag, or None."""
     from mpcpearl_jax.validate import unwritable_folder
 
-    threads = getattr(args, "threads", None)
-    if threads is not None:
-        cores = available_cores()
-        if not 1 <= threads <= cores:
-            return f"--threads {threads}: this process may use 1 to {cores} cores"
+    why = check_threads(args)
+    if why is not None:
+        return why
     if getattr(args, "record", False):
         args.out = str(RECORDS)
     elif getattr(args, "out", None) is None:
@@ -146,11 +127,6 @@ def check_common(args: argparse.Namespace) -> str | None:
     if why is not None:
         return f"--out {args.out}: not writable ({why}); choose another --out"
     return None
-
-
-def size_of(args: argparse.Namespace) -> str:
-    """'tiny', 'default' or 'full' from parsed `common_parser` flags."""
-    return "tiny" if args.tiny else "full" if args.full else "default"
 
 
 # -------------------------------------------------------------------------- threads
@@ -183,63 +159,6 @@ TORCH_MISSING = (
     "PyTorch is not installed: skipping the PyTorch comparison "
     "(install the optional extra: pip install -e '.[bench]', i.e. torch==2.13.0 CPU)"
 )
-
-
-# --------------------------------------------------------------------------- timing
-def summarize(raw: Sequence[float]) -> dict[str, Any]:
-    """Median, quartiles, min and max of raw samples."""
-    xs = sorted(raw)
-    q = statistics.quantiles(xs, n=4, method="inclusive") if len(xs) >= 2 else [xs[0]] * 3
-    return {
-        "raw_s": list(raw),
-        "median_s": statistics.median(xs),
-        "p25_s": q[0],
-        "p75_s": q[2],
-        "min_s": xs[0],
-        "max_s": xs[-1],
-    }
-
-
-def time_fn(
-    fn: Callable[[], Any],
-    *,
-    repeats: int = 5,
-    warmup: int = 1,
-    block: Callable[[Any], Any] | None = None,
-    inner: int = 1,
-) -> dict[str, Any]:
-    """Time `fn()` `repeats` times after `warmup` calls (the first call's time = compile time).
-
-    `block` is applied to the result to wait for asynchronous work (e.g. jax.block_until_ready).
-    Each sample runs `fn` `inner` times and is divided by `inner` (seconds per call).
-    Returns seconds per call: first_call_s, raw_s, median_s, p25_s, p75_s, min_s, max_s.
-    """
-    block = block or (lambda x: x)
-    t0 = time.perf_counter()
-    block(fn())
-    first = time.perf_counter() - t0
-    for _ in range(max(warmup - 1, 0)):
-        block(fn())
-    raw = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(inner):
-            out = fn()
-        block(out)
-        raw.append((time.perf_counter() - t0) / inner)
-    return {"first_call_s": first, "inner": inner, **summarize(raw)}
-
-
-def calls_for(seconds_per_call: float, target_s: float) -> int:
-    """How many calls make one timing sample last about `target_s` seconds."""
-    return max(1, int(target_s / max(seconds_per_call, 1e-9)))
-
-
-def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
-    """(fn(), seconds) for a one-off measurement such as a compilation."""
-    t0 = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - t0
 
 
 # ---------------------------------------------------------------------------- output

@@ -1,22 +1,25 @@
 """What the lab's diagnostics share (`lab.diagnostics.imitation`, `lab.diagnostics.crowd_cause`,
 `lab.diagnostics.shield`): their command line (--tiny, --full, --out, --threads), the cores they
-use, their table and JSON record (`mpcpearl_jax.training.machine`, `report`), and a one-off
-timing."""
+use, their table and JSON record (`report`); the sizes, cores, failure line and timing are the
+measuring commands' own, shared with the benchmarks (`mpcpearl_jax.cli.harness`)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
-from mpcpearl_jax.cli.platform import PlatformError, check_platform
+from mpcpearl_jax.cli.harness import (  # noqa: F401 (re-exported: the diagnostics' names)
+    SIZES,
+    check_threads,
+    configure_threads,
+    fail,
+    size_of,
+    timed,
+)
 from mpcpearl_jax.cli.tables import print_table, write_record  # noqa: F401 (re-exported)
-from mpcpearl_jax.training import machine
-
-SIZES = ("tiny", "default", "full")
+from mpcpearl_jax.training import machine  # noqa: F401 (re-exported)
 
 
 class DiagnosticParser(argparse.ArgumentParser):
@@ -37,11 +40,9 @@ def check_common(args: argparse.Namespace) -> str | None:
     --out that is not a writable folder (created if missing); None when both are good."""
     from mpcpearl_jax.validate import unwritable_folder
 
-    threads = getattr(args, "threads", None)
-    if threads is not None:
-        cores = machine.available_cores()
-        if not 1 <= threads <= cores:
-            return f"--threads {threads}: this process may use 1 to {cores} cores (default: all)"
+    why = check_threads(args)
+    if why is not None:
+        return why
     out = getattr(args, "out", None)
     if out is not None:
         why = unwritable_folder(out)
@@ -101,24 +102,6 @@ def common_parser(description: str) -> argparse.ArgumentParser:
     return p
 
 
-def configure_threads(n: int | None) -> dict[str, Any]:
-    """`training.machine.configure_threads` (the cores the diagnostic uses), then the platform
-    JAX_PLATFORMS asks for, checked: one line and exit 2 if this machine lacks it."""
-    info = machine.configure_threads(n)
-    try:
-        check_platform()
-    except PlatformError as e:
-        print(f"error: {e}", file=sys.stderr, flush=True)
-        raise SystemExit(2) from None
-    return info
-
-
-def fail(line: str) -> NoReturn:
-    """End a diagnostic on a bad input: `line` on stderr as one error line, exit code 2."""
-    print(f"error: {line}", file=sys.stderr, flush=True)
-    raise SystemExit(2)
-
-
 def load_runs(flag: str, runs: list[Path]) -> list[Any]:
     """`load_policy` of each run folder given by `flag` (--run, --runs), checked first: none
     given, a folder that is not there or a run that does not load is one line naming the flag
@@ -141,11 +124,6 @@ def load_runs(flag: str, runs: list[Path]) -> list[Any]:
     return policies
 
 
-def size_of(args: argparse.Namespace) -> str:
-    """'tiny', 'default' or 'full' from the parsed flags."""
-    return next(s for s, on in (("tiny", args.tiny), ("full", args.full), ("default", True)) if on)
-
-
 def report(
     name: str,
     title: str,
@@ -160,9 +138,3 @@ def report(
     write_record(name, config, record_rows, out)  # before the table: a broken stdout loses none
     print_table(rows, cols, title)
     return {"config": config, "rows": record_rows}
-
-
-def timed(fn: Callable[[], Any]) -> tuple[Any, float]:
-    """(fn(), seconds) of one call."""
-    start = time.perf_counter()
-    return fn(), time.perf_counter() - start
