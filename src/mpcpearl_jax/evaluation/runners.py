@@ -129,8 +129,7 @@ def run_policy_mpc(s: Setup, key: jax.Array, eps: float) -> tuple[dict, dict]:
     try:
         collector = collect_lib.make_collector(env, nets, bridge, eps)
         k_z, k_run = jax.random.split(key)
-        z = jax.random.normal(k_z, (n_seeds, n, nets.cfg.latent_dim))
-        z = z if nets.cfg.use_context else jnp.zeros_like(z)
+        z = nets.prior_z(k_z, (n_seeds, n))
         tasks = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n_seeds, *x.shape)), s.tasks)
         params = _stacked_params(s.policies)["policy"]
         ep = jax.jit(collector)(k_run, params, z, tasks)

@@ -503,6 +503,13 @@ class Networks:
         """z [..., L] ~ q(z | context [..., C, D]): see `posterior_sample`."""
         return self.posterior_sample(enc_params, context, key, mask)[0]
 
+    def prior_z(self, key: Array, shape: tuple[int, ...]) -> Array:
+        """z [*shape, L] from the prior N(0, I), the one draw before any context (PEARL's
+        exploration episodes); 0 without an encoder (`use_context` false), as `posterior_sample`
+        gives."""
+        shape = (*shape, self.cfg.latent_dim)
+        return jax.random.normal(key, shape) if self.cfg.use_context else jnp.zeros(shape)
+
     def act(self, policy_params: Any, obs: Array, z: Array, key: Array | None) -> Array:
         """Normalized action [..., A]: a tanh-Gaussian sample, or tanh(mean) when key is None."""
         mean, log_std = self.policy_out(policy_params, obs, z)

@@ -270,9 +270,8 @@ class Trainer:
 
         def per_seed(encoder, enc, key, rows_s):
             k_c, k_z = jax.random.split(key)
-            if not posterior:  # the prior N(0, I) (z = 0 without an encoder)
-                shape = (rows_s.shape[0], cfg.latent_dim)
-                return jax.random.normal(k_z, shape) if cfg.use_context else jnp.zeros(shape)
+            if not posterior:
+                return self.nets.prior_z(k_z, rows_s.shape[:1])
             ctx = context_from(buffers.sample(enc, k_c, rows_s, cfg.context_size))
             return self.nets.sample_z(encoder, ctx, k_z)
 
