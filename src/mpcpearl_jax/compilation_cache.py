@@ -15,11 +15,14 @@ A folder that cannot be made or written to leaves the cache off, with one warnin
 (`mpcpearl_jax.notices`: a line on stderr in the commands); the command runs as without a
 cache. Entries are never evicted: the folder grows by a
 few MB per configuration trained (the programs of one shape), and deleting it is always safe
-(the next command compiles again).
+(the next command compiles again). An entry that cannot be read back (a file cut short by a full
+disk) is removed when a command meets it, with one warning line naming it; its program is
+compiled again and written anew.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import tempfile
 from collections.abc import Mapping
@@ -98,4 +101,61 @@ def enable(environ: Mapping[str, str] | None = None) -> Path | None:
         cc.reset_cache()
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_S)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", MIN_ENTRY_SIZE_BYTES)
+    _guard_reads()
     return folder
+
+
+ENTRY_SUFFIX = "-cache"  # JAX's file name of an entry: <key>-cache
+
+
+def _guard_reads() -> None:
+    """Wrap JAX's read of a cache entry (`jax._src.compilation_cache.get_executable_and_time`)
+    so that an entry that cannot be read back is removed, with one warning naming it: JAX itself
+    warns (two lines) and compiles the program again at every later read, and never replaces
+    the entry (it writes only where no file of that name is). Nothing where this JAX has no such
+    function; idempotent."""
+    try:
+        from jax._src import compilation_cache as jcc
+    except ImportError:  # pragma: no cover - another JAX layout: its own behaviour
+        return
+    read = getattr(jcc, "get_executable_and_time", None)
+    if read is None or getattr(read, "_mpcpearl_guarded", False):
+        return
+    keep = getattr(jcc, "CacheVerificationError", None)  # JAX raises it on purpose
+
+    @functools.wraps(read)
+    def guarded(cache_key, *args, **kwargs):
+        try:
+            return read(cache_key, *args, **kwargs)
+        except Exception as e:
+            if keep is not None and isinstance(e, keep):
+                raise
+            return _damaged(cache_key, e)
+
+    guarded._mpcpearl_guarded = True  # type: ignore[attr-defined]
+    jcc.get_executable_and_time = guarded
+
+
+def _damaged(cache_key: str, error: Exception) -> tuple[None, None]:
+    """The entry of `cache_key` could not be read (`error`): remove it (its program is compiled
+    and written again), one warning line; -> JAX's "not in the cache"."""
+    import jax
+
+    folder = jax.config.jax_compilation_cache_dir
+    if not folder:  # pragma: no cover - read from a cache with no folder: JAX's own handling
+        raise error
+    entry = Path(folder).expanduser() / f"{cache_key}{ENTRY_SUFFIX}"
+    why = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}".rstrip()
+    try:
+        entry.unlink(missing_ok=True)
+    except OSError as e:
+        warn(
+            f"warning: the compilation cache entry {entry} cannot be read ({why}) nor removed "
+            f"({e.strerror or e}): delete it, or set {ENV}=off; its program is compiled again"
+        )
+        return None, None
+    warn(
+        f"warning: removed a damaged compilation cache entry, {entry} ({why}); its program is "
+        f"compiled again and written anew ({ENV}=off: no cache)"
+    )
+    return None, None
