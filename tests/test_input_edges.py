@@ -16,7 +16,7 @@ import pytest
 from faults_helpers import _make_unwritable
 
 import mpcpearl_jax.cli.evaluate as evaluate
-import mpcpearl_jax.evaluation.command as evaluation_command
+import mpcpearl_jax.evaluation.plan as evaluation_plan
 from experiments import export, gp_mpc
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,7 +32,7 @@ def _one_line(capsys) -> str:
 
 @pytest.fixture
 def bounded_range(monkeypatch):
-    """`range` in experiments.evaluate and the library behind it (mpcpearl_jax.evaluation.command)
+    """`range` in experiments.evaluate and the library behind it (mpcpearl_jax.evaluation.plan)
     refuses to be expanded past a million values (a range expanded before its bound is checked
     fails here instead of filling the memory)."""
 
@@ -42,7 +42,7 @@ def bounded_range(monkeypatch):
         return r
 
     monkeypatch.setattr(evaluate, "range", guarded, raising=False)
-    monkeypatch.setattr(evaluation_command, "range", guarded, raising=False)
+    monkeypatch.setattr(evaluation_plan, "range", guarded, raising=False)
 
 
 def test_q2_a_huge_tasks_range_is_refused_before_it_is_expanded(bounded_range, capsys, tmp_path):
@@ -62,7 +62,7 @@ def test_q3_a_huge_task_seeds_range_is_refused_before_it_is_expanded(
     err = _one_line(capsys)
     assert f"3000000001 task sets; at most {evaluate.MAX_TASK_SEEDS}" in err
     # overlapping spans count once
-    assert evaluation_command.parse_ranges("1-8,3-5,8", "--task-seeds", 8) == set(range(1, 9))
+    assert evaluation_plan.parse_ranges("1-8,3-5,8", "task_seeds", 8) == set(range(1, 9))
 
 
 def test_q4_an_export_into_a_read_only_folder_is_one_line(tmp_path, capsys):

@@ -11,7 +11,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "mpcpearl_jax"
 # lowest first; every module of the package is ranked, by its longest listed prefix (a
 # package's name ranks its modules not listed on their own). The packages are the layers:
 # envs < pearl, mpc < collection < config < runfolder < evaluation < training, grbal < deploy
-# < cli, the command layer on top (the commands' stop signals, errors, tables and parsers).
+# < api < cli, the command layer on top (the commands' stop signals, errors, tables and parsers).
 # Collection (episodes with event-triggered MPC infusion) sits below both training and
 # evaluation, which import it downward (the trainer, and the evaluation command's policy with MPC
 # infusion); the run folder's files (`runfolder`) below every reader of a run folder.
@@ -28,6 +28,7 @@ LAYERS = [
     ["training.budget"],
     ["training.final"],  # the end of either mode and Python's entry, `mpcpearl_jax.train`
     ["deploy"],
+    ["api"],  # the entries that load runs of every mode: `mpcpearl_jax.evaluate`
     ["cli"],  # the command layer: nothing below imports it
 ]
 RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}

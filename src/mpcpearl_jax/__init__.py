@@ -2,7 +2,9 @@
 
 Public entry points: `make_env`, `make_tasks` (environments), `train` (a run from a config:
 `train(cfg, out, minutes=None, options=None) -> (state, results)`, the one entry the training
-commands use too; `options`: `training.final.TrainOptions`), `load_policy` (a trained policy
+commands use too; `options`: `training.final.TrainOptions`), `evaluate` (a run folder or loaded
+policies, or GP-MPC, on a task source -> the results the evaluation command prints and writes;
+`api.evaluate`), `load_policy` (a trained policy
 from a run directory), `metrics`; `Adapter`, `Frame`, `Scene`, `observe` (a policy in your own
 control loop, from raw sensor arrays), `export_policy` and `load_exported` (a portable artifact
 run with jax alone).
@@ -22,6 +24,7 @@ back up):
   figures); `grbal`: the GrBAL baseline on the same session;
 - `deploy`: a trained policy in your own code (`load_policy`, `Adapter`, `export_policy`,
   `load_exported`);
+- `api`: the entries that load runs of every mode (`evaluate`);
 - `cli`: the command layer on top (stop signals, the error ladder, parsers, the progress bar and
   printed tables, the training commands). Below it nothing prints: the library reports through
   callbacks, return values and the `mpcpearl_jax` logger (`notices`).
@@ -35,6 +38,7 @@ __all__ = [
     "Adapter",
     "Frame",
     "Scene",
+    "evaluate",
     "export_policy",
     "load_exported",
     "load_policy",
@@ -59,6 +63,7 @@ _LAZY = {
     "load_exported": "deploy.exported",
     "load_policy": "deploy.policy",
     "train": "training.final",
+    "evaluate": "api.evaluate",
 }
 
 

@@ -1,14 +1,19 @@
-"""What `experiments.evaluate` does once its command line is read: the evaluated tasks of a split
-(task seed, the paper's scenarios, --tasks, --figures, a crowd perturbation), the MPC settings,
-the output folder, the controller run on the tasks and the record it writes (results.json), its
-tables and trajectory figures. The command keeps the parsing, the printing and the exit codes;
-an error here is a `UsageError` (a bad command line or input file, one line, exit status 2).
+"""The pieces of `mpcpearl_jax.evaluate` below the run loading: the evaluated tasks of a split
+(task seed, the paper's scenarios, a task selection, figure tasks, a crowd perturbation), the MPC
+settings, the output folder, the controller run on the tasks and the record it gives
+(results.json), and its trajectory figures.
+
+A bad argument is an `EvaluationError` (a ValueError) in one line naming the argument. Its
+`template` writes each argument's name as `{name}`: `str(error)` spells them as `evaluate`'s
+keyword arguments, `error.spelled(names)` in another vocabulary (the command line's flags).
 """
 
 from __future__ import annotations
 
 import contextlib
+import re
 import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -20,7 +25,6 @@ from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.envs import tasks_for
 from mpcpearl_jax.envs.perturb import parse_perturbation, perturb_tasks
 from mpcpearl_jax.errors import ConfigError
-from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 from mpcpearl_jax.evaluation.runners import (
     Setup,
     run_gp_mpc,
@@ -31,27 +35,87 @@ from mpcpearl_jax.evaluation.scoring import failures, per_task_metrics, pooled
 from mpcpearl_jax.runfolder import RUN_RECORDS
 from mpcpearl_jax.validate import unwritable_folder
 
-FIGURES = 4  # default number of tasks with a figure (and a GIF with --animate)
+FIGURES = 4  # default number of tasks with a figure (and a GIF with animate)
+
+# the arguments an EvaluationError may name ({name} in its template)
+ARGUMENTS = (
+    "run",
+    "controller",
+    "env",
+    "split",
+    "tasks",
+    "task_seed",
+    "task_seeds",
+    "scenarios",
+    "data",
+    "perturb",
+    "episodes",
+    "online",
+    "seed_index",
+    "shield",
+    "eps",
+    "preset",
+    "mpc",
+    "eval_seed",
+    "figures",
+    "animate",
+    "out",
+    "overwrite",
+)
+_NAME = re.compile(r"\{(" + "|".join(ARGUMENTS) + r")\}")
+_LIBRARY_SPELLING = {"overwrite": "overwrite=True"}
 
 
-class UsageError(ValueError):
-    """A bad command line or input file; reported as one line, exit status 2."""
+class EvaluationError(ValueError):
+    """A bad argument of `mpcpearl_jax.evaluate` (or an input file it names), in one line. The
+    `template` names each argument as `{name}` (a name of `ARGUMENTS`); `str()` spells them as
+    keyword arguments, `spelled` with other names (e.g. a command line's flags)."""
+
+    def __init__(self, template: str) -> None:
+        self.template = template
+        super().__init__(self.spelled())
+
+    def spelled(self, spell: Callable[[str], str] | None = None) -> str:
+        """The message with each argument named by `spell(name)` (default: its keyword)."""
+        name = spell or (lambda n: _LIBRARY_SPELLING.get(n, n))
+        return _NAME.sub(lambda m: name(m.group(1)), self.template)
 
 
-def _parse_spans(text: str, what: str) -> list[tuple[int, int]]:
-    """'0,3,5' | '0-3' (inclusive) | a mix -> its (lo, hi) spans, sorted and merged, never
-    expanded (a span may be billions long); UsageError for an empty or reversed range (5-1) and
-    for nothing at all."""
+# ----------------------------------------------------------------------------- task selections
+_FORMS = "expected numbers like 0,3,5, 0-3 (inclusive) or 0:4 (4 excluded)"
+
+
+def _spans(text: str, arg: str, n: int | None = None) -> list[tuple[int, int]]:
+    """'0,3,5' | '0-3' (inclusive) | '0:4' (STOP excluded; either end may be left out, START 0
+    and STOP `n`) | a mix -> its inclusive (lo, hi) spans, sorted and merged, never expanded (a
+    span may be billions long). EvaluationError naming `arg` for a malformed, reversed or empty
+    range and for nothing at all."""
     spans: list[tuple[int, int]] = []
     for part in text.split(","):
-        a, dash, b = part.partition("-")
         try:
-            lo, hi = int(a), (int(b) if dash else int(a))
+            if ":" in part:
+                a, _, b = part.partition(":")
+                lo = int(a) if a.strip() else 0
+                if not b.strip() and n is None:
+                    raise ValueError(part)
+                stop = int(b) if b.strip() else n
+                assert stop is not None
+                if lo < 0 or stop <= lo:
+                    raise EvaluationError(
+                        f"{{{arg}}} {text!r}: the range {part.strip()} is empty or negative "
+                        "(give START:STOP, 0 <= START < STOP)"
+                    )
+                lo, hi = lo, stop - 1
+            else:
+                a, dash, b = part.partition("-")
+                lo, hi = int(a), (int(b) if dash else int(a))
+        except EvaluationError:
+            raise
         except ValueError:
-            raise UsageError(f"{what} {text!r}: expected numbers like 0,3,5 or 0-3") from None
+            raise EvaluationError(f"{{{arg}}} {text!r}: {_FORMS}") from None
         if hi < lo:
-            raise UsageError(
-                f"{what} {text!r}: the range {part.strip()} is reversed (give A-B, A <= B)"
+            raise EvaluationError(
+                f"{{{arg}}} {text!r}: the range {part.strip()} is reversed (give A-B, A <= B)"
             )
         spans.append((lo, hi))
     merged: list[tuple[int, int]] = []
@@ -67,88 +131,123 @@ def _count(spans: list[tuple[int, int]]) -> int:
     return sum(hi - lo + 1 for lo, hi in spans)
 
 
+def _text(spec: str | Iterable[int]) -> str:
+    """A selection given as integers (a list, a range) written as the text form."""
+    if isinstance(spec, str):
+        return spec
+    items = list(spec)
+    if not all(isinstance(i, (int, np.integer)) and not isinstance(i, bool) for i in items):
+        raise TypeError(f"expected integers, got {items[:5]!r}")
+    return ",".join(str(int(i)) for i in items) or "none"
+
+
 def parse_ranges(
-    text: str, what: str, cap: int | None = None, unit: str = "values", hint: str = ""
+    spec: str | Iterable[int],
+    arg: str,
+    cap: int | None = None,
+    unit: str = "values",
+    hint: str = "",
 ) -> set[int]:
-    """The integers of '0,3,5' | '0-3' | a mix (`_parse_spans`); with `cap`, UsageError when
-    there are more than `cap` of them (`unit`, then `hint`), checked before anything is
-    expanded."""
-    spans = _parse_spans(text, what)
+    """The integers of '0,3,5' | '0-3' | '0:4' | a mix (`_spans`), or of a sequence of them; with
+    `cap`, EvaluationError naming `arg` when there are more than `cap` of them (`unit`, then
+    `hint`), checked before anything is expanded."""
+    text = _text(spec)
+    spans = _spans(text, arg)
     n = _count(spans)
     if cap is not None and n > cap:
-        raise UsageError(f"{what} {text}: {n} {unit}; at most {cap}{hint}")
+        raise EvaluationError(f"{{{arg}}} {text}: {n} {unit}; at most {cap}{hint}")
     return {i for lo, hi in spans for i in range(lo, hi + 1)}
 
 
-def check_eval_seed(seed: int) -> None:
-    """UsageError unless `seed` makes a PRNG key (an integer that fits 64 bits)."""
-    try:
-        jax.random.PRNGKey(seed)
-    except (OverflowError, ValueError, TypeError) as e:
-        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        raise UsageError(f"--eval-seed {seed}: not a PRNG seed ({first})") from None
-
-
-def probe_out(out: Path, overwrite: bool = False) -> None:
-    """Create the output folder and prove it writable before any work (a probe file written and
-    removed); UsageError naming it otherwise. A run's folder (it holds a run's records) is never
-    an output folder, and an earlier evaluation's results.json is replaced only with
-    `overwrite`."""
-    records = [name for name in RUN_RECORDS[:4] if (out / name).exists()]
-    if records:
-        raise UsageError(
-            f"--out {out}: a run's folder (it holds {', '.join(records)}); an evaluation never "
-            f"writes over a run's records: choose another --out, e.g. {out / 'eval' / 'NAME'}"
-        )
-    if (out / "results.json").exists() and not overwrite:
-        raise UsageError(
-            f"--out {out}: holds an earlier evaluation's results.json; pass --overwrite to "
-            "replace it, or choose another --out"
-        )
-    why = unwritable_folder(out)
-    if why is not None:
-        raise UsageError(f"--out {out}: not writable ({why}); choose another --out")
-
-
-def parse_indices(text: str, n: int, what: str) -> list[int]:
-    """'all' | 'none' | '0,3,5' | '0-3' (inclusive) | a mix -> sorted unique indices < n."""
-    text = text.strip().lower()
+def parse_indices(spec: str | Iterable[int], n: int, arg: str) -> list[int]:
+    """'all' | 'none' | '0,3,5' | '0-3' (inclusive) | '0:4' (4 excluded) | a mix, or a sequence of
+    integers -> sorted unique indices < n; EvaluationError naming `arg` otherwise."""
+    text = _text(spec).strip().lower()
     if text == "all":
         return list(range(n))
     if text in ("none", ""):
         return []
-    spans = _parse_spans(text, what)
+    spans = _spans(text, arg, n)
     beyond = [(max(lo, n), hi) for lo, hi in spans if hi >= n]  # checked before expanding
     if beyond:
         count = _count(beyond)
         first = [i for lo, hi in beyond for i in range(lo, min(hi, lo + 5) + 1)][:5]
         shown = first if count <= 5 else f"{first[:3]} and {count - 3} more"
-        raise UsageError(
-            f"{what}: task(s) {shown} out of range; the split has {n} tasks (0-{n - 1})"
+        raise EvaluationError(
+            f"{{{arg}}}: task(s) {shown} out of range; the split has {n} tasks (0-{n - 1})"
         )
     return sorted(i for lo, hi in spans for i in range(lo, hi + 1))
 
 
-def mpc_overrides(items: list[str], base: dict) -> dict:
-    """The MPCConfig fields `base` with the --set FIELD=VALUE `items` on top (read by each
-    field's type, `mpcpearl_jax.config.parse_override`), checked; UsageError in one line."""
-    from mpcpearl_jax.config import mpc_config, parse_override
+# ---------------------------------------------------------------------------- other arguments
+def check_eval_seed(seed: int) -> None:
+    """EvaluationError unless `seed` makes a PRNG key (an integer that fits 64 bits)."""
+    try:
+        jax.random.PRNGKey(seed)
+    except (OverflowError, ValueError, TypeError) as e:
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise EvaluationError(f"{{eval_seed}} {seed}: not a PRNG seed ({first})") from None
+
+
+def check_out(out: Path, overwrite: bool = False) -> None:
+    """Create the output folder and prove it writable before any work (a probe file written and
+    removed); EvaluationError naming it otherwise. A run's folder (it holds a run's records) is
+    never an output folder, and an earlier evaluation's results.json is replaced only with
+    `overwrite`."""
+    records = [name for name in RUN_RECORDS[:4] if (out / name).exists()]
+    if records:
+        raise EvaluationError(
+            f"{{out}} {out}: a run's folder (it holds {', '.join(records)}); an evaluation never "
+            f"writes over a run's records: choose another {{out}}, e.g. {out / 'eval' / 'NAME'}"
+        )
+    if (out / "results.json").exists() and not overwrite:
+        raise EvaluationError(
+            f"{{out}} {out}: holds an earlier evaluation's results.json; pass {{overwrite}} to "
+            "replace it, or choose another {out}"
+        )
+    why = unwritable_folder(out)
+    if why is not None:
+        raise EvaluationError(f"{{out}} {out}: not writable ({why}); choose another {{out}}")
+
+
+def mpc_settings(
+    env_name: str,
+    base: Mapping[str, Any] | None,
+    preset_name: str | None = None,
+    changes: Mapping[str, Any] | Sequence[str] = (),
+) -> dict:
+    """The MPCConfig fields of an evaluation: `base` (a run's MPC, or the family's defaults when
+    None), or with `preset_name` that preset's MPC under the family's defaults; then `changes`
+    ('FIELD=VALUE' strings read by each field's type, or a mapping of typed values) on top,
+    checked; EvaluationError naming the preset or `mpc` in one line."""
+    from mpcpearl_jax.config import mpc_config, parse_override, preset
+    from mpcpearl_jax.envs import mpc_defaults
     from mpcpearl_jax.mpc import MPCConfig
 
-    out = dict(base)
+    if preset_name is not None:
+        try:
+            out = preset(preset_name).mpc.replace(**mpc_defaults(env_name)).to_dict()
+        except ConfigError as e:
+            raise EvaluationError(f"{{preset}}: {e}") from e
+    else:
+        out = dict(base) if base is not None else mpc_defaults(env_name)
     try:
-        for item in items:
-            _, field, value = parse_override(item, {"": MPCConfig})
-            out[field] = value
+        if isinstance(changes, Mapping):
+            out.update(changes)
+        else:
+            for item in changes:
+                _, field, value = parse_override(item, {"": MPCConfig})
+                out[field] = value
     except ConfigError as e:
-        raise UsageError(str(e)) from e
+        raise EvaluationError(str(e)) from e
     try:
         mpc_config(out)  # the one check of MPCConfig fields and values
     except ValueError as e:
-        raise UsageError(f"--set: {e}") from e
+        raise EvaluationError(f"{{mpc}}: {e}") from e
     return out
 
 
+# ------------------------------------------------------------------------------ task sets
 def task_setup(
     cfg: Any,
     env: Any,
@@ -157,51 +256,57 @@ def task_setup(
     split: str,
     *,
     task_seed: int | None = None,
-    task_seeds: str | None = None,
+    several_seeds: bool = False,
     scenarios: Path | None = None,
-    tasks: str = "all",
-    figures: str | None = None,
+    tasks: str | Sequence[int] = "all",
+    figures: str | Sequence[int] | None = None,
     perturb: str = "none",
 ):
     """The evaluated tasks of a split for a run config `cfg` (None: `env_name`'s defaults), as
-    the options name them (--task-seed, --task-seeds, --scenarios, --tasks, --figures,
-    --perturb): (task seed, scenario source, tasks, task ids, figure ids, perturbation)."""
+    the arguments name them (`task_seed`, whether there are `several_seeds`, `scenarios`,
+    `tasks`, `figures`, `perturb`): (task seed, scenario source, tasks, task ids, figure ids,
+    perturbation, the split's number of tasks)."""
     seed = task_seed if task_seed is not None else (cfg.task_seed if cfg else 0)
     source = (cfg or ExperimentConfig(env=env_name)).replace(data=data)
-    scenarios = scenario_source(
-        cfg, env_name, source.task_options, split, scenarios, task_seed, task_seeds
-    )
-    if scenarios is not None:  # the paper's scenarios, in place of the run's task source
-        source = source.replace(data=None, task_options=scenarios)
+    given_seed = task_seed is not None or several_seeds
+    options = scenario_source(cfg, env_name, source.task_options, split, scenarios, given_seed)
+    if options is not None:  # the paper's scenarios, in place of the run's task source
+        source = source.replace(data=None, task_options=options)
     try:
         all_tasks = tasks_for(source, split, config=env.config, seed=seed)
     except (ValueError, TypeError, OSError) as e:
-        if isinstance(e, OSError) and scenarios is None:
+        if isinstance(e, OSError) and options is None:
             raise
-        raise UsageError(f"{env_name} --split {split}: {e}") from e
+        raise EvaluationError(f"{env_name} {{split}} {split}: {e}") from e
     n = all_tasks.num_tasks
-    task_ids = parse_indices(tasks, n, "--tasks")
+    task_ids = parse_indices(tasks, n, "tasks")
     if not task_ids:
-        raise UsageError("--tasks: no task selected")
+        raise EvaluationError("{tasks}: no task selected")
     if figures is None:
         figure_ids = task_ids[:FIGURES]
     else:
-        figure_ids = parse_indices(figures, n, "--figures")
+        figure_ids = parse_indices(figures, n, "figures")
         missing = sorted(set(figure_ids) - set(task_ids))
         if missing:
-            raise UsageError(f"--figures: task(s) {missing} are not evaluated (see --tasks)")
+            raise EvaluationError(
+                f"{{figures}}: task(s) {missing} are not evaluated (see {{tasks}})"
+            )
     chosen = jax.tree_util.tree_map(lambda x: x[np.asarray(task_ids)], all_tasks)
     try:
         perturbation = parse_perturbation(perturb)
     except ValueError as e:
-        raise UsageError(str(e)) from e
+        text, flag = str(e), "--perturb"  # the parser's messages name the command line's flag
+        raise EvaluationError(
+            "{perturb}" + text[len(flag) :] if text.startswith(flag) else text
+        ) from e
     return (
         seed,
-        scenarios,
+        options,
         perturb_tasks(chosen, perturbation),
         task_ids,
         figure_ids,
         perturbation,
+        n,
     )
 
 
@@ -220,10 +325,9 @@ def scenario_source(
     task_options: dict,
     split: str,
     scenarios: Path | None = None,
-    task_seed: int | None = None,
-    task_seeds: str | None = None,
+    given_seed: bool = False,
 ) -> dict | None:
-    """The task options of the paper's scenarios when they are the task source (--scenarios, or
+    """The task options of the paper's scenarios when they are the task source (`scenarios`, or
     the run trained on them), else None. A run that trained on every training scenario is not
     scored on the val split (its tasks 150-179 were training tasks)."""
     from mpcpearl_jax.envs.restaurant.scenarios import check_val_split, scenario_options
@@ -231,9 +335,11 @@ def scenario_source(
     if scenarios is None and not task_options.get("scenarios"):
         return None
     if env_name != "restaurant":
-        raise UsageError(f"--scenarios: the paper's scenarios are restaurant tasks, not {env_name}")
-    if task_seed is not None or task_seeds is not None:
-        raise UsageError("--task-seed(s): the paper's scenarios are one fixed set of tasks")
+        raise EvaluationError(
+            f"{{scenarios}}: the paper's scenarios are restaurant tasks, not {env_name}"
+        )
+    if given_seed:
+        raise EvaluationError("{task_seed}(s): the paper's scenarios are one fixed set of tasks")
     trained = dict(cfg.task_options) if cfg else {}
     try:
         if scenarios is not None:
@@ -242,33 +348,11 @@ def scenario_source(
             out = {k: v for k, v in task_options.items() if k in ("scenarios", "scenario_sha256")}
         check_val_split(trained, split)
     except (ValueError, OSError) as e:
-        raise UsageError(f"--scenarios: {e}") from e
+        raise EvaluationError(f"{{scenarios}}: {e}") from e
     return out
 
 
-# ---------------------------------------------------------------------------------- output
-def tables(record: dict) -> str:
-    """Markdown: metrics (mean, per seed), then per task (mean over the evaluated seeds)."""
-    seeds = record["seeds"]
-    per_seed = record["per_seed"]
-    head = ["metric", "mean"] + ([f"seed {s}" for s in seeds] if len(seeds) > 1 else [])
-    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
-    for k in (*METRIC_NAMES, "return"):
-        cells = [f"{record['metrics'][k]:.2f}"]
-        if len(seeds) > 1:
-            cells += [f"{v:.2f}" for v in per_seed[k]]
-        lines.append(f"| {k} | " + " | ".join(cells) + " |")
-    pt = {k: np.asarray(v) for k, v in record["per_task"].items()}
-    note = f" (mean over {len(seeds)} seeds)" if len(seeds) > 1 else ""
-    lines += ["", f"Per task{note}:", ""]
-    cols = ("SR", "CFR", "TT", "SPL", "MGD", "return")
-    lines += ["| task | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
-    for j, t in enumerate(record["tasks"]):
-        vals = " | ".join(f"{pt[c][:, j].mean():.2f}" for c in cols)
-        lines.append(f"| {t} | {vals} |")
-    return "\n".join(lines)
-
-
+# --------------------------------------------------------------------------- running, records
 def write_figures(s: Setup, result: dict, animate: bool) -> list[Path]:
     """A trajectory PNG (and a GIF with animate) of the first evaluated seed on each figure
     task, in the family's style (its registered viewer)."""
@@ -312,12 +396,12 @@ def _names_the_file(path: Path, out: Path):
         ) from e
 
 
-def evaluate(
+def run_setup(
     s: Setup, eval_seed: int, episodes: int | None = None, online: bool = False
-) -> tuple[dict, dict]:
+) -> tuple[dict, dict, dict | None]:
     """Run the controller on the tasks with the PRNG seed `eval_seed` (`episodes` adaptation
     episodes, None: the run's; or `online`); -> (record for results.json, raw arrays [S, N,
-    ...])."""
+    ...], the MPC's statistics or None)."""
     from mpcpearl_jax.evaluation import evaluate as eval_lib
 
     key = jax.random.PRNGKey(eval_seed)
@@ -331,12 +415,14 @@ def evaluate(
         protocol = "MPC at every step"
         result, stats = run_gp_mpc(s, key)
     elif s.controller == "grbal":
+        assert s.grbal is not None
         trainer, saved = s.grbal
         episodes = s.run_config.grbal.eval_adapt_episodes
         protocol = "online" if online else f"after {episodes} adaptation episode(s)"
         raw = trainer.rollouts(saved["model"], saved["norm"], s.tasks, key)
         result = raw["online" if online else "adapt"]
     else:
+        assert s.eps is not None
         protocol = f"training-style episode: prior z, MPC on an event with probability {s.eps:g}"
         result, stats = run_policy_mpc(s, key, s.eps)
     wall = time.perf_counter() - t0
@@ -363,6 +449,7 @@ def evaluate(
         "wall_s": wall,
     }
     if s.controller not in ("policy", "grbal"):
+        assert stats is not None
         record["mpc"] = s.mpc
         if s.controller == "policy+mpc":
             record["eps"] = s.eps
@@ -370,16 +457,17 @@ def evaluate(
         record["mpc_status"] = dict(stats["status"])
         record["mpc_reasons"] = dict(stats["reasons"])
     if s.controller in ("policy", "grbal"):
+        assert episodes is not None
         record["episodes"] = 1 if online else episodes + 1
         if s.shield is not None:
             record["shield"] = asdict(s.shield)
             record["shield_rate"] = float(np.mean(result["shielded"]))
     record["failures"] = failures([record["per_task"]])
-    return record, result
+    return record, result, stats
 
 
 def pooled_record(s: Setup, task_seeds: list[int], records: list[dict]) -> dict:
-    """The results.json of --task-seeds: the `records` of `evaluate` on the split of each
+    """The results.json of several task seeds: the `records` of `run_setup` on the split of each
     task-set seed (`s`: the last one's setup), pooled (`scoring.pooled`: mean and standard error
     over all their tasks, the mean of each set) with their failures."""
     return {
