@@ -2,17 +2,22 @@
 
     python -m experiments.gp_mpc --env restaurant --split test [--set v_max=5.0 --set alpha=0.95]
     python -m experiments.gp_mpc --scenarios path/to/MPC-PEARL --split test   # the paper's tasks
-    python -m experiments.gp_mpc --scenarios path/to/MPC-PEARL --split train --tasks 0:30
+    python -m experiments.gp_mpc --scenarios path/to/MPC-PEARL --split train --tasks 0-29
     python -m experiments.gp_mpc --scenarios path/to/MPC-PEARL --preset default   # the teacher
 
 The MPC settings are the `paper` preset's (the SQP to convergence, method §7) unless --preset
 names another preset, whose MPC is taken (e.g. `default`: 2 QPs per solve and the unsafe-plan
 recovery, the expert the learned presets train with); --set changes them further.
 
+The rollout is `mpcpearl_jax.evaluate(controller="gp-mpc", ...)`, the path of `python -m
+experiments.evaluate --controller gp-mpc`; --tasks takes its task syntax (0,3,5; 0-3 inclusive;
+0:30, 30 excluded; a mix).
+
 Prints the method §8 metrics next to the paper's numbers, the MPC status counts and solve times, and
 writes a JSON record and a trajectory figure (one task) under --out. The record is named
 `ENV_SPLIT[_tasksA-B][_preset-NAME][_seedN][_sample-seedN][_set-...].json`: the task range when
-not the whole split (--tasks, --max-tasks), then each of --preset (other than paper), --seed,
+not the whole split (--tasks, --max-tasks; tasks A to B - 1, or _tasksI+J+K when they are not
+consecutive), then each of --preset (other than paper), --seed,
 --sample-seed (other than 0) and --set, so runs with other settings keep their own records; a
 record of the same name made with other settings (another --scenarios, --data or --env module) is
 never replaced without --overwrite, checked before the rollout. A stop signal (Ctrl-C,
@@ -28,59 +33,57 @@ import hashlib
 import json
 import re
 import sys
-import time
 from pathlib import Path
+from typing import Any
 
-import jax
 import numpy as np
 
-from experiments.common import add_task_source_options, env_family, one_line_errors, stops_with
+from experiments.common import add_task_source_options, one_line_errors, stops_with
+from mpcpearl_jax.api.evaluate import Plan, prepare
+from mpcpearl_jax.cli.evaluate import flags
 from mpcpearl_jax.cli.output import broken_line, guarded_stdout
 from mpcpearl_jax.cli.platform import check_platform
-from mpcpearl_jax.config import ExperimentConfig, apply_overrides, preset, task_source
-from mpcpearl_jax.envs import make_env, mpc_defaults, tasks_for
 from mpcpearl_jax.evaluation import metrics
+from mpcpearl_jax.evaluation.plan import mpc_settings as mpc_fields
 from mpcpearl_jax.evaluation.report import PAPER, metrics_table
-from mpcpearl_jax.mpc import MPCConfig, make_gp_mpc_rollout, make_mpc_bridge
+from mpcpearl_jax.mpc import MPCConfig
 from mpcpearl_jax.validate import unwritable_folder
 
-
-def select_tasks(tasks, span: str | None, max_tasks: int | None, plot_task: int | None):
-    """The tasks of --tasks START:STOP (the split's tasks START to STOP - 1; either may be left
-    out), then of --max-tasks (the first N of them), and the index among them of --plot-task (a
-    task of the split; default the first selected) -> (tasks, first task's index, plot index);
-    ValueError naming the flag."""
-    n = tasks.num_tasks
-    lo, hi = 0, n
-    if span is not None:
-        start, sep, stop = span.partition(":")
-        try:
-            lo = int(start) if start.strip() else 0
-            hi = int(stop) if stop.strip() else n
-        except ValueError:
-            sep = ""
-        if not sep or lo < 0 or hi <= lo:
-            raise ValueError(f"--tasks {span}: not START:STOP with 0 <= START < STOP (e.g. 0:30)")
-        if lo >= n or hi > n:  # refused, not cut silently to the split's tasks
-            raise ValueError(
-                f"--tasks {span}: the {n} tasks of the split are 0 to {n - 1} (STOP at most {n})"
-            )
-    if max_tasks is not None:
-        if max_tasks < 1:
-            raise ValueError(f"--max-tasks must be positive, got {max_tasks}")
-        hi = min(hi, lo + max_tasks)
-    hi = min(hi, n)
-    plot = lo if plot_task is None else plot_task
-    if not lo <= plot < hi:
-        raise ValueError(f"--plot-task {plot_task}: not among the tasks run ({lo} to {hi - 1})")
-    return jax.tree_util.tree_map(lambda a: a[lo:hi], tasks), lo, plot - lo
+# this command's names of `mpcpearl_jax.evaluate`'s arguments where they differ
+FLAGS = {"task_seed": "--seed", "eval_seed": "--sample-seed", "mpc": "--set"}
 
 
 def mpc_settings(env: str, preset_name: str, overrides: list[str]) -> MPCConfig:
     """The MPC of `preset_name` (--preset), under the family's MPC defaults, then the --set
-    `overrides`; ConfigError naming the preset or the field."""
-    base = preset(preset_name).mpc.replace(**mpc_defaults(env))
-    return apply_overrides(base, overrides)
+    `overrides` (`mpcpearl_jax.evaluation.plan.mpc_settings`); ValueError naming the preset or
+    the field."""
+    return MPCConfig(**mpc_fields(env, None, preset_name, overrides))
+
+
+def plan(args: argparse.Namespace) -> Plan:
+    """The GP-MPC evaluation of the command line `args` (`mpcpearl_jax.evaluate`'s plan, nothing
+    written by it): --tasks, then the first --max-tasks of them; ValueError naming the flag."""
+    if args.max_tasks is not None and args.max_tasks < 1:
+        raise ValueError(f"--max-tasks must be positive, got {args.max_tasks}")
+    options: dict[str, Any] = dict(
+        controller="gp-mpc",
+        env=args.env,
+        split=args.split,
+        tasks=args.tasks or "all",
+        task_seed=None if args.scenarios is not None else args.seed,
+        scenarios=args.scenarios,
+        data=args.data,
+        preset=args.preset,
+        mpc=args.set,
+        eval_seed=args.sample_seed,
+        figures="none",
+    )
+    with flags(FLAGS):
+        p = prepare(**options)
+        ids = p.setup.task_ids
+        if args.max_tasks is not None and len(ids) > args.max_tasks:
+            p = prepare(**{**options, "tasks": ids[: args.max_tasks]})
+    return p
 
 
 @stops_with("interrupted before GP-MPC finished; nothing was written")
@@ -129,8 +132,9 @@ def _main(argv: list[str] | None) -> int:
     )
     ap.add_argument(
         "--tasks",
-        metavar="START:STOP",
-        help="only the split's tasks START to STOP - 1, e.g. --tasks 0:30 (default: all)",
+        metavar="TASKS",
+        help="only these tasks of the split, e.g. 0,3,5, 0-29 (inclusive) or 0:30 (30 excluded); "
+        "default all",
     )
     ap.add_argument(
         "--overwrite",
@@ -142,30 +146,31 @@ def _main(argv: list[str] | None) -> int:
 
     with one_line_errors(interrupted=None) as failed:
         check_platform()  # JAX_PLATFORMS naming a platform this machine lacks: one line
-        args.env = env_family(args.env)  # MODULE:NAME registers NAME
-        env = make_env(args.env)
-        cfg = mpc_settings(args.env, args.preset, args.set)
-        source = task_source(args.env, args.scenarios, data=args.data)
-        tasks = tasks_for(ExperimentConfig(env=args.env, **source), args.split, seed=args.seed)
-        n_split = tasks.num_tasks
-        tasks, first, plot = select_tasks(tasks, args.tasks, args.max_tasks, args.plot_task)
-        last = first + tasks.num_tasks - 1
-        path = args.out / record_name(args, first, last + 1, n_split)
-        settings = record_settings(args, source, first, last + 1, cfg)
+        p = plan(args)
+        s = p.setup
+        ids, n_split = s.task_ids, p.split_size
+        if args.plot_task is not None and args.plot_task not in ids:
+            shown = f"{ids[0]} to {ids[-1]}" if _consecutive(ids) else ",".join(map(str, ids))
+            raise ValueError(f"--plot-task {args.plot_task}: not among the tasks run ({shown})")
+        plot = ids.index(ids[0] if args.plot_task is None else args.plot_task)
+        args.env = s.env_name  # MODULE:NAME registers NAME
+        cfg = MPCConfig(**s.mpc)
+        first, last = ids[0], ids[-1]
+        path = args.out / record_name(args, first, last + 1, n_split, ids)
+        settings = record_settings(args, s.scenarios, first, last + 1, cfg, ids)
         probe_out(args.out)  # before the rollout, not after it
         check_replace(path, settings, args.overwrite)
     if failed.code is not None:
         return failed.code
-    bridge = make_mpc_bridge(env, cfg)
-    t0 = time.perf_counter()
-    traj = jax.jit(make_gp_mpc_rollout(env, bridge))(jax.random.PRNGKey(args.sample_seed), tasks)
-    traj = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(traj))
-    wall = time.perf_counter() - t0
-    bridge.close()
+    ev = p.run()
+    assert ev.result is not None and ev.stats is not None
+    traj: dict[str, Any] = {k: np.asarray(v[0]) for k, v in ev.result.items() if k != "acted_by"}
+    tasks = s.tasks
     m = metrics.compute(
-        traj["position"], traj["collision"], traj["in_goal"], tasks.goal, env.config.robot_radius
+        traj["position"], traj["collision"], traj["in_goal"], tasks.goal, s.env_config.robot_radius
     )
-    stats = bridge.stats()
+    stats: dict[str, Any] = ev.stats
+    wall = ev.record["wall_s"]
     paper = PAPER.get(args.env, {}).get("GP-MPC", {})
     solve_ms = 1e3 * np.asarray(stats["solve_s"])  # per row on the host; none on the device
     med = float(np.median(solve_ms)) if solve_ms.size else None
@@ -185,13 +190,11 @@ def _main(argv: list[str] | None) -> int:
     }
     with one_line_errors(interrupted=None) as failed:  # written before anything is printed
         path.write_text(json.dumps(record, indent=2))
-        png = _plot(args, env, tasks, traj, plot, first + plot)
+        png = _plot(args, s.env_config, tasks, traj, plot, ids[plot])
     if failed.code is not None:
         return failed.code
-    print(
-        f"GP-MPC on {args.env}/{args.split}: {tasks.num_tasks} tasks ({first} to {last}), "
-        f"{wall:.1f} s"
-    )
+    which = f"{first} to {last}" if _consecutive(ids) else ",".join(map(str, ids))
+    print(f"GP-MPC on {args.env}/{args.split}: {tasks.num_tasks} tasks ({which}), {wall:.1f} s")
     print(metrics_table([("this run", m), ("paper GP-MPC", paper)]))
     print(f"status: {stats['status']}  reasons: {stats['reasons']}")
     if stats["sqp_stops"]:  # why each row's SQP ended (capped: the cap's best iterate was used)
@@ -203,14 +206,21 @@ def _main(argv: list[str] | None) -> int:
     return 0
 
 
-def record_settings(args, source: dict, start: int, stop: int, cfg: MPCConfig) -> dict:
+def _consecutive(ids: list[int]) -> bool:
+    return ids == list(range(ids[0], ids[-1] + 1))
+
+
+def record_settings(
+    args, scenarios: dict | None, start: int, stop: int, cfg: MPCConfig, ids: list[int]
+) -> dict:
     """The record's fields that say what was run (its first fields, in this order)."""
     return {
         "env": args.env,
         "split": args.split,
-        "tasks": [start, stop],  # the split's tasks start to stop - 1
+        # the split's tasks start to stop - 1, or the task numbers when not consecutive
+        "tasks": [start, stop] if _consecutive(ids) else ids,
         "data": str(args.data) if args.data else None,
-        "scenarios": source.get("task_options"),
+        "scenarios": scenarios,
         "seed": None if args.scenarios is not None else args.seed,
         "sample_seed": args.sample_seed,
         "preset": args.preset,
@@ -218,11 +228,17 @@ def record_settings(args, source: dict, start: int, stop: int, cfg: MPCConfig) -
     }
 
 
-def record_name(args, start: int, stop: int, n_split: int) -> str:
-    """The record's file name: ENV_SPLIT, the task range when not the whole split, then each
-    setting that is not the default (module doc)."""
+def record_name(args, start: int, stop: int, n_split: int, ids: list[int] | None = None) -> str:
+    """The record's file name: ENV_SPLIT, the task range when not the whole split (the task
+    numbers `ids` when they are not consecutive), then each setting that is not the default
+    (module doc)."""
     name = f"{args.env}_{args.split}"
-    if args.tasks or (start, stop) != (0, n_split):
+    if ids is not None and not _consecutive(ids):
+        text = "+".join(map(str, ids))
+        if len(text) > 40:  # a name the file system takes; the record lists every task
+            text = hashlib.sha1(text.encode()).hexdigest()[:12]
+        name += f"_tasks{text}"
+    elif args.tasks or (start, stop) != (0, n_split):
         name += f"_tasks{start}-{stop}"
     if args.preset != "paper":
         name += f"_preset-{args.preset}"
@@ -263,8 +279,10 @@ def probe_out(out: Path) -> None:
         raise OSError(f"--out {out}: not writable ({why}); choose another --out")
 
 
-def _plot(args, env, tasks, traj, i: int, task: int) -> Path:
+def _plot(args, env_config, tasks, traj, i: int, task: int) -> Path:
     """The trajectory of tasks[i], the split's task `task`: its figure's path."""
+    import jax
+
     from mpcpearl_jax.envs import save_trajectory
 
     params = jax.tree_util.tree_map(lambda a: a[i], tasks)
@@ -273,7 +291,7 @@ def _plot(args, env, tasks, traj, i: int, task: int) -> Path:
         args.out / f"{args.env}_{args.split}_task{task}.png",
         params,
         {"GP-MPC": (traj["position"][i], traj["collision"][i])},
-        env.config,
+        env_config,
         title=f"GP-MPC, {args.env} {args.split} task {task}",
     )
     return png

@@ -96,6 +96,16 @@ def test_gp_mpc_names_its_record_by_its_settings(tmp_path):
     assert name(set=["v_max=5.0"]) == "restaurant_test_set-v_max=5.0.json"
     assert name(seed=3, scenarios="x") == "restaurant_test.json"  # no seed with scenarios
     assert len(name(set=[f"alpha=0.{i}" for i in range(20)])) < 60
+    # tasks that are not consecutive (--tasks 0,3,5) are named by their numbers
+    ids = gp_mpc.argparse.Namespace(
+        **{
+            **dict(env="restaurant", split="test", tasks="0,3,5"),
+            **dict(preset="paper", seed=0, sample_seed=0, set=[]),
+        },
+        scenarios=None,
+    )
+    assert gp_mpc.record_name(ids, 0, 6, 24, [0, 3, 5]) == "restaurant_test_tasks0+3+5.json"
+    assert gp_mpc.record_name(ids, 0, 2, 24, [0, 1]) == "restaurant_test_tasks0-2.json"
 
 
 def test_gp_mpc_never_replaces_a_record_of_other_settings(tmp_path, capsys):
@@ -142,22 +152,26 @@ def test_compare_names_the_runs_with_labels(tmp_path, capsys):
 
 
 def test_gp_mpc_tasks_and_max_tasks_are_checked_before_the_rollout(tmp_path, capsys):
-    """--tasks START:STOP, --max-tasks and --plot-task out of range or malformed: one line
-    naming the flag, exit 2, nothing written."""
+    """--tasks (the task syntax of experiments.evaluate: 0,3,5, 0-3, START:STOP), --max-tasks
+    and --plot-task out of range or malformed: one line naming the flag, exit 2, nothing
+    written."""
     from experiments import gp_mpc
 
     out = tmp_path / "g"
     cases = [
-        (["--tasks", "5"], "--tasks 5: not START:STOP"),
-        (["--tasks", "3:3"], "--tasks 3:3: not START:STOP"),
-        (["--tasks", "a:b"], "--tasks a:b: not START:STOP"),
-        (["--tasks=-1:2"], "--tasks -1:2: not START:STOP"),
-        (["--tasks", "30:40"], "--tasks 30:40: the 24 tasks of the split are 0 to 23"),
-        (["--tasks", "0:999999"], "--tasks 0:999999: the 24 tasks of the split are 0 to 23"),
-        (["--tasks", "20:25"], "--tasks 20:25: the 24 tasks of the split are 0 to 23"),
-        (["--preset", "nosuch"], "unknown preset 'nosuch'"),
+        (["--tasks", "3:3"], "--tasks '3:3': the range 3:3 is empty"),
+        (["--tasks", "a:b"], "--tasks 'a:b': expected numbers like 0,3,5, 0-3"),
+        (["--tasks=-1:2"], "--tasks '-1:2': the range -1:2 is empty or negative"),
+        (["--tasks", "3-1"], "--tasks '3-1': the range 3-1 is reversed"),
+        (["--tasks", "30:40"], "--tasks: task(s) [30, 31, 32] and 7 more out of range"),
+        (["--tasks", "0:999999"], "--tasks: task(s) [24, 25, 26] and 999972 more out of range"),
+        (["--tasks", "20:25"], "--tasks: task(s) [24] out of range; the split has 24 tasks"),
+        (["--preset", "nosuch"], "--preset: unknown preset 'nosuch'"),
+        (["--set", "nosuch=1"], "--set 'nosuch=1'"),
         (["--max-tasks", "0"], "--max-tasks must be positive, got 0"),
         (["--tasks", "0:2", "--plot-task", "5"], "--plot-task 5: not among the tasks run (0 to 1)"),
+        (["--tasks", "0,3", "--plot-task", "1"], "--plot-task 1: not among the tasks run (0,3)"),
+        (["--split", "nosuch"], "--split 'nosuch': one of train"),
     ]
     for extra, msg in cases:
         assert gp_mpc.main(["--split", "test", *extra, "--out", str(out)]) == 2, extra
