@@ -8,9 +8,10 @@
 For every run and every perturbation (default: none and the robustness table's delay 3, 6, 12,
 speed 0.7, 1.3; `envs.perturb`, docs/method.md §8a) this is
 
-    python -m experiments.evaluate RUN --split val --task-seeds 1-8 --perturb P --figures none
+    mpcpearl_jax.evaluate(RUN, split="val", task_seeds="1-8", perturb=P, out=...)
 
-(GP-MPC: `--controller gp-mpc --env restaurant`, records under results/gp_mpc/perturbed/), all
+(`python -m experiments.evaluate RUN --split val --task-seeds 1-8 --perturb P --figures none`;
+GP-MPC: `controller="gp-mpc", env="restaurant"`, records under results/gp_mpc/perturbed/), all
 in one process so that each run's evaluator is compiled once. A record that exists is kept
 (`--overwrite` redoes it). `python -m lab.table` turns the records into the table.
 """
@@ -62,6 +63,38 @@ def record_path(run: Path | None, text: str) -> Path:
     return run / "eval" / f"policy-val{suffix(text)}-seeds{TASK_SEEDS}" / "results.json"
 
 
+def evaluate(run: Path | None, perturb: str, out: Path, overwrite: bool) -> bool:
+    """The record of `run` (None: GP-MPC on the restaurant) with the crowd perturbed by
+    `perturb` (`mpcpearl_jax.evaluate`) written into `out`; whether it was (a failure is one
+    line on stderr)."""
+    import mpcpearl_jax
+    from mpcpearl_jax.errors import CheckpointError
+
+    where = {"controller": "gp-mpc", "env": "restaurant"} if run is None else {}
+    try:
+        ev = mpcpearl_jax.evaluate(
+            run,
+            **where,
+            split="val",
+            task_seeds=TASK_SEEDS,
+            figures="none",
+            perturb=perturb,
+            out=out,
+            overwrite=overwrite,
+        )
+    except (ValueError, OSError, CheckpointError) as e:
+        line = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        print(f"error: {run or 'GP-MPC'} {perturb}: {line}", file=sys.stderr, flush=True)
+        return False
+    pooled = ev.record["pooled"]
+    print(
+        f"[robustness] {ev.setup.label} {perturb}: SR {pooled['SR']['mean']:.2f} "
+        f"+- {pooled['SR']['se']:.2f}, wrote {out / 'results.json'}",
+        flush=True,
+    )
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("runs", type=Path, nargs="*", help="run directories")
@@ -95,8 +128,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {run}: not a run directory (no config.json)", file=sys.stderr)
             return 2
 
-    from mpcpearl_jax.cli import evaluate
-
     failed = []
     for run in runs:
         for text in perturbations:
@@ -108,18 +139,14 @@ def main(argv: list[str] | None = None) -> int:
             if out.is_file() and not args.overwrite:
                 print(f"[robustness] kept {out}", flush=True)
                 continue
-            argv_e = ["--split", "val", "--task-seeds", TASK_SEEDS, "--figures", "none"]
-            argv_e += ["--perturb", text, "--out", str(out.parent)]
-            argv_e += ["--overwrite"] if args.overwrite else []
-            if run is None:
-                argv_e = ["--controller", "gp-mpc", "--env", "restaurant", *argv_e]
-            else:
-                argv_e = [str(run), *argv_e]
-            t0 = time.perf_counter()
-            rc = evaluate.main(argv_e)
             name = "GP-MPC" if run is None else str(run)
-            print(f"[robustness] {name} {text}: rc {rc}, {time.perf_counter() - t0:.0f} s")
-            if rc != 0:
+            t0 = time.perf_counter()
+            ok = evaluate(run, text, out.parent, args.overwrite)
+            print(
+                f"[robustness] {name} {text}: {'done' if ok else 'failed'}, "
+                f"{time.perf_counter() - t0:.0f} s"
+            )
+            if not ok:
                 failed.append(f"{name} {text}")
     if failed:
         print(f"error: {len(failed)} evaluation(s) failed: {failed}", file=sys.stderr)
