@@ -28,11 +28,12 @@ started afresh (a work folder a run killed before its first checkpoint left is c
 Before a finished run is copied or evaluated, the config its `argv` builds is compared with the
 config.json the run recorded: an entry edited since is refused with the fields that differ (give
 the changed entry another name and results folder). Every evaluation is
-`python -m experiments.evaluate RESULTS ARGS...` on the copied folder; it must name its
-`--out` (`{results}` stands for the results folder) and is skipped where that folder holds
-results.json. One training at a time, each in its own process: stop the campaign with Ctrl-C
-(the run under way saves and exits 130) and start the same command again later to continue
-where it stopped.
+`python -m experiments.evaluate RESULTS ARGS...` on the copied folder (`mpcpearl_jax.evaluate`
+in a process of its own, its arguments read by the command's parser when the file is loaded);
+it must name its `--out` (`{results}` stands for the results folder) and is skipped where that
+folder holds results.json. One training at a time, each in its own process: stop the campaign
+with Ctrl-C (the run under way saves and exits 130) and start the same command again later to
+continue where it stopped.
 A run that fails (exit code other than 0) stops the campaign with its name and code. SIGTERM or
 SIGHUP to the campaign (`timeout`, a scheduler, a closed terminal) reaches the run under way as
 Ctrl-C (it saves and exits), and the campaign ends once it has; a campaign killed outright
@@ -165,7 +166,28 @@ def parse_entry(r: object, where: str, names: Collection[str] = ()) -> CampaignR
         if "--out" not in e[:-1]:
             raise ValueError(f"{where}: every 'evaluate' entry must give --out")
         _check_results_path(eval_out(e).parent, where, "'evaluate' --out")
+        _check_evaluation(e, where)
     return CampaignRun(name, tuple(argv), results, tuple(evals), trainer)
+
+
+def _check_evaluation(args: tuple[str, ...], where: str) -> None:
+    """ValueError naming the entry when the evaluation `args` is not one the evaluation command
+    takes: an unknown or malformed flag, or options that exclude each other (read as
+    `mpcpearl_jax.evaluate`'s arguments by the command's parser, before anything runs)."""
+    import contextlib
+    import io
+
+    from mpcpearl_jax.cli.evaluate import make_parser, options
+
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            options(make_parser().parse_args(["RESULTS", *args]))
+    except SystemExit:
+        line = (err.getvalue().strip().splitlines() or ["bad arguments"])[-1]
+        raise ValueError(f"{where}: 'evaluate' {' '.join(args)}: {line}") from None
+    except ValueError as e:
+        raise ValueError(f"{where}: 'evaluate' {' '.join(args)}: {e}") from None
 
 
 def _check_results_path(results: Path, where: str, field: str = "'results'") -> None:
