@@ -8,7 +8,9 @@ computation) and compare it with the memory free on the devices (host memory for
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import jax
@@ -60,8 +62,47 @@ def check_fits(nbytes: int, what: str, fields: str, free: int | None = None) -> 
         )
 
 
-def check_state_fits(init_state: Any, what: str, fields: str) -> None:
+def check_state_fits(
+    init_state: Any, what: str, fields: str | Callable[[Any], tuple[str, str]]
+) -> None:
     """`check_fits` for the value `init_state()` would build, measured with `jax.eval_shape`; with
-    several processes each holds its share."""
-    nbytes = tree_bytes(jax.eval_shape(init_state)) // jax.process_count()
-    check_fits(nbytes, what, fields)
+    several processes each holds its share. `fields` may be a function of the state's shapes
+    returning (fields, what), called only when the state does not fit: it names what grew."""
+    shapes = jax.eval_shape(init_state)
+    nbytes = tree_bytes(shapes) // jax.process_count()
+    free = free_bytes()
+    if callable(fields) and free is not None and nbytes > free:
+        fields, what = fields(shapes)
+    check_fits(nbytes, what, str(fields), free)
+
+
+def grown_fields(values: Mapping[str, Any], defaults: Mapping[str, Any], prefix: str) -> list[str]:
+    """The size fields of `values` (integers, or tuples of integers such as layer widths) larger
+    than in `defaults` (a tuple: more entries or a larger sum), as "prefix.name=value"."""
+    out = []
+    for name, v in values.items():
+        d = defaults.get(name)
+        if isinstance(v, bool) or isinstance(d, bool) or d is None:
+            continue
+        if isinstance(v, int) and isinstance(d, int):
+            grew = v > d
+        elif isinstance(v, (tuple, list)) and isinstance(d, (tuple, list)):
+            ints = all(isinstance(x, int) for x in (*v, *d))
+            grew = ints and (len(v) > len(d) or sum(v) > sum(d))
+        else:
+            continue
+        if grew:
+            shown = ",".join(map(str, v)) if isinstance(v, (tuple, list)) else v
+            out.append(f"{prefix}.{name}={shown}")
+    return out
+
+
+def dataclass_defaults(cls: type) -> dict[str, Any]:
+    """A dataclass's field defaults (fields without one left out)."""
+    out = {}
+    for f in dataclasses.fields(cls):
+        if f.default is not dataclasses.MISSING:
+            out[f.name] = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            out[f.name] = f.default_factory()
+    return out

@@ -17,12 +17,15 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import os
 import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
+
+import jax
 
 from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.distributed import first_local, is_primary, to_host
@@ -48,7 +51,7 @@ from mpcpearl_jax.training.checkpoint import (
 )
 from mpcpearl_jax.training.loop import Progress, train_loop
 from mpcpearl_jax.training.protocol import TrainerProtocol
-from mpcpearl_jax.training.resources import check_state_fits
+from mpcpearl_jax.training.resources import _size, check_state_fits, tree_bytes
 from mpcpearl_jax.training.runlock import LOCK_FILE, RunLock
 from mpcpearl_jax.training.stopping import StopNow, stop_flag
 from mpcpearl_jax.training.trainer import IterationAbandoned, Trainer, TrainState
@@ -126,7 +129,7 @@ class PearlRun:
         check_state_fits(  # before anything is allocated
             trainer.init_state,
             "the training state (replay buffers, networks)",
-            "train.rl_capacity, the training tasks or the seeds",
+            lambda shapes: state_blame(trainer, shapes),
         )
 
     def saved_params(self, trainer: Trainer, state: TrainState) -> dict:
@@ -134,6 +137,41 @@ class PearlRun:
 
 
 PEARL = PearlRun()
+
+
+def state_blame(trainer: Trainer, shapes: Any) -> tuple[str, str]:
+    """What makes MPC-PEARL's training state (`shapes`: its `jax.eval_shape`) large, for the
+    memory check's line: -> (the fields to lower, what needs the memory). The replay buffers
+    grow with train.rl_capacity, the training tasks, the seeds and the observation's size
+    (env fields above their defaults, e.g. env.observe_forecast); the networks with the pearl
+    size fields above their defaults (e.g. pearl.crowd_dim). The larger part's fields first."""
+    from mpcpearl_jax.envs.types import NavConfig
+    from mpcpearl_jax.pearl.config import PearlConfig
+    from mpcpearl_jax.training.resources import dataclass_defaults, grown_fields
+
+    cfg = trainer.cfg
+    buffers = tree_bytes(shapes.rl) + tree_bytes(shapes.enc)
+    nets = tree_bytes(shapes) - buffers
+    env = (
+        dataclasses.asdict(trainer.env.config)
+        if dataclasses.is_dataclass(trainer.env.config)
+        else {}
+    )
+    observation = grown_fields(
+        {k: env.get(k, v) for k, v in cfg.env_overrides.items()},
+        dataclass_defaults(NavConfig),
+        "env",
+    )
+    network = grown_fields(dataclasses.asdict(cfg.pearl), dataclass_defaults(PearlConfig), "pearl")
+    data = [*observation, "train.rl_capacity, the training tasks or the seeds"]
+    leaves = jax.tree_util.tree_leaves(shapes.learner.params)
+    params = sum(math.prod(x.shape) for x in leaves) // max(cfg.seeds, 1)
+    what = (
+        f"the training state (replay buffers {_size(buffers)}: observations of "
+        f"{trainer.obs_dim:,} numbers; networks {_size(nets)}: {params:,} parameters per seed)"
+    )
+    parts = [data, network] if buffers >= nets or not network else [network, data]
+    return ", or ".join(", ".join(p) for p in parts if p), what
 
 
 def _never(*_: Any) -> bool:
