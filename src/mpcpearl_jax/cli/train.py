@@ -200,7 +200,8 @@ class _Run:
         if isinstance(e, KeyboardInterrupt) and args.minutes is None and info:
             print(
                 f"interrupted in the final evaluation; training is saved (iteration "
-                f"{cfg.train.iterations}): evaluate it with --resume",
+                f"{cfg.train.iterations}), not yet evaluated: the same command with --resume "
+                "runs the final evaluation",
                 file=sys.stderr,
                 flush=True,
             )

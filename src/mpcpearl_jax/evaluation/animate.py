@@ -13,6 +13,7 @@ flashed (red frame, red robot, a star left where it happened). Works for any `Ta
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -106,11 +107,16 @@ def animate_episode(
     steps = frame_steps(horizon, max_frames)
     with matplotlib.rc_context(_RC):  # type: ignore[arg-type]  # keys typed as literals
         fig, draw = _figure(task, config, pos, col, head, acted_by, steps, title, width_in)
+        # a temporary name in the same folder, renamed once every frame is in: a stop or an
+        # error part-way leaves no GIF (or the previous one), never a short one that looks whole
+        tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
         try:
             anim = FuncAnimation(fig, draw, frames=len(steps), blit=False)
-            anim.save(path, writer=PillowWriter(fps=fps), dpi=dpi)
+            anim.save(tmp, writer=PillowWriter(fps=fps), dpi=dpi)
+            os.replace(tmp, path)
         finally:
             plt.close(fig)
+            tmp.unlink(missing_ok=True)
     return path
 
 

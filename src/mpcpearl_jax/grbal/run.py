@@ -208,9 +208,9 @@ def final_evaluation(trainer: GrbalTrainer, state: GrbalState, out: str | Path) 
     results["paper"] = PAPER.get(cfg.env, {})
     no_result = "no GrBAL result in the paper"
     results["paper_note"] = PAPER_NOTE if cfg.env == "restaurant" else no_result
-    write_json(run_dir / "results.json", results)
     plot_learning_curves([(LABEL, read_log(run_dir / LOG_FILE))], run_dir / "learning_curves.png")
     trajectory_figures(trainer, raw, run_dir)
+    write_json(run_dir / "results.json", results)  # last: the run is finished once it is there
     return results
 
 

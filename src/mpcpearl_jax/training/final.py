@@ -311,11 +311,13 @@ def final_evaluation(
     results["machine"] = machine_info()  # run times depend on it (CPU model, cores, versions)
     if not is_primary():  # every process evaluates its seeds; process 0 writes
         return results
-    write_json(run_dir / "results.json", results)
     rows = read_log(run_dir / LOG_FILE)  # the saved policy is the last iteration's: marked
     plot_learning_curves([(label, rows)], run_dir / "learning_curves.png", saved_last=True)
     _trajectory_figure(trainer, raw, run_dir)
     _episode_gif(trainer, raw, run_dir, label)
+    # last: results.json marks the run finished (--resume then has nothing to do), so a stop
+    # before it (in the figures) leaves the final evaluation for --resume to run again
+    write_json(run_dir / "results.json", results)
     return results
 
 

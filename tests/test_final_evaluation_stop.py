@@ -1,0 +1,104 @@
+"""A stop (Ctrl-C, SIGTERM, SIGHUP: KeyboardInterrupt in the command) during the final
+evaluation's figures: the episode GIF is written under a temporary name and renamed once whole
+(a stop part-way leaves the previous GIF or none, never a short one that looks complete), and
+results.json, which marks a run finished for --resume, is written after every figure, so that
+--resume runs the final evaluation again as the command's line says."""
+
+from __future__ import annotations
+
+import types
+
+import jax
+import numpy as np
+import pytest
+from PIL import Image
+
+from mpcpearl_jax.config import preset
+from mpcpearl_jax.envs import make_env, make_tasks
+from mpcpearl_jax.evaluation import animate
+from mpcpearl_jax.training import final
+
+
+def _frames(path) -> int:
+    with Image.open(path) as im:
+        return im.n_frames
+
+
+def test_a_gif_stopped_part_way_leaves_the_previous_one_whole(tmp_path, monkeypatch):
+    env = make_env("restaurant")
+    task = jax.tree_util.tree_map(lambda x: x[0], make_tasks("restaurant", "test", 0))
+    horizon = env.config.horizon
+    start, goal = np.asarray(task.start)[:2], np.asarray(task.goal)
+    pos = start + np.linspace(0.0, 1.0, horizon + 1)[:, None] * (goal - start)
+    path = tmp_path / "episode_test0.gif"
+    animate.animate_episode(path, task, env.config, pos)
+    assert _frames(path) == horizon + 1
+    before = path.read_bytes()
+    figure = animate._figure
+
+    def stopped_at_frame_30(*args):
+        fig, draw = figure(*args)
+
+        def draw_until(i):
+            if i == 30:
+                raise KeyboardInterrupt  # a stop signal, as the commands turn it
+            return draw(i)
+
+        return fig, draw_until
+
+    monkeypatch.setattr(animate, "_figure", stopped_at_frame_30)
+    with pytest.raises(KeyboardInterrupt):
+        animate.animate_episode(path, task, env.config, pos[::-1])
+    assert path.read_bytes() == before  # the previous GIF, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # no temporary left
+    path.unlink()
+    with pytest.raises(KeyboardInterrupt):
+        animate.animate_episode(path, task, env.config, pos)
+    assert not any(tmp_path.iterdir())  # none rather than a short one
+
+
+class _Trainer:
+    """What `final_evaluation` reads of a trainer, with fixed results."""
+
+    def __init__(self):
+        self.cfg = preset("smoke")
+        self.env = types.SimpleNamespace(config=None)
+
+    def evaluate_episodes(self, state):
+        return {"SR": 1.0}, {}
+
+    def evaluate(self, state, online=False, tasks=None):
+        return {"SR": 1.0}
+
+
+@pytest.fixture
+def figures(monkeypatch):
+    """final_evaluation's figures replaced by a record of the files they would write."""
+    import mpcpearl_jax.envs as envs
+
+    made = []
+    monkeypatch.setattr(envs, "tasks_for", lambda *a, **k: (_ for _ in ()).throw(ValueError("x")))
+    monkeypatch.setattr(final, "machine_info", lambda: {})
+    monkeypatch.setattr(final, "plot_learning_curves", lambda runs, path, **k: made.append(path))
+    monkeypatch.setattr(final, "_trajectory_figure", lambda t, raw, d: made.append("trajectory"))
+    monkeypatch.setattr(final, "_episode_gif", lambda t, raw, d, label: made.append("gif"))
+    return made
+
+
+def test_results_json_is_written_after_every_figure(tmp_path, monkeypatch, figures):
+    (tmp_path / "metrics.jsonl").write_text("")
+
+    def stopped(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(final, "_episode_gif", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        final.final_evaluation(_Trainer(), None, tmp_path, "x")
+    assert not (tmp_path / "results.json").exists()  # --resume evaluates again
+
+
+def test_a_finished_final_evaluation_writes_results_json(tmp_path, figures):
+    (tmp_path / "metrics.jsonl").write_text("")
+    results = final.final_evaluation(_Trainer(), None, tmp_path, "x")
+    assert figures[1:] == ["trajectory", "gif"] and (tmp_path / "results.json").is_file()
+    assert results["test_adapt"] == {"SR": 1.0}
