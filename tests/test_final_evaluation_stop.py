@@ -6,6 +6,7 @@ results.json, which marks a run finished for --resume, is written after every fi
 
 from __future__ import annotations
 
+import signal
 import types
 
 import jax
@@ -102,3 +103,27 @@ def test_a_finished_final_evaluation_writes_results_json(tmp_path, figures):
     results = final.final_evaluation(_Trainer(), None, tmp_path, "x")
     assert figures[1:] == ["trajectory", "gif"] and (tmp_path / "results.json").is_file()
     assert results["test_adapt"] == {"SR": 1.0}
+
+
+# a small training (2 iterations) and two final evaluations through the command line: 241 s
+# on the loaded 2-core CPU; the fast siblings are the three tests above
+@pytest.mark.slow
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="POSIX process groups")
+def test_a_hangup_in_the_final_evaluation_then_resume_finishes_it(tmp_path):
+    """SIGHUP to the command's process group once its first figure is written: exit 129, one
+    line saying --resume runs the final evaluation, no results.json and no part of a GIF; the
+    same command with --resume evaluates it: results.json and the GIF with every frame."""
+    from faults_helpers import signal_group_when, small_args, spawn
+
+    run, log = tmp_path / "run", tmp_path / "log.txt"
+    proc = spawn(small_args(0.0, run, 2), log, cli=True, start_new_session=True)
+    rc = signal_group_when(proc, (run / "learning_curves.png").exists, signal.SIGHUP, log)
+    text = log.read_text()
+    assert rc == 128 + signal.SIGHUP, text[-3000:]
+    assert "Traceback" not in text and "--resume runs the final evaluation" in text, text[-3000:]
+    assert not (run / "results.json").exists() and not (run / "episode_test0.gif").exists()
+    assert not list(run.glob(".*tmp*")), sorted(p.name for p in run.iterdir())
+    resumed = spawn([*small_args(0.0, run, 2), "--resume"], log, cli=True)
+    assert resumed.wait(timeout=900) == 0, log.read_text()[-3000:]
+    assert "all 2 iteration(s) trained before; evaluating" in log.read_text()
+    assert (run / "results.json").is_file() and _frames(run / "episode_test0.gif") == 81
