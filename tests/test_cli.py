@@ -167,7 +167,7 @@ def test_gp_mpc_tasks_and_max_tasks_are_checked_before_the_rollout(tmp_path, cap
         (["--tasks", "0:999999"], "--tasks: task(s) [24, 25, 26] and 999972 more out of range"),
         (["--tasks", "20:25"], "--tasks: task(s) [24] out of range; the split has 24 tasks"),
         (["--preset", "nosuch"], "--preset: unknown preset 'nosuch'"),
-        (["--set", "nosuch=1"], "--set 'nosuch=1'"),
+        (["--set", "nosuch=1"], "--set nosuch=1: MPCConfig has no field"),
         (["--max-tasks", "0"], "--max-tasks must be positive, got 0"),
         (["--tasks", "0:2", "--plot-task", "5"], "--plot-task 5: not among the tasks run (0 to 1)"),
         (["--tasks", "0,3", "--plot-task", "1"], "--plot-task 1: not among the tasks run (0,3)"),
