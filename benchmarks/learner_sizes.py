@@ -13,10 +13,11 @@ width-cost.json measures C and U).
 
 With `--encoders` the points are instead `default`'s learner on its own observation (the
 restaurant's, with `default`'s observation options), and the same learner with a crowd encoder
-(`pearl.crowd_encoder` "attention" or "deepsets", which add the people's presence to the
+(`pearl.crowd_encoder` "attention", "deepsets" or "sarl", which add the people's presence to the
 observation) without and with the forecast (`env.observe_forecast` 5, `env.forecast_stride` 2),
 at several widths, one encoder per network or one shared by the critics (`pearl.crowd_shared`),
-the tables pooled or as plain features (`pearl.crowd_static`): the price of each encoder per
+the tables pooled or as plain features (`pearl.crowd_static`), "sarl" pools (a scalar score per
+person) with one per-entity layer (`pearl.crowd_layers`): the price of each encoder per
 gradient step, for comparing it with `default` at equal wall time.
 
     python -m benchmarks.learner_sizes [--tiny] [--encoders] [--out DIR] [--threads N]
@@ -46,20 +47,22 @@ SIZES: dict[str, dict[str, Any]] = {
     "full": dict(points=POINTS, steps_per_sample=100, rounds=10),
 }
 DEFAULT_ITERATIONS = 75
-# (crowd encoder, forecast points, crowd_dim, shared, static) of the --encoders points, at
-# `default`'s sizes
-ENCODERS: tuple[tuple[str, int, int, bool, str], ...] = (
-    ("none", 0, 64, False, "pool"),
-    ("attention", 5, 64, False, "pool"),
-    ("attention", 5, 16, False, "pool"),
-    ("attention", 5, 32, True, "pool"),
-    ("attention", 5, 32, True, "flat"),
-    ("attention", 5, 16, True, "flat"),
-    ("deepsets", 5, 32, False, "flat"),
-    ("deepsets", 5, 32, True, "flat"),
-    ("deepsets", 5, 16, True, "flat"),
+# (crowd encoder, forecast points, crowd_dim, shared, static, per-entity layers) of the
+# --encoders points, at `default`'s sizes
+ENCODERS: tuple[tuple[str, int, int, bool, str, int], ...] = (
+    ("none", 0, 64, False, "pool", 2),
+    ("attention", 5, 64, False, "pool", 2),
+    ("attention", 5, 16, False, "pool", 2),
+    ("attention", 5, 64, True, "pool", 2),
+    ("attention", 5, 16, True, "pool", 2),
+    ("attention", 5, 16, True, "flat", 2),
+    ("deepsets", 5, 16, True, "flat", 2),
+    ("deepsets", 5, 64, True, "flat", 1),
+    ("sarl", 5, 32, True, "pool", 1),
+    ("sarl", 5, 32, True, "flat", 1),
+    ("sarl", 5, 64, True, "flat", 1),
 )
-TINY_ENCODERS = (ENCODERS[0], ENCODERS[2], ENCODERS[7])
+TINY_ENCODERS = (ENCODERS[0], ENCODERS[2], ENCODERS[8])
 
 
 class Point:
@@ -75,6 +78,7 @@ class Point:
         crowd_dim: int = 64,
         shared: bool = False,
         static: str = "pool",
+        entity_layers: int = 2,
     ):
         """`encoder` None: the fixed benchmark observation; "none" or "attention": the
         restaurant's observation under `default`'s options (+ presence and `forecast` points
@@ -95,9 +99,10 @@ class Point:
             meta_batch=tasks,
             crowd_encoder=encoder or "none",
             crowd_dim=crowd_dim,
-            crowd_heads=min(4, crowd_dim // 8),
+            crowd_heads=min(4, crowd_dim // 4),
             crowd_shared=shared,
             crowd_static=static,
+            crowd_layers=entity_layers,
         )
         if encoder is None:
             nets = Networks(self.cfg, OBS_DIM, ACTION_DIM)
@@ -170,7 +175,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             + (f" + forecast {f}" if f else "")
             + (", shared" if shared else "")
             + (", tables flat" if enc != "none" and static == "flat" else "")
-            for enc, f, d, shared, static in encoders
+            + (f", {layers} layer" if enc in ("deepsets", "sarl") and layers != 2 else "")
+            for enc, f, d, shared, static, layers in encoders
         ]
     else:
         names = [f"{w}x{layers}, {t} tasks" for w, layers, t in sz["points"]]

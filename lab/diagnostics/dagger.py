@@ -89,6 +89,8 @@ def record_name(args) -> str:
             name += f"{args.dim}"
         if args.static != "pool":
             name += f"-tables{args.static}"
+        if args.layers != 2:
+            name += f"-layers{args.layers}"
     if args.forecast:
         name += f"-forecast{args.forecast}x{args.stride}"
     if args.labels != 1:
@@ -111,6 +113,7 @@ def arm_of(config: dict) -> str:
         dim = config.get("dim", 64)
         enc += f" (dim {dim})" if (enc, dim) != ("attention", 64) else ""
         enc += ", tables flat" if config.get("static", "pool") == "flat" else ""
+        enc += f", {config['layers']} layer(s)" if config.get("layers") not in (None, 2) else ""
     arm = enc + (
         f" + forecast {config['forecast']}x{config['stride']}" if config.get("forecast") else ""
     )
@@ -314,11 +317,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--hidden", default="128,128,128", help="the clone's hidden sizes")
     p.add_argument(
         "--encoder",
-        choices=("mlp", "attention", "deepsets"),
+        choices=("mlp", "attention", "deepsets", "sarl"),
         default="mlp",
         help="the clone's input network (a crowd encoder: pearl.crowd_encoder)",
     )
     p.add_argument("--dim", type=int, default=64, help="pearl.crowd_dim of a crowd encoder")
+    p.add_argument("--layers", type=int, default=2, help="pearl.crowd_layers (deepsets, sarl)")
     p.add_argument("--static", choices=("pool", "flat"), default="pool", help="pearl.crowd_static")
     p.add_argument("--forecast", type=int, default=0, help="env.observe_forecast (points ahead)")
     p.add_argument("--stride", type=int, default=1, help="env.forecast_stride (steps per point)")
@@ -328,7 +332,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for flag in ("forecast", "seed"):
         if getattr(args, flag) < 0:
             p.error(f"--{flag}: must be >= 0")
-    for flag in ("stride", "labels"):
+    for flag in ("stride", "labels", "dim", "layers"):
         if getattr(args, flag) < 1:
             p.error(f"--{flag}: must be at least 1")
     threads = harness.configure_threads(args.threads)
@@ -377,7 +381,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
             layout = env.obs_layout(probe)
             pc = PearlConfig(
-                crowd_encoder=args.encoder, crowd_dim=args.dim, crowd_static=args.static
+                crowd_encoder=args.encoder,
+                crowd_dim=args.dim,
+                crowd_static=args.static,
+                crowd_layers=args.layers,
             )
             crowd = crowd_spec(pc, env.obs_dim(probe), layout)
             net = bc_attention(hidden, crowd)
@@ -474,6 +481,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "relative": args.relative,
         "sorted": args.sorted,
         "encoder": args.encoder,
+        "dim": args.dim if args.encoder != "mlp" else None,
+        "static": args.static if args.encoder != "mlp" else None,
+        "layers": args.layers if args.encoder != "mlp" else None,
         "forecast": args.forecast,
         "stride": args.stride,
         "labels": args.labels,

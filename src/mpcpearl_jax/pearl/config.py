@@ -9,7 +9,7 @@ from typing import Any
 from mpcpearl_jax import validate as v
 from mpcpearl_jax.errors import ConfigError
 
-CROWD_ENCODERS = ("none", "attention", "deepsets")
+CROWD_ENCODERS = ("none", "attention", "deepsets", "sarl")
 CROWD_STATIC = ("pool", "flat")
 # the observation's parts a crowd encoder reads: each person's egocentric position, and the
 # people's presence as the mask (`envs.observation.PARTS`)
@@ -57,13 +57,17 @@ class PearlConfig:
     # masked out, as crowd-navigation policies such as SARL do). "attention" needs the
     # observation's egocentric entries and presence (env.observe_relative, env.observe_presence)
     # "deepsets": the same entities embedded by one shared MLP each and pooled by their masked
-    # mean and max (cheaper: no attention)
+    # mean and max (cheaper: no attention); "sarl": the same embeddings pooled by a softmax over
+    # one learned score per person (SARL's attention, one head, no projections) and the max
     crowd_encoder: str = "none"
     crowd_dim: int = 64  # width of the per-entity embeddings and of each pooled feature
     crowd_heads: int = 4  # attention heads (crowd_dim must be a multiple; "attention" only)
     # the static obstacles (tables), fixed in number and order: "pool" (pooled as the people
     # are) or "flat" (their centres and nearest points as plain features beside the pools)
     crowd_static: str = "pool"
+    # layers of the per-entity network of "deepsets" and "sarl" (1: one affine map and a ReLU
+    # per person, the pooled features then read by the network's MLP)
+    crowd_layers: int = 2
     # one crowd encoder shared by the twin critics and trained by their loss only; the policy
     # and V read its features with stopped gradients (as SAC-AE and DrQ do) and the target V
     # reads the target copy (an exponential average of it), so each observation is encoded
@@ -117,7 +121,7 @@ class PearlConfig:
             "crowd_static",
             f"must be one of {', '.join(CROWD_STATIC)}, got {self.crowd_static!r}",
         )
-        v.ints(self, "crowd_dim", "crowd_heads")
+        v.ints(self, "crowd_dim", "crowd_heads", "crowd_layers")
         v.check(
             self.crowd_encoder != "attention" or self.crowd_dim % self.crowd_heads == 0,
             self,

@@ -74,6 +74,7 @@ class CrowdSpec:
     heads: int = 4
     kind: str = "attention"
     static: str = "pool"
+    layers: int = 2  # per-entity layers of "deepsets" and "sarl"
 
     @property
     def parts(self) -> dict[str, tuple[int, int]]:
@@ -121,13 +122,16 @@ class DeepSetPool(nn.Module):
     entity is present: the embeddings are non-negative, so 0 is the max's neutral element."""
 
     dim: int
+    layers: int = 2  # per-entity layers (`pearl.crowd_layers`)
 
     @nn.compact
     def __call__(self, ent: Array, mask: Array | None, robot: Array, own: Array) -> Array:
         del own
         h = nn.Dense(self.dim, name="entity")(ent)
         h = h + nn.Dense(self.dim, use_bias=False, name="robot")(robot)[..., None, :]
-        e = nn.relu(nn.Dense(self.dim)(nn.relu(h)))
+        e = nn.relu(h)
+        for _ in range(self.layers - 1):
+            e = nn.relu(nn.Dense(self.dim)(e))
         if mask is None:
             return jnp.concatenate([jnp.mean(e, axis=-2), jnp.max(e, axis=-2)], axis=-1)
         m = mask[..., None].astype(e.dtype)
@@ -137,11 +141,39 @@ class DeepSetPool(nn.Module):
         return jnp.concatenate([mean, top], axis=-1)
 
 
+class ScorePool(nn.Module):
+    """Entities [..., N, F] (mask [..., N], None = all present) -> [..., 2 dim]: each entity
+    embedded with the robot's features as in `DeepSetPool`, then pooled by a softmax over one
+    learned scalar score per entity (SARL's attention, Chen et al. 2019: the embedding already
+    holds the robot's state, so the score weighs each person by her relation to the robot),
+    beside the masked max. Absent entities get no weight; 0 when no entity is present."""
+
+    dim: int
+    layers: int = 2  # per-entity layers (`pearl.crowd_layers`)
+
+    @nn.compact
+    def __call__(self, ent: Array, mask: Array | None, robot: Array, own: Array) -> Array:
+        del own
+        h = nn.Dense(self.dim, name="entity")(ent)
+        h = h + nn.Dense(self.dim, use_bias=False, name="robot")(robot)[..., None, :]
+        e = nn.relu(h)
+        for _ in range(self.layers - 1):
+            e = nn.relu(nn.Dense(self.dim)(e))
+        score = nn.Dense(1, name="score")(e)[..., 0]  # [..., N]
+        if mask is None:
+            w = jax.nn.softmax(score, axis=-1)
+            return jnp.concatenate([jnp.sum(w[..., None] * e, -2), jnp.max(e, -2)], axis=-1)
+        w = jax.nn.softmax(jnp.where(mask, score, -1e9), axis=-1) * mask
+        m = mask[..., None].astype(e.dtype)
+        return jnp.concatenate([jnp.sum(w[..., None] * e, -2), jnp.max(e * m, -2)], axis=-1)
+
+
 class CrowdEncoder(nn.Module):
     """Flat observation [..., O] -> features [...,F]: the robot's own features (pose, goal,
     time), the people pooled and the static obstacles pooled or as plain features
     (`pearl.crowd_encoder`: "attention", SARL, Chen et al. 2019, with HEIGHT's two entity kinds;
-    "deepsets", mean and max pools). Each person's entries (arena and egocentric position,
+    "deepsets", mean and max pools; "sarl", a scalar score per person and a softmax, with the
+    max). Each person's entries (arena and egocentric position,
     displacement, forecast, presence) form one entity; the people's presence entry is the mask.
     Invariant to the order of the people."""
 
@@ -166,7 +198,9 @@ class CrowdEncoder(nn.Module):
         def pool(name: str) -> nn.Module:
             if attention:
                 return AttentionPool(self.spec.dim, self.spec.heads, name=name)
-            return DeepSetPool(self.spec.dim, name=name)
+            if self.spec.kind == "sarl":
+                return ScorePool(self.spec.dim, self.spec.layers, name=name)
+            return DeepSetPool(self.spec.dim, self.spec.layers, name=name)
 
         h, s = self.spec.num_people, self.spec.num_static
         if h > 0:
@@ -287,7 +321,14 @@ NETWORK_FIELDS = (
     "use_context",
 )
 # the fields of the crowd encoder, saved only when it is on (a spec without them has none)
-CROWD_FIELDS = ("crowd_encoder", "crowd_dim", "crowd_heads", "crowd_static", "crowd_shared")
+CROWD_FIELDS = (
+    "crowd_encoder",
+    "crowd_dim",
+    "crowd_heads",
+    "crowd_static",
+    "crowd_shared",
+    "crowd_layers",
+)
 
 
 def check_crowd_inputs(cfg: PearlConfig, part_names: Sequence[str]) -> None:
@@ -313,7 +354,14 @@ def crowd_spec(
     end = max(s + k for _, s, k in layout)
     if end != obs_dim:
         raise ConfigError(f"observation layout covers {end} entries, the observation has {obs_dim}")
-    return CrowdSpec(layout, cfg.crowd_dim, cfg.crowd_heads, cfg.crowd_encoder, cfg.crowd_static)
+    return CrowdSpec(
+        layout,
+        cfg.crowd_dim,
+        cfg.crowd_heads,
+        cfg.crowd_encoder,
+        cfg.crowd_static,
+        cfg.crowd_layers,
+    )
 
 
 class Networks:
