@@ -10,25 +10,25 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "mpcpearl_jax"
 
 # lowest first; every module of the package is ranked, by its longest listed prefix (a
 # package's name ranks its modules not listed on their own). The packages are the layers:
-# envs < pearl, mpc < collection < config < runfolder < evaluation < training, grbal < deploy
-# < api < cli, the command layer on top (the commands' stop signals, errors, tables and parsers).
-# Collection (episodes with event-triggered MPC infusion) sits below both training and
-# evaluation, which import it downward (the trainer, and the evaluation command's policy with MPC
-# infusion); the run folder's files (`runfolder`) below every reader of a run folder.
+# envs < pearl, mpc < collection < config < runfolder < evaluation < training < grbal
+# < algorithms < deploy < api < cli, the command layer on top (the commands' stop signals,
+# errors, tables and parsers). Collection (episodes with event-triggered MPC infusion) sits
+# below both training and evaluation, which import it downward (the trainer, and the evaluation
+# command's policy with MPC infusion); the run folder's files (`runfolder`) below every reader of
+# a run folder; GrBAL trains on training's run session; `algorithms` registers both above them.
 LAYERS = [
     ["errors", "validate", "distributed", "notices", "compilation_cache"],
     ["envs.types", "envs.dynamics", "envs.physics", "pearl.types", "pearl.config", "mpc.config"],
     ["envs", "pearl", "evaluation.metrics"],
     ["mpc", "collection"],
-    ["config", "grbal.config", "grbal.model", "grbal.planner"],
+    ["config"],
     ["runfolder"],
     ["evaluation"],
-    ["training", "grbal.trainer"],
-    ["training.run", "grbal.run", "grbal"],
-    ["training.budget"],
-    ["training.final"],  # the end of either mode and Python's entry, `mpcpearl_jax.train`
+    ["training"],
+    ["grbal"],
+    ["algorithms"],  # one registered object per algorithm (MPC-PEARL, GrBAL)
     ["deploy"],
-    ["api"],  # the entries that load runs of every mode: `mpcpearl_jax.evaluate`
+    ["api"],  # the entries, for runs of every algorithm: `mpcpearl_jax.train`, `.evaluate`
     ["cli"],  # the command layer: nothing below imports it
 ]
 RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}
@@ -109,3 +109,15 @@ def test_the_command_layer_is_the_top_floor():
     assert below and all((_rank(m) or 0) < RANK["cli"] for m, _ in below)
     for m, path in below:
         assert not [i for i in _imports(path) if i.split(".")[0] == "cli"], m
+
+
+def test_training_and_grbal_are_floors_and_only_algorithms_knows_both():
+    """Each package is one floor (no module ranked apart from its package above `config`):
+    GrBAL trains on training's session, nothing in training imports grbal, and the entries
+    dispatch on the registered algorithm (`algorithms`) instead of naming either."""
+    assert RANK["training"] < RANK["grbal"] < RANK["algorithms"] < RANK["api"]
+    apart = [m for m in RANK if "." in m and RANK[m] > RANK["config"]]
+    assert not apart, apart
+    for m, path in _modules():
+        if m.split(".")[0] == "training":
+            assert not [i for i in _imports(path) if i.split(".")[0] == "grbal"], m

@@ -103,7 +103,7 @@ def test_every_training_command_goes_through_the_one_entry():
             if isinstance(c, ast.Call) and isinstance(c.func, ast.Name)
         ]
         assert "train" in called, command
-    assert "mpcpearl_jax.training.final" in {m for _, m in _imported(SRC / "cli" / "train.py")}
+    assert "mpcpearl_jax.api.train" in {m for _, m in _imported(SRC / "cli" / "train.py")}
     grbal = ast.parse((SRC / "grbal" / "run.py").read_text())
     assert "train" not in {n.name for n in grbal.body if isinstance(n, ast.FunctionDef)}
     assert len((ROOT / "experiments" / "common.py").read_text().splitlines()) < 773
@@ -122,12 +122,23 @@ def test_the_config_is_validated_once_where_it_is_resolved():
         "src/mpcpearl_jax/config.py": _calls(SRC / "config.py", "validate")
     }
     assert len(callers["src/mpcpearl_jax/config.py"]) == 1
-    resolve = next(
-        node
+    functions = {
+        node.name: node
         for node in ast.walk(ast.parse((SRC / "config.py").read_text()))
-        if isinstance(node, ast.FunctionDef) and node.name == "resolve"
-    )
-    assert resolve.lineno <= callers["src/mpcpearl_jax/config.py"][0] <= resolve.end_lineno
+        if isinstance(node, ast.FunctionDef)
+    }
+    # `ExperimentConfig.validated` runs it; `resolve` (the one, for every algorithm's config
+    # type) runs `validated` last
+    validated, resolve = functions["validated"], functions["resolve"]
+    assert validated.lineno <= callers["src/mpcpearl_jax/config.py"][0] <= validated.end_lineno
+    calls = [
+        n.lineno
+        for n in ast.walk(resolve)
+        if isinstance(n, ast.Call)
+        and isinstance(n.func, ast.Attribute)
+        and n.func.attr == "validated"
+    ]
+    assert len(calls) == 1
 
 
 def _imported(path: Path) -> list[tuple[int, str]]:
@@ -277,3 +288,16 @@ def test_load_exported_imports_neither_flax_nor_orbax():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr[-2000:]
+
+
+def test_one_resolve_for_every_algorithm():
+    """A run's config is built by one `resolve` (`mpcpearl_jax.config`), for MPC-PEARL and
+    GrBAL alike (their config types' `from_preset`): no other module of the package defines
+    one."""
+    defining = [
+        str(p.relative_to(SRC))
+        for p in SRC.rglob("*.py")
+        for node in ast.parse(p.read_text()).body
+        if isinstance(node, ast.FunctionDef) and node.name == "resolve"
+    ]
+    assert defining == ["config.py"]

@@ -12,9 +12,9 @@ import types
 import numpy as np
 import pytest
 
+from mpcpearl_jax.api import train as entry
 from mpcpearl_jax.config import preset
 from mpcpearl_jax.runfolder import LOG_FILE, read_log
-from mpcpearl_jax.training import final
 from mpcpearl_jax.training.final import TrainOptions
 from mpcpearl_jax.training.loop import Progress, train_loop
 from mpcpearl_jax.training.run import Session
@@ -85,9 +85,9 @@ def fake_run(monkeypatch, tmp_path):
         yield sess
 
     val = types.SimpleNamespace(start=np.zeros((3, 3)))
-    monkeypatch.setattr(final, "open_session", open_session)
-    monkeypatch.setattr(final, "finish", lambda *a, **k: {})
-    monkeypatch.setattr(final, "load_at_start", lambda: None)  # no busy-machine warning
+    monkeypatch.setattr(entry, "open_session", open_session)
+    monkeypatch.setattr(entry, "finish", lambda *a, **k: {})
+    monkeypatch.setattr(entry, "load_at_start", lambda: None)  # no busy-machine warning
     monkeypatch.setattr(envs, "validation_tasks", lambda *a, **k: (val, "val"))
     return cfg
 
@@ -97,7 +97,7 @@ def test_on_row_sees_every_row_on_a_time_budget(fake_run, tmp_path):
     evaluated (as in the iterations mode), on a time budget too."""
     rows, points = [], []
     opts = TrainOptions(clock=_Forward(), on_row=rows.append, on_point=points.append)
-    final.train(fake_run, tmp_path / "run", 0.05, options=opts)
+    entry.train(fake_run, tmp_path / "run", 0.05, options=opts)
     logged = [r["iteration"] for r in read_log(tmp_path / "run" / LOG_FILE)]
     assert logged and [r["iteration"] for r in rows] == logged
     evaluated = [r["iteration"] for r in rows if "test_SR" in r]
@@ -111,7 +111,7 @@ def test_a_clock_that_does_not_move_forward_is_an_error_naming_it(fake_run, tmp_
     training stops with a ValueError naming the clock."""
     opts = TrainOptions(clock=_Broken(step))
     with pytest.raises(ValueError, match=rf"clock {says}.*TrainOptions\.clock"):
-        final.train(fake_run, tmp_path / "run", 0.05, options=opts)
+        entry.train(fake_run, tmp_path / "run", 0.05, options=opts)
 
 
 def test_the_loop_refuses_a_backwards_clock_after_one_iteration():

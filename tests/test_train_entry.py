@@ -62,7 +62,7 @@ def test_other_wrong_arguments_name_what_is_expected(tmp_path):
     cfg = preset("smoke")
     with pytest.raises(TypeError, match="out must be a folder path"):
         mpcpearl_jax.train(cfg, 3)
-    with pytest.raises(TypeError, match="options must be a mpcpearl_jax.training.final.Train"):
+    with pytest.raises(TypeError, match="options must be a mpcpearl_jax.training.options.Train"):
         mpcpearl_jax.train(cfg, tmp_path / "a", options={"resume": True})
     with pytest.raises(ValueError, match="resume or overwrite, not both"):
         mpcpearl_jax.train(cfg, tmp_path / "b", options=TrainOptions(resume=True, overwrite=True))
@@ -168,9 +168,10 @@ def test_a_resume_that_only_evaluates_says_what_the_run_trained():
 
 def test_a_grbal_resume_reads_the_runs_own_config(tmp_path):
     from mpcpearl_jax.cli.args import build_grbal_config, grbal_parser
-    from mpcpearl_jax.grbal.config import resolve as grbal_resolve
+    from mpcpearl_jax.config import resolve
+    from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 
-    run_cfg = grbal_resolve("smoke", "sidewalk")
+    run_cfg = resolve("smoke", "sidewalk", config_type=GrbalExperimentConfig)
     (tmp_path / "config.json").write_text(run_cfg.to_json())
     args = grbal_parser().parse_args(["--resume", "--out", str(tmp_path)])
     assert build_grbal_config(args).to_dict() == run_cfg.to_dict()

@@ -2,7 +2,8 @@
 
 Public entry points: `make_env`, `make_tasks` (environments), `train` (a run from a config:
 `train(cfg, out, minutes=None, options=None) -> (state, results)`, the one entry the training
-commands use too; `options`: `training.final.TrainOptions`), `evaluate` (a run folder or loaded
+commands use too, `api.train`; `options`: `training.options.TrainOptions`; it trains every
+registered algorithm, `algorithms`), `evaluate` (a run folder or loaded
 policies, or GP-MPC, on a task source -> the results the evaluation command prints and writes;
 `api.evaluate`), `load_policy` (a trained policy
 from a run directory), `metrics`; `Adapter`, `Frame`, `Scene`, `observe` (a policy in your own
@@ -21,10 +22,14 @@ back up):
   tables and figures;
 - `training`: the trainer (Algorithm 1), the run session (checkpoints, logs, Ctrl-C) and the
   one training loop, a trained run's final evaluation (`training.final`: results.json,
-  figures); `grbal`: the GrBAL baseline on the same session;
+  figures);
+- `grbal`: the GrBAL baseline on the same session;
+- `algorithms`: one registered object per algorithm (MPC-PEARL and its baselines, GrBAL): its
+  config type and presets, trainer, training rules, final evaluation, progress line and
+  evaluation setup, on which the entries and the commands dispatch;
 - `deploy`: a trained policy in your own code (`load_policy`, `Adapter`, `export_policy`,
   `load_exported`);
-- `api`: the entries that load runs of every mode (`evaluate`);
+- `api`: the entries, for runs of every algorithm (`train`, `evaluate`);
 - `cli`: the command layer on top (stop signals, the error ladder, parsers, the progress bar and
   printed tables, the training commands). Below it nothing prints: the library reports through
   callbacks, return values and the `mpcpearl_jax` logger (`notices`).
@@ -62,7 +67,7 @@ _LAZY = {
     "export_policy": "deploy.export",
     "load_exported": "deploy.exported",
     "load_policy": "deploy.policy",
-    "train": "training.final",
+    "train": "api.train",
     "evaluate": "api.evaluate",
 }
 

@@ -146,6 +146,10 @@ class SerializableConfig:
     def from_json(cls, text: str) -> Self:
         return cls.from_dict(json.loads(text))  # type: ignore[attr-defined]
 
+    def validated(self) -> Self:
+        """The checks across fields (`resolve` runs them last); none by default."""
+        return self
+
 
 @dataclasses.dataclass(frozen=True)
 class ExperimentConfig(SerializableConfig):
@@ -195,6 +199,29 @@ class ExperimentConfig(SerializableConfig):
         )
         v.instance(self, "data", (str, type(None)), "a file path or None")
         v.flags(self, "online_eval")
+
+    @classmethod
+    def from_preset(cls, name: str, env: str | None = None, *, scenarios: Any = None) -> Self:
+        """Preset `name` on task family `env` (the preset's when None) with the family's
+        settings (`resolve`): the `default` preset re-draws crowds only where the family can
+        (`envs.can_redraw`) and never on the paper's scenarios (a recorded crowd is kept), the
+        family's MPC defaults (`envs.mpc_defaults`) and its headline protocol
+        (`envs.online_eval`)."""
+        from mpcpearl_jax.envs import can_redraw, mpc_defaults, online_eval
+
+        cfg = preset(name)
+        env = env or cfg.env
+        if name == "default" and (scenarios is not None or not can_redraw(env)):
+            cfg = cfg.replace(train=dataclasses.replace(cfg.train, redraw_behaviours=False))
+        return cfg.replace(  # type: ignore[return-value]
+            env=env,
+            mpc=cfg.mpc.replace(**mpc_defaults(env)),
+            online_eval=cfg.online_eval or online_eval(env),
+        )
+
+    def validated(self) -> Self:
+        """`validate`: the checks across fields."""
+        return validate(self)  # type: ignore[return-value]
 
     @classmethod
     def from_dict(cls, d: dict) -> ExperimentConfig:
@@ -563,8 +590,8 @@ def preset(name: str) -> ExperimentConfig:
 # ---------------------------------------------------------------------- resolving a run's config
 # What every command line builds its config with: a preset (or a run's recorded config.json),
 # the task family's own settings, the task source and the command line's changes (typed values
-# or `--set SECTION.FIELD=VALUE` strings, read by each field's type). GrBAL's
-# `grbal.config.resolve` uses the same pieces.
+# or `--set SECTION.FIELD=VALUE` strings, read by each field's type), for every algorithm's
+# run-config class (`resolve`'s `config_type`).
 
 _TRUE, _FALSE = ("true", "True", "1"), ("false", "False", "0")
 
@@ -723,42 +750,38 @@ def read_config(path: str | os.PathLike) -> ExperimentConfig:
 
 
 def resolve(
-    base: str | ExperimentConfig = "default",
+    base: str | C = "default",
     env: str | None = None,
     *,
+    config_type: type | None = None,
     changes: Mapping[str, Any] | None = None,
     overrides: Iterable[str] = (),
     scenarios: str | os.PathLike | None = None,
     hold_out_val: bool = False,
     data: str | os.PathLike | None = None,
-) -> ExperimentConfig:
-    """The config of a run on task family `env`.
+) -> Any:
+    """The config of a run on task family `env`, of every algorithm (its run-config class:
+    `config_type`, `ExperimentConfig` by default; GrBAL's is `GrbalExperimentConfig`, each
+    registered algorithm's `mpcpearl_jax.algorithms.Algorithm.config_type`).
 
-    `base` is a preset name or a config. A preset gets the family's settings: the `default`
-    preset re-draws crowds only where the family can (`envs.can_redraw`) and never on the
-    paper's scenarios (a recorded crowd is kept), the family's MPC defaults
-    (`envs.mpc_defaults`) and its headline protocol (`envs.online_eval`). A config (a run's
+    `base` is a preset name of `config_type` or a config. A preset gets the family's settings
+    (`config_type.from_preset`; MPC-PEARL's: the `default` preset re-draws crowds only where the
+    family can, `envs.can_redraw`, and never on the paper's scenarios, the family's MPC defaults
+    `envs.mpc_defaults` and its headline protocol `envs.online_eval`). A config (a run's
     config.json, `read_config`) is taken as recorded; `env`, if given, must be its family.
     Then, in this order (a later one wins): the task source (`task_source`: `scenarios`,
     `hold_out_val`, `data`), the typed `changes` and the `--set` `overrides`
-    (`apply_overrides`). Last, the checks across fields (`validate`): the result is a config a
-    run can start from. ConfigError naming the field.
+    (`apply_overrides`). Last, the checks across fields (`validated`; MPC-PEARL's: `validate`):
+    the result is a config a run can start from. ConfigError naming the field.
     """
-    from mpcpearl_jax.envs import can_redraw, mpc_defaults, online_eval
-
     if isinstance(base, str):
-        cfg = preset(base)
-        env = env or cfg.env
-        if base == "default" and (scenarios is not None or not can_redraw(env)):
-            cfg = cfg.replace(train=dataclasses.replace(cfg.train, redraw_behaviours=False))
-        cfg = cfg.replace(
-            env=env,
-            mpc=cfg.mpc.replace(**mpc_defaults(env)),
-            online_eval=cfg.online_eval or online_eval(env),
-        )
+        kind: Any = config_type or ExperimentConfig
+        cfg: Any = kind.from_preset(base, env, scenarios=scenarios)
     else:
         cfg = base
         if env is not None and env != cfg.env:
-            raise ConfigError(f"ExperimentConfig.env: the config is of {cfg.env!r}, not {env!r}")
+            raise ConfigError(
+                f"{type(cfg).__name__}.env: the config is of {cfg.env!r}, not {env!r}"
+            )
     cfg = cfg.replace(**task_source(cfg.env, scenarios, hold_out_val, data))
-    return validate(apply_overrides(cfg, overrides, changes))
+    return apply_overrides(cfg, overrides, changes).validated()

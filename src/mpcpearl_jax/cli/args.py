@@ -495,8 +495,8 @@ def grbal_parser(description: str = "GrBAL baseline") -> argparse.ArgumentParser
 
 
 def build_grbal_config(args: argparse.Namespace):
-    """The GrBAL config of the command line `args` (`grbal.config.resolve`)."""
-    from mpcpearl_jax.grbal.config import resolve as grbal_resolve
+    """The GrBAL config of the command line `args` (`config.resolve`)."""
+    from mpcpearl_jax.grbal.config import GrbalExperimentConfig
 
     if args.data is not None and args.env != "sidewalk":
         raise ConfigError("--data: only the sidewalk env reads a data file")
@@ -511,13 +511,12 @@ def build_grbal_config(args: argparse.Namespace):
     }
     run = _resumed_grbal_run(args)
     if run is not None:  # --resume --out RUN alone: the run's own config
-        from mpcpearl_jax.config import apply_overrides
-
         args.env, args.preset = run.env, DefaultPreset(_grbal_preset(run))
-        return apply_overrides(run, args.set, changes)
-    return grbal_resolve(
+        return resolve(run, changes=changes, overrides=args.set)
+    return resolve(
         args.preset,
         args.env,
+        config_type=GrbalExperimentConfig,
         changes=changes,
         overrides=args.set,
         scenarios=args.scenarios,

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from mpcpearl_jax import cli
+from mpcpearl_jax.api.train import TrainOptions, train
 from mpcpearl_jax.cli.args import (
     budget_error,
     build_config,
@@ -34,7 +35,6 @@ from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.errors import ConfigError, RunDirError, TrainingDiverged
 from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.training.budget import default_label
-from mpcpearl_jax.training.final import TrainOptions, train
 from mpcpearl_jax.training.run import RunInterrupted
 
 

@@ -9,12 +9,10 @@ value raises `ConfigError` naming the field.
 from __future__ import annotations
 
 import dataclasses
-import os
-from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import Any, Self
 
 from mpcpearl_jax import validate as v
-from mpcpearl_jax.config import SerializableConfig, apply_overrides, task_source
+from mpcpearl_jax.config import SerializableConfig
 from mpcpearl_jax.errors import ConfigError
 
 ROBOT_MODELS = ("learned", "known")
@@ -132,6 +130,16 @@ class GrbalExperimentConfig(SerializableConfig):
         v.flags(self, "online_eval")
 
     @classmethod
+    def from_preset(cls, name: str, env: str | None = None, *, scenarios: Any = None) -> Self:
+        """GrBAL preset `name` on task family `env` (restaurant when None), with the family's
+        headline protocol (`envs.online_eval`); `mpcpearl_jax.config.resolve` builds a run's
+        config from it (the task source, the changes and --set on top)."""
+        from mpcpearl_jax.envs import online_eval
+
+        env = env or "restaurant"
+        return cls(env=env, grbal=preset(name), online_eval=online_eval(env))
+
+    @classmethod
     def from_dict(cls, d: dict) -> GrbalExperimentConfig:
         d = dict(d)
         g = dict(d.pop("grbal", {}))
@@ -191,29 +199,3 @@ def preset(name: str) -> GrbalConfig:
     if name not in PRESETS:
         raise ConfigError(f"unknown GrBAL preset {name!r}; known: {sorted(PRESETS)}")
     return PRESETS[name]
-
-
-def resolve(
-    name: str = "default",
-    env: str = "restaurant",
-    *,
-    changes: Mapping[str, Any] | None = None,
-    overrides: Iterable[str] = (),
-    scenarios: str | os.PathLike | None = None,
-    hold_out_val: bool = False,
-    data: str | os.PathLike | None = None,
-) -> GrbalExperimentConfig:
-    """The config of a GrBAL run on task family `env` from preset `name`, as
-    `mpcpearl_jax.config.resolve` builds MPC-PEARL's: the family's headline protocol
-    (`envs.online_eval`), the task source (`config.task_source`), then the typed `changes`
-    ('grbal.FIELD', 'env.FIELD' or a top-level field -> value) and the `--set` `overrides`
-    (`config.apply_overrides`); a later one wins. ConfigError naming the field."""
-    from mpcpearl_jax.envs import online_eval
-
-    cfg = GrbalExperimentConfig(
-        env=env,
-        grbal=preset(name),
-        online_eval=online_eval(env),
-        **task_source(env, scenarios, hold_out_val, data),
-    )
-    return apply_overrides(cfg, overrides, changes)
