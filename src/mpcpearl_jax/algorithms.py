@@ -25,6 +25,7 @@ from mpcpearl_jax.evaluation.report import run_label
 from mpcpearl_jax.grbal import run as grbal_run
 from mpcpearl_jax.grbal.config import PRESETS as GRBAL_PRESETS
 from mpcpearl_jax.grbal.config import GrbalExperimentConfig
+from mpcpearl_jax.grbal.evaluation import evaluation_setup as grbal_evaluation_setup
 from mpcpearl_jax.runfolder import CONFIG_FILE
 from mpcpearl_jax.training import final
 from mpcpearl_jax.training.budget import train_minutes
@@ -50,8 +51,8 @@ class Algorithm:
     (curve.json; the budget's options `eval_minutes`, `policy_only` apply), otherwise minutes
     only stop the iterations early; progress_line(row, cfg): its line per iteration (None: the
     training command's progress bar); evaluation_setup(run_dir, **arguments) -> the evaluation's
-    `Setup` of a run folder of this algorithm evaluated as trained (None: the policy
-    evaluation of `api.evaluate`)."""
+    (`evaluation.runners.Setup`, the number of tasks) of a run folder of this algorithm evaluated
+    as trained (None: the policy evaluation of `api.evaluate`)."""
 
     name: str
     config_type: type
@@ -195,5 +196,6 @@ GRBAL = register(
         final_evaluation=_grbal_final,
         label=lambda cfg: grbal_run.LABEL,
         progress_line=_grbal_line,
+        evaluation_setup=grbal_evaluation_setup,
     )
 )

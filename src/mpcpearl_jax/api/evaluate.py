@@ -27,9 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import jax
-import numpy as np
-
 from mpcpearl_jax.evaluation.evaluate import EVAL_SEED
 from mpcpearl_jax.evaluation.plan import (
     EvaluationError,
@@ -282,9 +279,9 @@ def _one(
     several_seeds: bool = False,
 ) -> Plan:
     """The plan of one task set."""
+    from mpcpearl_jax import algorithms
     from mpcpearl_jax.envs import SPLITS, env_names, load_family, make_env
     from mpcpearl_jax.evaluation.report import run_label
-    from mpcpearl_jax.grbal.run import is_grbal_run
     from mpcpearl_jax.runfolder import load_config
 
     if split not in SPLITS:
@@ -297,8 +294,9 @@ def _one(
     if run_dir is not None:
         if not run_dir.is_dir():
             raise EvaluationError(f"{run_dir}: no such directory")
-        if is_grbal_run(run_dir):
-            return _grbal(
+        setup = algorithms.of_run(run_dir).evaluation_setup
+        if setup is not None:  # an algorithm evaluated as trained (GrBAL: its own controller)
+            s, n = setup(
                 run_dir,
                 controller=controller,
                 env=env,
@@ -319,6 +317,7 @@ def _one(
                 eval_seed=eval_seed,
                 figures=figures,
             )
+            return Plan([s], None, eval_seed, None, online, False, n, s.out)
         cfg = load_config(run_dir)  # CheckpointError: not a run directory
     elif given is not None:
         cfg = given[0].config
@@ -445,76 +444,3 @@ def _one(
         perturbation=perturbation.label,
     )
     return Plan([s], None, eval_seed, episodes, online, False, n, where)
-
-
-def _grbal(run_dir: Path, **a: Any) -> Plan:
-    """A GrBAL run (`experiments.grbal`): its own controller, the learned model adapted as it
-    acts, planned with MPPI (the protocol of its results.json)."""
-    from mpcpearl_jax.grbal.run import load_model
-
-    given = [
-        name
-        for name, v in (
-            ("controller", a["controller"] != "policy"),
-            ("mpc", a["mpc"] or a["preset"] is not None),
-            ("eps", a["eps"] is not None),
-            ("episodes", a["episodes"] is not None),
-            ("shield", a["shield"]),
-            ("env", a["env"]),
-        )
-        if v
-    ]
-    if given:
-        raise EvaluationError(
-            f"{{{given[0]}}} does not apply to a GrBAL run (it is evaluated as trained)"
-        )
-    check_eval_seed(a["eval_seed"])
-    data = str(a["data"]) if a["data"] else None
-    try:
-        trainer, saved = load_model(run_dir, data=data)
-    except (ValueError, OSError) as e:  # a bad config, data file or task option
-        raise EvaluationError(f"{run_dir}: {e}") from e
-    cfg = trainer.cfg
-    if cfg.data is not None and not Path(cfg.data).is_file():
-        raise EvaluationError(
-            f"data file {cfg.data} does not exist (the run's data file; pass {{data}} PATH)"
-        )
-    seeds, seed_index = cfg.seeds, a["seed_index"]
-    if seed_index is not None and not 0 <= seed_index < seeds:
-        raise EvaluationError(f"{{seed_index}} {seed_index}: the run has {seeds} seed(s)")
-    seed_ids = list(range(seeds)) if seed_index is None else [seed_index]
-    saved = jax.tree_util.tree_map(lambda x: np.asarray(x)[np.asarray(seed_ids)], saved)
-    ts, options, tasks, task_ids, figure_ids, perturbation, n = task_setup(
-        cfg,
-        trainer.env,
-        cfg.env,
-        cfg.data,
-        a["split"],
-        task_seed=a["task_seed"],
-        several_seeds=a["several_seeds"],
-        scenarios=a["scenarios"],
-        tasks=a["tasks"],
-        figures=a["figures"],
-        perturb=a["perturb"],
-    )
-    where = default_out(run_dir, "grbal", a["split"], a["online"], options, perturbation)
-    s = Setup(
-        controller="grbal",
-        env_name=cfg.env,
-        env_config=trainer.env.config,
-        split=a["split"],
-        task_seed=ts,
-        data=cfg.data,
-        tasks=tasks,
-        task_ids=task_ids,
-        figure_ids=figure_ids,
-        out=where,
-        label="GrBAL",
-        run=run_dir,
-        run_config=cfg,
-        seed_ids=seed_ids,
-        scenarios=options,
-        perturbation=perturbation.label,
-        grbal=(trainer, saved),
-    )
-    return Plan([s], None, a["eval_seed"], None, a["online"], False, n, where)

@@ -1,5 +1,5 @@
-"""The training commands' progress: a tqdm bar for the iterations of MPC-PEARL, one line per
-iteration for GrBAL."""
+"""The training commands' progress: a tqdm bar for the iterations of MPC-PEARL (an algorithm
+with a line of its own, `Algorithm.progress_line`, prints that line per iteration instead)."""
 
 from __future__ import annotations
 
@@ -118,21 +118,3 @@ PROGRESS_FIELDS = (
 def progress_fields(row: dict[str, Any]) -> dict[str, str]:
     """The progress bar's postfix of a metrics row: each `PROGRESS_FIELDS` field the row has."""
     return {label: fmt.format(row[key]) for label, key, fmt in PROGRESS_FIELDS if key in row}
-
-
-def grbal_line(log: dict, total: int) -> str:
-    """GrBAL's line per iteration: its fit, collection and model losses, the test metrics at
-    evaluations."""
-    parts = [
-        f"it {log['iteration']}/{total}",
-        f"fit {log['update_s']:.1f}s",
-        f"collect {log['collect_s']:.1f}s",
-        f"loss pre {log['model_pre_loss']:.3f} post {log['model_post_loss']:.3f}",
-        f"train ret {log['train_return']:.0f} SR {log['train_success']:.2f}",
-    ]
-    if "test_SR" in log:
-        parts.append(
-            f"| test SR {log['test_SR']:.2f} CFR {log['test_CFR']:.2f} "
-            f"ret {log['test_return']:.0f} ({log['eval_s']:.0f}s)"
-        )
-    return "  ".join(parts)

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mpcpearl_jax import cli
+from mpcpearl_jax import algorithms, cli
 from mpcpearl_jax.api.train import TrainOptions, train
 from mpcpearl_jax.cli.args import (
     budget_error,
@@ -28,7 +28,7 @@ from mpcpearl_jax.cli.args import (
 )
 from mpcpearl_jax.cli.errors import fail_line, one_line_errors
 from mpcpearl_jax.cli.platform import PlatformError, check_platform
-from mpcpearl_jax.cli.progress import grbal_line, progress_bar
+from mpcpearl_jax.cli.progress import progress_bar
 from mpcpearl_jax.cli.stopping import exit_interrupted, stop_exit_code, stoppable
 from mpcpearl_jax.cli.tables import curve_summary, print_point
 from mpcpearl_jax.config import ExperimentConfig
@@ -394,6 +394,7 @@ def _grbal(args: argparse.Namespace, run: dict[str, Path]) -> int:
     )
     t0 = time.perf_counter()
     progress = not args.no_progress
+    line = algorithms.of_config(cfg).progress_line  # type: ignore[union-attr]
 
     def on_trained(info: dict[str, Any]) -> None:
         if info["stopped"] == "budget" and progress:
@@ -408,7 +409,7 @@ def _grbal(args: argparse.Namespace, run: dict[str, Path]) -> int:
     options = TrainOptions(
         resume=args.resume,
         overwrite=args.overwrite,
-        on_row=(lambda row: print(grbal_line(row, g.iterations), flush=True)) if progress else None,
+        on_row=(lambda row: print(line(row, cfg), flush=True)) if progress and line else None,
         on_trained=on_trained,
     )
     # errors as one line; a stop signal: the iteration under way finished and saved
