@@ -86,7 +86,7 @@ def test_the_exit_check_sees_each_way_out(tmp_path):
 
 def test_every_training_command_goes_through_the_one_entry():
     """The training commands (restaurant, sidewalk, learning: `cli.train.main`; grbal:
-    `cli.train.grbal_main`) train through `mpcpearl_jax.train` (`training.final.train`): no
+    `cli.train.grbal_main`) train through `mpcpearl_jax.train` (`api.train.train`): no
     command opens a session or runs a mode itself, and GrBAL has no entry of its own."""
     commands = [ROOT / "experiments" / f"{c}.py" for c in ("restaurant", "sidewalk", "learning")]
     commands += [ROOT / "experiments" / "grbal.py", ROOT / "experiments" / "common.py"]
