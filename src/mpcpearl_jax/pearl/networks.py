@@ -113,6 +113,19 @@ class AttentionPool(nn.Module):
         return out
 
 
+def _embed_entities(ent: Array, robot: Array, dim: int, layers: int) -> Array:
+    """Entities [..., N, F] with the robot's features [..., R] -> [..., N, dim] by one shared
+    ReLU MLP of `layers` layers (`pearl.crowd_layers`), its first layer's robot term computed
+    once per observation (the same affine map of [entity, robot]). Called inside a pool's
+    compact `__call__`, whose parameters ("entity", "robot", "Dense_k") these layers are."""
+    h = nn.Dense(dim, name="entity")(ent)
+    h = h + nn.Dense(dim, use_bias=False, name="robot")(robot)[..., None, :]
+    e = nn.relu(h)
+    for _ in range(layers - 1):
+        e = nn.relu(nn.Dense(dim)(e))
+    return e
+
+
 class DeepSetPool(nn.Module):
     """Entities [..., N, F] (mask [..., N], None = all present) -> [..., 2 dim]: each entity
     embedded with the robot's features [..., R] by one shared 2-layer ReLU MLP, then the masked
@@ -127,11 +140,7 @@ class DeepSetPool(nn.Module):
     @nn.compact
     def __call__(self, ent: Array, mask: Array | None, robot: Array, own: Array) -> Array:
         del own
-        h = nn.Dense(self.dim, name="entity")(ent)
-        h = h + nn.Dense(self.dim, use_bias=False, name="robot")(robot)[..., None, :]
-        e = nn.relu(h)
-        for _ in range(self.layers - 1):
-            e = nn.relu(nn.Dense(self.dim)(e))
+        e = _embed_entities(ent, robot, self.dim, self.layers)
         if mask is None:
             return jnp.concatenate([jnp.mean(e, axis=-2), jnp.max(e, axis=-2)], axis=-1)
         m = mask[..., None].astype(e.dtype)
@@ -154,11 +163,7 @@ class ScorePool(nn.Module):
     @nn.compact
     def __call__(self, ent: Array, mask: Array | None, robot: Array, own: Array) -> Array:
         del own
-        h = nn.Dense(self.dim, name="entity")(ent)
-        h = h + nn.Dense(self.dim, use_bias=False, name="robot")(robot)[..., None, :]
-        e = nn.relu(h)
-        for _ in range(self.layers - 1):
-            e = nn.relu(nn.Dense(self.dim)(e))
+        e = _embed_entities(ent, robot, self.dim, self.layers)
         score = nn.Dense(1, name="score")(e)[..., 0]  # [..., N]
         if mask is None:
             w = jax.nn.softmax(score, axis=-1)
