@@ -105,17 +105,20 @@ def main(argv: list[str] | None = None) -> int:
             steps=steps,
         )
         out["per_task"].append(rec)
-        print(
-            f"task {task}: {rec['fallbacks']} fallbacks, first collision at step "
-            f"{first_collision}; "
-            f"on those steps a cold start is safe on {cold_ok}, standing still on {stop_ok}, "
-            f"some start on {any_ok}",
-            flush=True,
-        )
     out["summary"] = _summary(out["per_task"])
-    print(json.dumps(out["summary"], indent=1))
+    # the record before the lines: a failing or closed standard output loses none of the work
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1, default=float))
+    for rec in out["per_task"]:
+        print(
+            f"task {rec['task']}: {rec['fallbacks']} fallbacks, first collision at step "
+            f"{rec['first_collision']}; on those steps a cold start is safe on "
+            f"{rec['fallback_steps_where_cold_is_safe']}, standing still on "
+            f"{rec['fallback_steps_where_stop_is_safe']}, some start on "
+            f"{rec['fallback_steps_where_some_start_is_safe']}",
+            flush=True,
+        )
+    print(json.dumps(out["summary"], indent=1))
     print(f"wrote {args.out}")
     return 0
 

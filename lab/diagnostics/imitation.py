@@ -240,14 +240,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             for r in curve
         ),
     ]
-    title = f"imitation error |a - a_mpc|^2 on the MPC's states ({size})"
-    harness.print_table(rows, ["model", "train_error", "val_error"], title)
-    print(
-        f"BC MLP ({best} steps) alone on val task seeds {list(per_seed)}: SR {pooled['SR']:.2f} "
-        f"CFR {pooled['CFR']:.2f}; GP-MPC SR on its episodes: train {mpc_sr(tr, train_tasks):.2f}, "
-        f"val {mpc_sr(va, val_tasks):.2f}",
-        flush=True,
-    )
     results = {
         "run": run_name(args.run),
         "label_variance": label_var,
@@ -267,7 +259,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "threads": threads,
     }
     name = harness.record_name("imitation", size, select_seed=(args.select_seed, 0))
+    # the record before the table: a failing or closed standard output loses none of the work
     harness.write_record(name, config, results, args.out)
+    title = f"imitation error |a - a_mpc|^2 on the MPC's states ({size})"
+    harness.print_table(rows, ["model", "train_error", "val_error"], title)
+    print(
+        f"BC MLP ({best} steps) alone on val task seeds {list(per_seed)}: SR {pooled['SR']:.2f} "
+        f"CFR {pooled['CFR']:.2f}; GP-MPC SR on its episodes: train "
+        f"{results['gp_mpc_sr']['train']:.2f}, val {results['gp_mpc_sr']['val']:.2f}",
+        flush=True,
+    )
     return results
 
 
