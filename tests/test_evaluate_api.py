@@ -87,3 +87,22 @@ def test_the_command_spells_the_same_errors_with_its_flags(tmp_path, capsys):
         mpcpearl_jax.evaluate(controller="gp-mpc", out=out)
     assert main(["--controller", "gp-mpc", "--out", out]) == 2
     assert "pass --overwrite to replace it, or choose another --out" in capsys.readouterr().err
+
+
+def test_the_options_are_one_list_that_the_signatures_show(tmp_path):
+    """`EvaluationOptions` lists the keyword arguments once: `evaluate` and `prepare` take and
+    show (help(), editors) exactly those, and refuse any other as Python does."""
+    import inspect
+
+    from mpcpearl_jax.api.evaluate import EvaluationOptions, prepare
+
+    names = list(EvaluationOptions.names())
+    evaluate_params = inspect.signature(mpcpearl_jax.evaluate).parameters
+    assert list(evaluate_params) == ["run", "on_task_set", *names]
+    assert list(inspect.signature(prepare).parameters) == ["run", *names]
+    assert evaluate_params["split"].default == "test" == EvaluationOptions().split
+    with pytest.raises(TypeError, match=r"^evaluate\(\) got an unexpected keyword argument 'splt'"):
+        mpcpearl_jax.evaluate(controller="gp-mpc", splt="val", out=tmp_path / "o")
+    with pytest.raises(TypeError, match=r"^prepare\(\) got an unexpected keyword argument 'x'"):
+        prepare(controller="gp-mpc", x=1)
+    assert not (tmp_path / "o").exists()

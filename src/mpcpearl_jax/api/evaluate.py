@@ -22,6 +22,7 @@ without running anything (an `EvaluationError`, one line naming the argument); `
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,10 +44,72 @@ from mpcpearl_jax.evaluation.plan import (
 from mpcpearl_jax.evaluation.runners import Setup
 from mpcpearl_jax.mpc.shield import ShieldConfig
 
-__all__ = ["CONTROLLERS", "Evaluation", "EvaluationError", "Plan", "evaluate", "prepare"]
+__all__ = [
+    "CONTROLLERS",
+    "Evaluation",
+    "EvaluationError",
+    "EvaluationOptions",
+    "Plan",
+    "evaluate",
+    "prepare",
+]
 
 CONTROLLERS = ("policy", "gp-mpc", "policy+mpc")
 MAX_TASK_SEEDS = 100  # task-set seeds in one evaluation (each one is a full evaluation)
+
+
+@dataclass(frozen=True)
+class EvaluationOptions:
+    """The keyword arguments of `evaluate` and `prepare`, with their defaults (module doc).
+    `env`: the task family without a run (NAME, or MODULE:NAME importing MODULE to register it;
+    default restaurant); `episodes`: adaptation episodes before the scored one (default the
+    run's) or `online`; `seed_index`: one seed of the run; `shield`: True or a ShieldConfig;
+    `eps`: policy+mpc's MPC probability (default the run's); `preset`: the MPC settings of a
+    training preset; `mpc`: MPCConfig changes ('FIELD=VALUE' strings or a mapping); `eval_seed`:
+    the PRNG seed (GP-MPC: of its GP samples); `figures`: the tasks with a trajectory figure
+    (default the first 4 evaluated; 'none'), `animate` a GIF of each too; `out`: the folder
+    written into, `overwrite` replacing an earlier results.json there."""
+
+    controller: str = "policy"
+    env: str | None = None
+    split: str = "test"
+    tasks: str | Sequence[int] = "all"
+    task_seed: int | None = None
+    task_seeds: str | Sequence[int] | None = None
+    scenarios: str | Path | None = None
+    data: str | Path | None = None
+    perturb: str = "none"
+    episodes: int | None = None
+    online: bool = False
+    seed_index: int | None = None
+    shield: bool | ShieldConfig = False
+    eps: float | None = None
+    preset: str | None = None
+    mpc: Mapping[str, Any] | Sequence[str] = ()
+    eval_seed: int = EVAL_SEED
+    figures: str | Sequence[int] | None = None
+    animate: bool = False
+    out: str | Path | None = None
+    overwrite: bool = False
+
+    @classmethod
+    def of(cls, options: Mapping[str, Any], caller: str) -> EvaluationOptions:
+        """The options of these keyword arguments; TypeError naming `caller` and an unknown
+        one, as a call with an unexpected keyword argument gives."""
+        names = cls.names()
+        for name in options:
+            if name not in names:
+                raise TypeError(f"{caller}() got an unexpected keyword argument {name!r}")
+        return cls(**options)
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        """The options' names, in the order of the signature."""
+        return tuple(f.name for f in dataclasses.fields(cls))
+
+    def arguments(self) -> dict[str, Any]:
+        """The options as keyword arguments (the values as given, not copied)."""
+        return {name: getattr(self, name) for name in self.names()}
 
 
 @dataclass
@@ -144,100 +207,58 @@ def evaluate(
     **options: Any,
 ) -> Evaluation:
     """Evaluate `run` (a run folder, a `LoadedPolicy` or a list of them, one per seed; None for
-    GP-MPC alone) with the options of `prepare`; writes results.json and figures only when `out`
-    is given. Raises EvaluationError (a bad argument, one line naming it) before anything runs."""
-    return prepare(run, **options).run(on_task_set)
+    GP-MPC alone) with the options of `prepare` (`EvaluationOptions`); writes results.json and
+    figures only when `out` is given. Raises EvaluationError (a bad argument, one line naming
+    it) before anything runs."""
+    return _prepare(run, EvaluationOptions.of(options, "evaluate")).run(on_task_set)
 
 
-def prepare(
-    run: str | Path | Any | Sequence[Any] | None = None,
-    *,
-    controller: str = "policy",
-    env: str | None = None,
-    split: str = "test",
-    tasks: str | Sequence[int] = "all",
-    task_seed: int | None = None,
-    task_seeds: str | Sequence[int] | None = None,
-    scenarios: str | Path | None = None,
-    data: str | Path | None = None,
-    perturb: str = "none",
-    episodes: int | None = None,
-    online: bool = False,
-    seed_index: int | None = None,
-    shield: bool | ShieldConfig = False,
-    eps: float | None = None,
-    preset: str | None = None,
-    mpc: Mapping[str, Any] | Sequence[str] = (),
-    eval_seed: int = EVAL_SEED,
-    figures: str | Sequence[int] | None = None,
-    animate: bool = False,
-    out: str | Path | None = None,
-    overwrite: bool = False,
-) -> Plan:
-    """Resolve and check an evaluation (module doc); nothing runs. `env`: the task family
-    without a run (NAME, or MODULE:NAME importing MODULE to register it; default restaurant);
-    `episodes`: adaptation episodes before the scored one (default the run's) or `online`;
-    `seed_index`: one seed of the run; `eps`: policy+mpc's MPC probability (default the run's);
-    `mpc`: MPCConfig changes ('FIELD=VALUE' strings or a mapping); `eval_seed`: the PRNG seed
-    (GP-MPC: of its GP samples); `figures`: the tasks with a trajectory figure (default the first
-    4 evaluated; 'none'), `animate` a GIF of each too; `out`: the folder written into."""
-    if controller not in CONTROLLERS:
-        raise EvaluationError(f"{{controller}} {controller!r}: one of {', '.join(CONTROLLERS)}")
-    if task_seeds is not None:
-        if task_seed is not None:
+def prepare(run: str | Path | Any | Sequence[Any] | None = None, **options: Any) -> Plan:
+    """Resolve and check an evaluation (module doc; the options and their defaults:
+    `EvaluationOptions`); nothing runs."""
+    return _prepare(run, EvaluationOptions.of(options, "prepare"))
+
+
+def _prepare(run: Any, o: EvaluationOptions) -> Plan:
+    if o.controller not in CONTROLLERS:
+        raise EvaluationError(f"{{controller}} {o.controller!r}: one of {', '.join(CONTROLLERS)}")
+    if o.task_seeds is not None:
+        if o.task_seed is not None:
             raise EvaluationError("give {task_seed} or {task_seeds}, not both")
-        if figures not in (None, "none") or animate:
+        if o.figures not in (None, "none") or o.animate:
             raise EvaluationError("{task_seeds} makes no figures (drop {figures}/{animate})")
         hint = " in one evaluation (the project's protocol uses 8: 1-8)"
-        text = task_seeds.strip() if isinstance(task_seeds, str) else task_seeds
+        text = o.task_seeds.strip() if isinstance(o.task_seeds, str) else o.task_seeds
         seeds = sorted(parse_ranges(text, "task_seeds", MAX_TASK_SEEDS, "task sets", hint))
-        options: dict[str, Any] = dict(
-            controller=controller,
-            env=env,
-            split=split,
-            tasks=tasks,
-            scenarios=scenarios,
-            data=data,
-            perturb=perturb,
-            episodes=episodes,
-            online=online,
-            seed_index=seed_index,
-            shield=shield,
-            eps=eps,
-            preset=preset,
-            mpc=mpc,
-            eval_seed=eval_seed,
-        )
         plans = [
-            _one(run, task_seed=ts, several_seeds=True, figures="none", **options) for ts in seeds
+            _one(run, dataclasses.replace(o, task_seed=ts, figures="none"), several_seeds=True)
+            for ts in seeds
         ]
         plan = dataclasses.replace(plans[0], setups=[p.setups[0] for p in plans], task_seeds=seeds)
         first = plan.setups[0].out
         plan.default_out = first.parent / f"{first.name}-seeds{plan.span.replace(',', '_')}"
-
     else:
-        plan = _one(
-            run,
-            controller=controller,
-            env=env,
-            split=split,
-            tasks=tasks,
-            task_seed=task_seed,
-            scenarios=scenarios,
-            data=data,
-            perturb=perturb,
-            episodes=episodes,
-            online=online,
-            seed_index=seed_index,
-            shield=shield,
-            eps=eps,
-            preset=preset,
-            mpc=mpc,
-            eval_seed=eval_seed,
-            figures=figures,
+        plan = _one(run, o)
+        plan.animate = o.animate
+    return plan.writing_to(o.out, o.overwrite) if o.out is not None else plan
+
+
+def _signature(fn: Callable[..., Any], keep: int) -> inspect.Signature:
+    """`fn`'s signature with its `**options` spelled out as `EvaluationOptions`' fields (what
+    help() and editors show): its first `keep` parameters, then one keyword-only parameter per
+    option with its default."""
+    head = list(inspect.signature(fn).parameters.values())[:keep]
+    fields = [
+        inspect.Parameter(
+            f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default, annotation=f.type
         )
-        plan.animate = animate
-    return plan.writing_to(out, overwrite) if out is not None else plan
+        for f in dataclasses.fields(EvaluationOptions)
+    ]
+    return inspect.Signature([*head, *fields], return_annotation=fn.__annotations__["return"])
+
+
+evaluate.__signature__ = _signature(evaluate, 2)  # type: ignore[attr-defined]
+prepare.__signature__ = _signature(prepare, 1)  # type: ignore[attr-defined]
 
 
 def _policies(run: Any) -> list | None:
@@ -256,108 +277,68 @@ def _policies(run: Any) -> list | None:
     )
 
 
-def _one(
-    run: Any,
-    *,
-    controller: str,
-    env: str | None,
-    split: str,
-    tasks: str | Sequence[int],
-    task_seed: int | None,
-    scenarios: str | Path | None,
-    data: str | Path | None,
-    perturb: str,
-    episodes: int | None,
-    online: bool,
-    seed_index: int | None,
-    shield: bool | ShieldConfig,
-    eps: float | None,
-    preset: str | None,
-    mpc: Mapping[str, Any] | Sequence[str],
-    eval_seed: int,
-    figures: str | Sequence[int] | None,
-    several_seeds: bool = False,
-) -> Plan:
+def _one(run: Any, o: EvaluationOptions, several_seeds: bool = False) -> Plan:
     """The plan of one task set."""
     from mpcpearl_jax import algorithms
     from mpcpearl_jax.envs import SPLITS, env_names, load_family, make_env
     from mpcpearl_jax.evaluation.report import run_label
     from mpcpearl_jax.runfolder import load_config
 
-    if split not in SPLITS:
-        raise EvaluationError(f"{{split}} {split!r}: one of {', '.join(SPLITS)}")
-    scenarios = Path(scenarios) if scenarios is not None else None
+    if o.split not in SPLITS:
+        raise EvaluationError(f"{{split}} {o.split!r}: one of {', '.join(SPLITS)}")
+    scenarios = Path(o.scenarios) if o.scenarios is not None else None
+    o = dataclasses.replace(o, scenarios=scenarios)
     given = _policies(run)
     run_dir = Path(run) if isinstance(run, (str, Path)) else None
-    ctrl = controller
+    ctrl = o.controller
     cfg = None
     if run_dir is not None:
         if not run_dir.is_dir():
             raise EvaluationError(f"{run_dir}: no such directory")
         setup = algorithms.of_run(run_dir).evaluation_setup
         if setup is not None:  # an algorithm evaluated as trained (GrBAL: its own controller)
-            s, n = setup(
-                run_dir,
-                controller=controller,
-                env=env,
-                split=split,
-                tasks=tasks,
-                task_seed=task_seed,
-                several_seeds=several_seeds,
-                scenarios=scenarios,
-                data=data,
-                perturb=perturb,
-                episodes=episodes,
-                online=online,
-                seed_index=seed_index,
-                shield=shield,
-                eps=eps,
-                preset=preset,
-                mpc=mpc,
-                eval_seed=eval_seed,
-                figures=figures,
-            )
-            return Plan([s], None, eval_seed, None, online, False, n, s.out)
+            s, n = setup(run_dir, **o.arguments(), several_seeds=several_seeds)
+            return Plan([s], None, o.eval_seed, None, o.online, False, n, s.out)
         cfg = load_config(run_dir)  # CheckpointError: not a run directory
     elif given is not None:
         cfg = given[0].config
     elif ctrl != "gp-mpc":
         raise EvaluationError(f"{{controller}} {ctrl} needs a run directory ({{run}})")
-    if ctrl == "gp-mpc" and (online or episodes is not None):
+    if ctrl == "gp-mpc" and (o.online or o.episodes is not None):
         raise EvaluationError("{online} and {episodes} apply to the policy (GP-MPC does not adapt)")
-    if ctrl != "policy" and online:
+    if ctrl != "policy" and o.online:
         raise EvaluationError(f"{{online}} applies to {{controller}} policy, not {ctrl}")
-    if ctrl == "gp-mpc" and eps is not None:
+    if ctrl == "gp-mpc" and o.eps is not None:
         raise EvaluationError(
             "{eps} applies to {controller} policy+mpc (GP-MPC acts on every step)"
         )
-    if ctrl == "policy" and (mpc or eps is not None or preset is not None):
+    if ctrl == "policy" and (o.mpc or o.eps is not None or o.preset is not None):
         raise EvaluationError("{mpc} and {eps} apply to the MPC controllers (gp-mpc, policy+mpc)")
-    shield_cfg = ShieldConfig() if shield is True else (shield or None)
+    shield_cfg = ShieldConfig() if o.shield is True else (o.shield or None)
     if shield_cfg is not None and not isinstance(shield_cfg, ShieldConfig):
-        raise EvaluationError(f"{{shield}}: expected True or a ShieldConfig, got {shield!r}")
+        raise EvaluationError(f"{{shield}}: expected True or a ShieldConfig, got {o.shield!r}")
     if shield_cfg is not None and ctrl != "policy":
         raise EvaluationError(f"{{shield}} applies to {{controller}} policy, not {ctrl}")
-    if episodes is not None and episodes < 0:
-        raise EvaluationError(f"{{episodes}} {episodes}: must be >= 0")
-    if online and episodes is not None:
+    if o.episodes is not None and o.episodes < 0:
+        raise EvaluationError(f"{{episodes}} {o.episodes}: must be >= 0")
+    if o.online and o.episodes is not None:
         raise EvaluationError(
             "{episodes} counts the adaptation episodes before the scored one; {online} adapts "
             "within the one scored episode: give one of them"
         )
-    check_eval_seed(eval_seed)
+    check_eval_seed(o.eval_seed)
     family = None
-    if env:
+    if o.env:
         try:
-            family = load_family(env)  # MODULE:NAME registers NAME
+            family = load_family(o.env)  # MODULE:NAME registers NAME
         except ValueError as e:
             raise EvaluationError(f"{{env}} {e}") from None
     env_name = cfg.env if cfg else (family or "restaurant")
     if cfg and family and family != cfg.env:
-        raise EvaluationError(f"{{env}} {env}: the run {run_dir} was trained on {cfg.env}")
-    data_file = str(data) if data else (cfg.data if cfg else None)
+        raise EvaluationError(f"{{env}} {o.env}: the run {run_dir} was trained on {cfg.env}")
+    data_file = str(o.data) if o.data else (cfg.data if cfg else None)
     if data_file is not None and not Path(data_file).is_file():
-        hint = "" if data else " (the run's data file; pass {data} PATH)"
+        hint = "" if o.data else " (the run's data file; pass {data} PATH)"
         raise EvaluationError(f"data file {data_file} does not exist{hint}")
     overrides = dict(cfg.env_overrides) if cfg else {}
     if cfg and env_name not in env_names():
@@ -375,25 +356,25 @@ def _one(
         env_obj,
         env_name,
         data_file,
-        split,
-        task_seed=task_seed,
+        o.split,
+        task_seed=o.task_seed,
         several_seeds=several_seeds,
         scenarios=scenarios,
-        tasks=tasks,
-        figures=figures,
-        perturb=perturb,
+        tasks=o.tasks,
+        figures=o.figures,
+        perturb=o.perturb,
     )
     base = cfg.mpc.to_dict() if cfg else None
-    mpc_fields = mpc_settings(env_name, base, preset, mpc) if ctrl != "policy" else {}
+    mpc_fields = mpc_settings(env_name, base, o.preset, o.mpc) if ctrl != "policy" else {}
     policies: list = []
     seed_ids: list[int] = []
     label, eps_used = "GP-MPC", None
     if ctrl != "gp-mpc":
         assert cfg is not None
         seeds = cfg.seeds if given is None else len(given)
-        if seed_index is not None and not 0 <= seed_index < seeds:
-            raise EvaluationError(f"{{seed_index}} {seed_index}: the run has {seeds} seed(s)")
-        seed_ids = list(range(seeds)) if seed_index is None else [seed_index]
+        if o.seed_index is not None and not 0 <= o.seed_index < seeds:
+            raise EvaluationError(f"{{seed_index}} {o.seed_index}: the run has {seeds} seed(s)")
+        seed_ids = list(range(seeds)) if o.seed_index is None else [o.seed_index]
         if given is not None:
             policies = [given[s] for s in seed_ids]
         else:
@@ -406,26 +387,26 @@ def _one(
                 raise EvaluationError(f"{run_dir}: cannot load the policy: {e}") from e
         label = run_label(cfg)
         if ctrl == "policy+mpc":
-            eps_used = cfg.train.eps if eps is None else eps
+            eps_used = cfg.train.eps if o.eps is None else o.eps
             if not 0.0 <= eps_used <= 1.0:
                 raise EvaluationError(f"{{eps}} {eps_used}: must be in [0, 1]")
             label = f"{label} + MPC (eps {eps_used:g})"
         if shield_cfg is not None:
             label += f" + shield (margin {shield_cfg.margin:g} m, lookahead {shield_cfg.lookahead})"
-    elif seed_index is not None:
+    elif o.seed_index is not None:
         raise EvaluationError("{seed_index} applies to a run's policy, not to gp-mpc")
     if run_dir is not None:
         name = f"{ctrl}-shield" if shield_cfg is not None else ctrl
-        where = default_out(run_dir, name, split, online, options, perturbation)
+        where = default_out(run_dir, name, o.split, o.online, options, perturbation)
     else:
-        split_name = f"scenarios-{split}" if options is not None else split
+        split_name = f"scenarios-{o.split}" if options is not None else o.split
         name = f"{ctrl}-{env_name}-{split_name}{perturbation.folder_suffix}"
         where = Path("runs") / "eval" / name
     s = Setup(
         controller=ctrl,
         env_name=env_name,
         env_config=env_obj.config,
-        split=split,
+        split=o.split,
         task_seed=ts,
         data=data_file,
         tasks=chosen,
@@ -443,4 +424,4 @@ def _one(
         scenarios=options,
         perturbation=perturbation.label,
     )
-    return Plan([s], None, eval_seed, episodes, online, False, n, where)
+    return Plan([s], None, o.eval_seed, o.episodes, o.online, False, n, where)
