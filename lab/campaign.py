@@ -27,13 +27,17 @@ resumed (`--resume`; GrBAL's time budget then starts again in the resumed proces
 started afresh (a work folder a run killed before its first checkpoint left is cleared first).
 Before a finished run is copied or evaluated, the config its `argv` builds is compared with the
 config.json the run recorded: an entry edited since is refused with the fields that differ (give
-the changed entry another name and results folder). Every evaluation is
-`python -m experiments.evaluate RESULTS ARGS...` on the copied folder (`mpcpearl_jax.evaluate`
-in a process of its own, its arguments read by the command's parser when the file is loaded);
-it must name its `--out` (`{results}` stands for the results folder) and is skipped where that
-folder holds results.json. One training at a time, each in its own process: stop the campaign
-with Ctrl-C (the run under way saves and exits 130) and start the same command again later to
-continue where it stopped.
+the changed entry another name and results folder). An evaluation is given as the flags of the
+evaluation command (`python -m experiments.evaluate RESULTS ARGS...`); when the file is loaded,
+they are read, by that command's parser, as `mpcpearl_jax.evaluate`'s keyword arguments on the
+copied folder, and each evaluation runs them in a process of its own (`python -m lab.evaluation`
+with the keyword arguments as one JSON object, `lab/evaluation.py`), as the trainings do: the
+campaign itself never loads a model, an evaluation's memory goes with its process, and a crash
+in one stops the campaign with its exit code instead of taking the campaign down. An evaluation
+must name its `--out` (`{results}` stands for the results folder) and is skipped where that
+folder holds results.json. One training or evaluation at a time, each in its own process: stop
+the campaign with Ctrl-C (the process under way saves or stops, and exits 130) and start the
+same command again later to continue where it stopped.
 A run that fails (exit code other than 0) stops the campaign with its name and code. SIGTERM or
 SIGHUP to the campaign (`timeout`, a scheduler, a closed terminal) reaches the run under way as
 Ctrl-C (it saves and exits), and the campaign ends once it has; a campaign killed outright
@@ -52,6 +56,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import shutil
 import signal
 import subprocess
@@ -60,6 +65,9 @@ import time
 from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
+
+from lab import evaluation
 
 WORK = Path("runs") / "campaign"
 NOT_COPIED = ("checkpoints", ".lock")
@@ -78,11 +86,38 @@ TRAINERS = {
 
 
 @dataclass(frozen=True)
+class CampaignEvaluation:
+    """One evaluation of a campaign entry: `mpcpearl_jax.evaluate`'s keyword arguments (the run
+    folder under "run") as the JSON object its process is given (`lab.evaluation`)."""
+
+    keywords: str
+
+    @classmethod
+    def of(cls, results: Path, args: tuple[str, ...]) -> CampaignEvaluation:
+        """The evaluation the command's flags `args` give on the results folder `results`;
+        ValueError with the command's message (module doc)."""
+        return cls(json.dumps(evaluation.keywords(results, args)))
+
+    @property
+    def arguments(self) -> dict[str, Any]:
+        return json.loads(self.keywords)
+
+    @property
+    def record(self) -> Path:
+        """The results.json it writes."""
+        return evaluation.record(self.arguments)
+
+    @property
+    def command(self) -> list[str]:
+        return evaluation.command(self.arguments)
+
+
+@dataclass(frozen=True)
 class CampaignRun:
     name: str
     argv: tuple[str, ...]
     results: Path
-    evaluate: tuple[tuple[str, ...], ...] = field(default_factory=tuple)
+    evaluate: tuple[CampaignEvaluation, ...] = field(default_factory=tuple)
     trainer: str = "learning"
 
     @property
@@ -161,33 +196,18 @@ def parse_entry(r: object, where: str, names: Collection[str] = ()) -> CampaignR
     if trainer not in TRAINERS:
         raise ValueError(f"{where}: 'trainer' must be one of {sorted(TRAINERS)}")
     results = Path(r["results"])
-    evals = [tuple(a.replace("{results}", str(results)) for a in e) for e in evals]
+    evaluations = []
     for e in evals:
-        if "--out" not in e[:-1]:
+        args = tuple(a.replace("{results}", str(results)) for a in e)
+        if "--out" not in args[:-1]:
             raise ValueError(f"{where}: every 'evaluate' entry must give --out")
-        _check_results_path(eval_out(e).parent, where, "'evaluate' --out")
-        _check_evaluation(e, where)
-    return CampaignRun(name, tuple(argv), results, tuple(evals), trainer)
-
-
-def _check_evaluation(args: tuple[str, ...], where: str) -> None:
-    """ValueError naming the entry when the evaluation `args` is not one the evaluation command
-    takes: an unknown or malformed flag, or options that exclude each other (read as
-    `mpcpearl_jax.evaluate`'s arguments by the command's parser, before anything runs)."""
-    import contextlib
-    import io
-
-    from mpcpearl_jax.cli.evaluate import make_parser, options
-
-    err = io.StringIO()
-    try:
-        with contextlib.redirect_stderr(err):
-            options(make_parser().parse_args(["RESULTS", *args]))
-    except SystemExit:
-        line = (err.getvalue().strip().splitlines() or ["bad arguments"])[-1]
-        raise ValueError(f"{where}: 'evaluate' {' '.join(args)}: {line}") from None
-    except ValueError as e:
-        raise ValueError(f"{where}: 'evaluate' {' '.join(args)}: {e}") from None
+        try:  # read by the evaluation command's parser, before anything runs
+            ev = CampaignEvaluation.of(results, args)
+        except ValueError as err:
+            raise ValueError(f"{where}: 'evaluate' {' '.join(args)}: {err}") from None
+        _check_results_path(ev.record.parent, where, "'evaluate' --out")
+        evaluations.append(ev)
+    return CampaignRun(name, tuple(argv), results, tuple(evaluations), trainer)
 
 
 def _check_results_path(results: Path, where: str, field: str = "'results'") -> None:
@@ -290,11 +310,6 @@ def copy_results(run: CampaignRun) -> None:
             shutil.copy2(p, dest)
 
 
-def eval_out(args: tuple[str, ...]) -> Path:
-    """The record experiments.evaluate writes for these arguments."""
-    return Path(args[args.index("--out") + 1]) / "results.json"
-
-
 def commands(run: CampaignRun, state: str) -> list[list[str]]:
     """The processes still to run for `run` in `state` (see module doc)."""
     py = [sys.executable, "-m"]
@@ -302,10 +317,7 @@ def commands(run: CampaignRun, state: str) -> list[list[str]]:
     if state in ("new", "resume"):
         extra = ["--resume"] if state == "resume" else []
         cmds.append(py + [run.module, *run.argv, "--out", str(run.work), *extra])
-    for args in run.evaluate:
-        if eval_out(args).is_file():
-            continue
-        cmds.append(py + ["experiments.evaluate", str(run.results), *args])
+    cmds += [ev.command for ev in run.evaluate if not ev.record.is_file()]
     return cmds
 
 
@@ -443,7 +455,7 @@ def _process(runs: list[CampaignRun], dry_run: bool) -> int:
             shutil.rmtree(run.work)  # killed before its first checkpoint: start afresh
         print(f"[campaign] {run.name}: {state}, {len(todo)} process(es) to run", flush=True)
         for i, cmd in enumerate(todo):
-            print("[campaign] $ " + " ".join(cmd[1:]), flush=True)
+            print("[campaign] $ " + shlex.join(cmd[1:]), flush=True)
             if dry_run:
                 continue
             if i == 0 and state in ("new", "resume") and run.wall_clock:

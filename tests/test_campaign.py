@@ -63,12 +63,16 @@ def test_states_commands_and_copy(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     ev = [["--split", "val", "--out", "{results}/eval/v"]]
     (run,) = campaign.load_campaign(_write(tmp_path, [_run(evaluate=ev)]))
-    assert run.evaluate == (("--split", "val", "--out", "res/a/eval/v"),)
+    # the flags read as mpcpearl_jax.evaluate's keyword arguments (defaults left out)
+    keywords = {"run": "res/a", "split": "val", "out": "res/a/eval/v"}
+    assert [e.arguments for e in run.evaluate] == [keywords]
+    assert run.evaluate[0].record == Path("res/a/eval/v/results.json")
     assert campaign.state_of(run) == "new"
     cmds = campaign.commands(run, "new")
     assert cmds[0][1:4] == ["-m", "experiments.restaurant", "--preset"]
     assert cmds[0][-2:] == ["--out", str(campaign.WORK / "a")]
-    assert cmds[1][1:4] == ["-m", "experiments.evaluate", "res/a"]
+    assert cmds[1][:3] == [sys.executable, "-m", "lab.evaluation"] and len(cmds[1]) == 4
+    assert json.loads(cmds[1][3]) == keywords
     # a checkpoint: resumed
     (run.work / "checkpoints" / "5").mkdir(parents=True)
     assert campaign.state_of(run) == "resume"
@@ -89,7 +93,7 @@ def test_states_commands_and_copy(tmp_path, monkeypatch):
     copied = sorted(p.relative_to(run.results).as_posix() for p in run.results.rglob("*"))
     assert copied == ["campaign.json", "curve.json", "eval", "eval/x.json", "policy.msgpack"]
     assert campaign.state_of(run) == "done"
-    assert [c[2] for c in campaign.commands(run, "done")] == ["experiments.evaluate"]
+    assert [c[2] for c in campaign.commands(run, "done")] == ["lab.evaluation"]
     (run.results / "eval" / "v").mkdir()
     (run.results / "eval" / "v" / "results.json").write_text("{}")
     assert campaign.commands(run, "done") == []
@@ -145,7 +149,7 @@ def test_grbal_runs_train_with_their_own_command_and_finish_with_their_results(
     names = sorted(p.name for p in run.results.iterdir())
     assert names == ["campaign.json", "policy.msgpack", "results.json"]
     assert campaign.state_of(run) == "done"
-    assert [c[2] for c in campaign.commands(run, "done")] == ["experiments.evaluate"]
+    assert [c[2] for c in campaign.commands(run, "done")] == ["lab.evaluation"]
 
 
 def _guarded_child(tmp_path):
@@ -270,7 +274,7 @@ def test_an_entry_edited_after_training_is_refused_not_copied(tmp_path, monkeypa
         cfg.replace(train=dataclasses.replace(cfg.train, iterations=17)).to_json()
     )
     assert campaign.main([str(path)]) == 0
-    assert (run.results / "curve.json").is_file() and calls[0][2] == "experiments.evaluate"
+    assert (run.results / "curve.json").is_file() and calls[0][2] == "lab.evaluation"
 
 
 def test_a_run_killed_before_its_first_checkpoint_starts_afresh(tmp_path, monkeypatch):
@@ -371,3 +375,76 @@ def test_a_results_folder_holding_another_run_is_refused(tmp_path, monkeypatch, 
     assert "holds another run's records" in capsys.readouterr().err and not calls
     (run.results / campaign.TRAINED).write_text(json.dumps({"name": "a"}))  # a copy of its own
     assert campaign.main([str(path)]) == 0 and calls
+
+
+RUN = Path(__file__).resolve().parents[1] / "results" / "restaurant" / "mpc-pearl-eps0.2"
+
+
+def _without_wall(path: Path) -> dict:
+    record = json.loads(path.read_text())
+    record.pop("wall_s")
+    return record
+
+
+def test_an_evaluation_process_writes_the_record_the_command_writes(tmp_path, capsys):
+    """A campaign's evaluation runs `mpcpearl_jax.evaluate` in its own process with keyword
+    arguments (`lab.evaluation`, one JSON object), not the evaluation command's argv: its
+    results.json is the one the command writes for the same flags."""
+    from lab import evaluation
+    from mpcpearl_jax.cli.evaluate import main as evaluate_command
+
+    flags = ["--split", "val", "--tasks", "0-1", "--figures", "none", "--out"]
+    ev = campaign.CampaignEvaluation.of(RUN, (*flags, str(tmp_path / "lab")))
+    assert ev.arguments == {
+        "run": str(RUN),
+        "split": "val",
+        "tasks": "0-1",
+        "figures": "none",
+        "out": str(tmp_path / "lab"),
+    }
+    assert evaluation.main([ev.command[-1]]) == 0
+    out = capsys.readouterr().out
+    assert f"wrote {tmp_path / 'lab' / 'results.json'}" in out and "val (task seed" in out
+    assert evaluate_command([str(RUN), *flags, str(tmp_path / "cli")]) == 0
+    cli = _without_wall(tmp_path / "cli" / "results.json")
+    assert _without_wall(ev.record) == cli
+
+
+def test_evaluation_keywords_hold_a_shield_and_errors_name_the_flags(tmp_path, capsys):
+    from lab import evaluation
+    from mpcpearl_jax.mpc.shield import ShieldConfig
+
+    kw = evaluation.keywords(Path("res/a"), ["--shield", "--shield-margin", "0.3", "--out", "o"])
+    assert kw["shield"] == {"margin": 0.3}
+    run, decoded = evaluation.decode(json.dumps(kw))
+    assert run == "res/a" and decoded["shield"] == ShieldConfig(margin=0.3)
+    assert evaluation.keywords(Path("r"), ["--shield", "--out", "o"])["shield"] == {}
+    steers = (-1.0, 0.0, 1.0)
+    kw = {"run": "r", "shield": {"steers": list(steers)}}
+    assert evaluation.decode(json.dumps(kw))[1]["shield"] == ShieldConfig(steers=steers)
+    with pytest.raises(ValueError, match="need --shield"):
+        evaluation.keywords(Path("res/a"), ["--shield-lookahead", "3", "--out", "o"])
+    # a bad argument met when the evaluation starts: one line naming the command's flag
+    bad = {"controller": "gp-mpc", "tasks": "0-99", "out": str(tmp_path / "o")}
+    assert evaluation.main([json.dumps(bad)]) == 2
+    assert capsys.readouterr().err.startswith("error: --tasks: task(s) [24, 25, 26]")
+    assert evaluation.main(['["not", "an object"]']) == 2
+    assert "expected a JSON object" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_dry_run_prints_each_process_as_a_shell_line(tmp_path, monkeypatch, capsys):
+    import shlex
+
+    monkeypatch.chdir(tmp_path)
+    ev = [["--split", "val", "--task-seeds", "1-8", "--out", "{results}/eval/v"]]
+    assert campaign.main([str(_write(tmp_path, [_run(evaluate=ev)])), "--dry-run"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("[campaign] $")]
+    argv = shlex.split(lines[1].removeprefix("[campaign] $ "))
+    assert argv[:2] == ["-m", "lab.evaluation"]
+    assert json.loads(argv[2]) == {
+        "run": "res/a",
+        "split": "val",
+        "task_seeds": "1-8",
+        "out": "res/a/eval/v",
+    }

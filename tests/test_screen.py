@@ -225,7 +225,14 @@ def test_trained_arms_become_campaign_entries(tmp_path, monkeypatch):
     r = runs["explore"][1]
     assert r.argv == ("--set", "train.explore_start_share=0.5", "--no-progress", "--seed", "1")
     assert r.results == Path("res/screen/explore-s1") and r.trainer == "restaurant"
-    assert r.evaluate == (tuple(EVALUATE[0][:-1]) + ("res/screen/explore-s1/" + VAL,),)
+    (ev,) = r.evaluate  # the screen's flags as mpcpearl_jax.evaluate's keyword arguments
+    assert ev.arguments == {
+        "run": "res/screen/explore-s1",
+        "split": "val",
+        "task_seeds": "1-8",
+        "figures": "none",
+        "out": "res/screen/explore-s1/" + VAL,
+    }
     assert s.folder("base", 1) == Path("b") and s.validation == VAL + "/results.json"
 
 
@@ -388,8 +395,9 @@ def test_training_runs_the_entries_one_at_a_time_and_continues_after_ctrl_c(
         if args[0] == "experiments.restaurant":
             seed = int(args[args.index("--seed") + 1])
             make_run(Path(args[args.index("--out") + 1]), [0, seed], 0.2 * seed, evaluated=False)
-        else:
-            out = Path(args[args.index("--out") + 1])
+        else:  # lab.evaluation, its keyword arguments as one JSON object
+            assert args[0] == "lab.evaluation"
+            out = Path(json.loads(args[1])["out"])
             out.mkdir(parents=True)
             pooled = {k: {"mean": 0.5, "se": 0.0} for k in screen.METRICS}
             (out / "results.json").write_text(json.dumps({"pooled": pooled}))
