@@ -26,7 +26,7 @@ from lab.convergence import OUT, ROOT, _scenario_tasks
 from mpcpearl_jax.cli.stopping import stops_with
 
 
-@stops_with("stopped: nothing written")
+@stops_with("stopped: the record is written once every task has run, before the table is printed")
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m lab.diagnostics.fallback_runs")
     ap.add_argument(
