@@ -17,7 +17,8 @@ import jax
 import numpy as np
 import pytest
 
-from experiments.common import build_config, main, parser
+from mpcpearl_jax.cli.args import build_config, parser
+from mpcpearl_jax.cli.train import main
 from mpcpearl_jax.runfolder import LOG_FILE, read_log
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,7 +70,7 @@ def train_only(cfg, out, resume: bool = False, handle_sigint: bool = False):
 DRIVER = (
     "import sys\n"
     f"sys.path.insert(0, {str(ROOT / 'tests')!r})\n"
-    "from experiments.common import build_config, parser\n"
+    "from mpcpearl_jax.cli.args import build_config, parser\n"
     "from faults_helpers import train_only\n"
     "a = parser('restaurant').parse_args(sys.argv[1:])\n"
     "train_only(build_config(a, 'restaurant'), a.out, resume=a.resume, handle_sigint=True)\n"

@@ -16,12 +16,9 @@ import sys
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+import jax
 
-import jax  # noqa: E402
-
-from experiments.common import build_config, parser  # noqa: E402
+from mpcpearl_jax.cli.args import build_config, parser
 
 EVAL_TASKS = 6
 

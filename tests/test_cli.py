@@ -7,7 +7,7 @@ import pytest
 
 def test_sidewalk_cli_with_mpc_infusion(tmp_path):
     """`python -m experiments.sidewalk` (synthetic crowd) with eps > 0: the MPC really acts."""
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     out = tmp_path / "s"
     argv = [
@@ -36,7 +36,7 @@ def test_sidewalk_cli_with_mpc_infusion(tmp_path):
 
 
 def test_sidewalk_cli_rejects_missing_data(tmp_path, capsys):
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     assert main("sidewalk", ["--preset", "smoke", "--data", str(tmp_path / "nope.txt")]) == 2
     assert "nope.txt" in capsys.readouterr().err
@@ -183,7 +183,7 @@ def test_gp_mpc_tasks_and_max_tasks_are_checked_before_the_rollout(tmp_path, cap
 def test_an_out_through_a_file_and_a_data_folder_say_what_is_wrong(tmp_path, capsys):
     """--out whose path passes through a regular file said "fix its permissions"; --data given a
     folder said "no such file". Each is now one line that names the real cause."""
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     afile = tmp_path / "afile"
     afile.write_text("")
@@ -207,7 +207,7 @@ def test_resume_of_a_finished_run_says_so_in_one_line_and_changes_nothing(tmp_pa
     trains on."""
     from faults_helpers import small_args
 
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     run = tmp_path / "run"
     assert main("restaurant", small_args(0.0, run, 1)) == 0
@@ -229,7 +229,8 @@ def test_preset_help_names_the_presets_and_a_removed_one_gets_its_message(capsys
     """--preset's help names the presets there are (it named the removed cpu-paper and called
     cpu-explore the recipe), and --preset cpu-paper reaches the removed-preset message (argparse's
     choices refused it first)."""
-    from experiments.common import main, parser
+    from mpcpearl_jax.cli.args import parser
+    from mpcpearl_jax.cli.train import main
     from mpcpearl_jax.config import PRESETS
 
     text = " ".join(parser("restaurant").format_help().split())
@@ -250,7 +251,7 @@ def test_resume_of_a_finished_minutes_run_says_so_and_changes_nothing(tmp_path, 
     rewrote results.json and curve.json)."""
     from faults_helpers import learning_args
 
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     run = tmp_path / "run"
     assert main("restaurant", learning_args(run, 0.2, 0.1, "--no-progress")) == 0

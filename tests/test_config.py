@@ -144,7 +144,8 @@ def test_cpu_explore_and_recipe_build_the_committed_restaurant_runs(
     before anything is written."""
     import json
 
-    from experiments.common import build_config, main, parse_args
+    from mpcpearl_jax.cli.args import build_config, parse_args
+    from mpcpearl_jax.cli.train import main
 
     argv = ["--preset", name, "--eps", eps, "--algo", algo, "--minutes", "60"]
     args = parse_args("restaurant", [*argv, *(x for item in sets for x in ("--set", item))])
@@ -171,7 +172,7 @@ def test_cpu_explore_and_recipe_build_the_committed_restaurant_runs(
 def test_default_preset_keeps_the_sidewalk_crowd():
     """The main command's preset re-draws crowds on the restaurant and leaves the sidewalk's
     recorded crowd alone (instead of refusing it, as an explicit preset is)."""
-    from experiments.common import build_config, parser
+    from mpcpearl_jax.cli.args import build_config, parser
 
     for env, redraw in (("restaurant", True), ("sidewalk", False)):
         cfg = build_config(parser(env).parse_args([]), env)
@@ -441,7 +442,7 @@ def test_config_option_builds_the_recorded_run(run):
     changes the seed only)."""
     import json
 
-    from experiments.common import build_config, parse_args, parser
+    from mpcpearl_jax.cli.args import build_config, parse_args, parser
 
     old = {"command": "learning", "from_config": True}  # experiments/learning.py
 
@@ -459,7 +460,8 @@ def test_config_option_builds_the_recorded_run(run):
 
 
 def test_config_option_refuses_what_it_cannot_repeat(tmp_path, capsys):
-    from experiments.common import build_config, main, parser
+    from mpcpearl_jax.cli.args import build_config, parser
+    from mpcpearl_jax.cli.train import main
 
     root = Path(__file__).resolve().parents[1] / "results"
     removed = root / "restaurant/ablation/policy-ema-60min/config.json"
@@ -518,7 +520,7 @@ def test_a_seed_beyond_64_bits_or_negative_is_one_line_before_anything_runs(caps
     """--seed 1180591620717411303424 ended in an OverflowError traceback when the seeds' PRNG keys
     were made (--print-config accepted it); a negative seed failed later in the host streams of
     re-drawn crowds. Now both are refused where the config is resolved, --print-config too."""
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     top = 2**63 - 2
     cases = [

@@ -75,7 +75,7 @@ def test_train_from_python(tmp_path, small_corridor):
 
 @pytest.mark.slow  # the command-line path of --env MODULE:NAME (~70 s); the Python API: fast
 def test_train_from_the_command_line(tmp_path, capsys, small_corridor):
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     out = tmp_path / "cli"
     argv = ["--env", "examples.corridor:corridor", "--preset", "smoke", "--out", str(out)]
@@ -100,7 +100,7 @@ def test_train_from_the_command_line(tmp_path, capsys, small_corridor):
     ],
 )
 def test_a_missing_module_or_family_is_one_line_naming_the_flag(spec, names, capsys):
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     assert main("restaurant", ["--env", spec, "--preset", "smoke"]) == 2
     err = capsys.readouterr().err.strip()

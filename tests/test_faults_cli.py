@@ -11,7 +11,8 @@ import time
 import pytest
 from faults_helpers import ROOT, _env, _make_unwritable, _one_line_error, small_args
 
-from experiments.common import build_config, main, parser
+from mpcpearl_jax.cli.args import build_config, parser
+from mpcpearl_jax.cli.train import main
 from mpcpearl_jax.errors import ConfigError
 from mpcpearl_jax.runfolder import LOG_FILE
 

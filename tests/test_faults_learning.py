@@ -55,7 +55,7 @@ def test_learning_run_stops_on_ctrl_c_and_resumes_exactly(tmp_path, monkeypatch,
     iteration, 6 s of budget, an evaluation every 3 s) saves iteration 4 and exits 130 with one
     line; --resume ends identical to a run never stopped: checkpoint, policy, metrics and the
     curve points (the budget counts the 4 s already trained)."""
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     monkeypatch.setattr(
         "mpcpearl_jax.training.final.final_evaluation", lambda *a, **k: {}
@@ -83,7 +83,7 @@ def test_learning_run_ctrl_c_then_kill9_then_resume(tmp_path, monkeypatch):
     config.json and curve saved; a --resume killed with SIGKILL loses at most the iteration under
     way (a checkpoint every iteration here); the next --resume continues the curve and the log
     where the last checkpoint left them."""
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     run, log = tmp_path / "run", tmp_path / "log.txt"
     cmd = [sys.executable, "-m", "experiments.restaurant", *learning_args(run, 10, 5)]

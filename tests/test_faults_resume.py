@@ -33,7 +33,7 @@ from faults_helpers import (
     writing_checkpoint,
 )
 
-from experiments.common import main
+from mpcpearl_jax.cli.train import main
 from mpcpearl_jax.runfolder import LOG_FILE, read_log
 from mpcpearl_jax.training.checkpoint import CheckpointError
 from mpcpearl_jax.training.run import open_session

@@ -60,7 +60,7 @@ def test_one_writer_per_run_folder(tmp_path, ref0, capsys):
     GrBAL each stop with one line naming the holder's PID and write nothing; once the holder is
     killed (SIGKILL), its lock file no longer blocks anyone."""
     from experiments import grbal
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
     from mpcpearl_jax.training.runlock import LOCK_FILE, RunLock
 
     new, old = tmp_path / "new", tmp_path / "old"

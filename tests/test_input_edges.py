@@ -249,7 +249,7 @@ BAD_MODULES = {
 def test_an_env_module_that_fails_to_import_is_one_line(kind, tmp_path, monkeypatch, capsys):
     """--env MODULE:NAME whose module raises on import or has a syntax error: a full traceback;
     one that calls sys.exit(0): --print-config printed nothing and exited 0."""
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     name = f"edge_family_{kind}"
     (tmp_path / f"{name}.py").write_text(BAD_MODULES[kind][0])
@@ -272,7 +272,7 @@ def test_the_family_is_chosen_by_env_not_by_set(capsys):
     """`--set env.name=...`, listed as settable by --help-config, failed with "make_env() got
     multiple values for argument 'name'"; it is one line pointing at --env, and --help-config
     (test_learning_harness) no longer lists it. The library says the same."""
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
     from mpcpearl_jax.config import ConfigError, ExperimentConfig
     from mpcpearl_jax.envs import make_env
 

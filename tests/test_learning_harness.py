@@ -9,13 +9,15 @@ import math
 
 import pytest
 
-from experiments import common
+from mpcpearl_jax.cli import args as cli_args
+from mpcpearl_jax.cli import train as cli_train
+from mpcpearl_jax.config import ExperimentConfig
 from mpcpearl_jax.training import budget as learning
 from mpcpearl_jax.training.run import Session
 
 
 def main(argv, **kw):
-    return common.main("restaurant", argv, **kw)
+    return cli_train.main("restaurant", argv, **kw)
 
 
 def _point(minutes, it, test_sr, val_sr):
@@ -187,10 +189,10 @@ def test_help_config_lists_every_field_with_its_source_comment(capsys):
     from mpcpearl_jax.config import TrainConfig, chosen_elsewhere, override_sections
 
     with pytest.raises(SystemExit) as stop:
-        common.parser("restaurant").parse_args(["--help-config"])
+        cli_args.parser("restaurant").parse_args(["--help-config"])
     assert stop.value.code == 0
     text = capsys.readouterr().out
-    for section, cls in override_sections(common.ExperimentConfig).items():
+    for section, cls in override_sections(ExperimentConfig).items():
         for f in dataclasses.fields(cls):
             listed = f"{section}.{f.name} = " in text or f"\n  {f.name} = " in text
             if chosen_elsewhere(cls, f.name):  # the family (--env): not listed as settable
@@ -199,7 +201,7 @@ def test_help_config_lists_every_field_with_its_source_comment(capsys):
                 assert listed, f.name
     assert "env.name = " not in text and "\n  env = " not in text
     assert "train.eps = 0.2: MPC probability on an event (0 = PEARL)" in text
-    notes = common.field_comments(TrainConfig)
+    notes = cli_args.field_comments(TrainConfig)
     assert notes["iterations"] == ("", "")
     heading, text = notes["redraw_behaviours"]
     assert heading.startswith("extensions beyond the paper") and heading.endswith("each one)")
@@ -208,7 +210,7 @@ def test_help_config_lists_every_field_with_its_source_comment(capsys):
 
 
 def test_experiments_cli_is_unchanged():
-    from experiments.common import build_config, parser
+    from mpcpearl_jax.cli.args import build_config, parser
 
     args = parser("restaurant").parse_args(
         ["--preset", "smoke", "--eps", "0.3", "--iterations", "7", "--algo", "sac", "--resume"]
@@ -278,6 +280,6 @@ def test_the_old_command_name_runs_the_same_program():
     command, taking its family from --env or from --config's run."""
     import experiments.learning
 
-    assert experiments.learning.main is common.main
-    args = common.parse_args("restaurant", ["--env", "sidewalk", "--data", "f.txt"])
+    assert experiments.learning.main is cli_train.main
+    args = cli_args.parse_args("restaurant", ["--env", "sidewalk", "--data", "f.txt"])
     assert args.env == "sidewalk" and args.data.name == "f.txt"

@@ -105,7 +105,7 @@ def test_training_cli_tensorboard_and_episode_gif(tmp_path):
     file under its own name; the final evaluation writes episode_test0.gif."""
     from PIL import Image
 
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     out = tmp_path / "run"
     argv = ["--preset", "smoke", "--eps", "0", "--iterations", "2", "--out", str(out)]

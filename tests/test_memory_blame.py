@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from experiments.common import main
+from mpcpearl_jax.cli.train import main
 from mpcpearl_jax.training.resources import dataclass_defaults, grown_fields
 
 RELATIVE = ["--set", "env.observe_relative=true"]

@@ -37,7 +37,7 @@ def test_training_refuses_a_finished_run_without_overwrite(finished, capsys):
     """`experiments.restaurant --preset smoke --out <a finished run without checkpoints>` used
     to exit 0 with policy.msgpack, results.json and config.json replaced and metrics.jsonl cut
     from 75 lines to 4."""
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     before = _snapshot(finished)
     assert main("restaurant", ["--preset", "smoke", "--out", str(finished), "--no-progress"]) == 2

@@ -3,7 +3,7 @@ defaults come with its registration."""
 
 import argparse
 
-from experiments.common import add_config_options, build_config
+from mpcpearl_jax.cli.args import add_config_options, build_config
 from mpcpearl_jax.config import preset
 from mpcpearl_jax.envs import mpc_defaults
 from mpcpearl_jax.evaluation.report import PAPER, comparison_table, results_table, run_label

@@ -162,7 +162,7 @@ def test_generator_options_are_refused_with_scenarios(synthetic):
 
 # ------------------------------------------------------------------------ command lines
 def test_config_records_the_source_and_refuses_redraw(synthetic):
-    from experiments.common import build_config, parser
+    from mpcpearl_jax.cli.args import build_config, parser
     from mpcpearl_jax.config import validate
     from mpcpearl_jax.errors import ConfigError
 
@@ -207,7 +207,7 @@ def test_resolve_keeps_the_recorded_crowds_of_the_scenarios(synthetic):
 
 
 def test_training_cli_on_a_bad_folder_writes_nothing(tmp_path, capsys):
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     out = tmp_path / "run"
     rc = main("restaurant", ["--preset", "smoke", "--scenarios", str(tmp_path), "--out", str(out)])
@@ -273,9 +273,9 @@ def test_a_run_trained_on_scenarios_records_its_source_and_evaluates(tmp_path, c
     records its source, its final evaluation says the OOD file is missing (not scoring the
     generated OOD tasks), `load_policy` and `experiments.evaluate` work on it (val allowed: held
     out), and a resume on a changed file is refused by its recorded sha256."""
-    from experiments.common import main
     from mpcpearl_jax import load_policy
     from mpcpearl_jax.cli import evaluate
+    from mpcpearl_jax.cli.train import main
 
     scen = write_scenarios(tmp_path / "scen", with_ood=False)
     out = tmp_path / "run"
@@ -314,7 +314,7 @@ def test_a_bad_ood_file_is_found_before_training(tmp_path, synthetic, capsys):
     written."""
     import shutil
 
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     folder = tmp_path / "scen"
     shutil.copytree(synthetic, folder)

@@ -230,7 +230,7 @@ def test_distributed_options_are_checked():
 
 
 def test_command_line_names_the_bad_device_count(tmp_path, capsys):
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     argv = ["--preset", "smoke", "--seeds", "4", "--devices", "3", "--out", str(tmp_path / "r")]
     assert main("restaurant", argv) == 2

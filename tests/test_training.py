@@ -228,7 +228,7 @@ def test_experiment_config_is_typed_all_the_way_down():
 
 
 def test_cli_rejects_bad_values(capsys):
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     assert main("restaurant", ["--preset", "smoke", "--eps", "2"]) == 2
     assert "TrainConfig.eps" in capsys.readouterr().err
@@ -240,7 +240,7 @@ def test_cli_rejects_bad_values(capsys):
 
 def test_restaurant_cli_smoke(tmp_path):
     """The README's main command at the smoke preset, PEARL and MPC-SAC variants (eps = 0)."""
-    from experiments.common import main
+    from mpcpearl_jax.cli.train import main
 
     out = tmp_path / "r"
     assert (
