@@ -18,12 +18,13 @@ from __future__ import annotations
 
 import sys
 
-from mpcpearl_jax.cli.train import grbal_main
+from mpcpearl_jax.cli import train
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The command (`mpcpearl_jax.cli.train.grbal_main`, through `mpcpearl_jax.train`)."""
-    return grbal_main(argv, description=__doc__)
+    """The command: the training command of the registered algorithm "grbal"
+    (`mpcpearl_jax.cli.train.main`, through `mpcpearl_jax.train`)."""
+    return train.main("restaurant", argv, algorithm="grbal", description=__doc__)
 
 
 if __name__ == "__main__":

@@ -167,14 +167,49 @@ def test_a_resume_that_only_evaluates_says_what_the_run_trained():
 
 
 def test_a_grbal_resume_reads_the_runs_own_config(tmp_path):
-    from mpcpearl_jax.cli.args import build_grbal_config, grbal_parser
-    from mpcpearl_jax.config import resolve
+    from mpcpearl_jax.cli.args import build_config, config_from_argv, parse_args
     from mpcpearl_jax.grbal.config import GrbalExperimentConfig
+
+    def build(argv):  # as the grbal command builds it
+        args = parse_args("restaurant", argv, algorithm="grbal")
+        return args, build_config(args, "restaurant", algorithm="grbal")
 
     run_cfg = resolve("smoke", "sidewalk", config_type=GrbalExperimentConfig)
     (tmp_path / "config.json").write_text(run_cfg.to_json())
-    args = grbal_parser().parse_args(["--resume", "--out", str(tmp_path)])
-    assert build_grbal_config(args).to_dict() == run_cfg.to_dict()
+    args, cfg = build(["--resume", "--out", str(tmp_path)])
+    assert cfg.to_dict() == run_cfg.to_dict()
     assert (args.env, args.preset) == ("sidewalk", "smoke")  # printed on the first line
-    more = grbal_parser().parse_args(["--resume", "--out", str(tmp_path), "--iterations", "9"])
-    assert build_grbal_config(more).grbal.iterations == 9
+    assert build(["--resume", "--out", str(tmp_path), "--iterations", "9"])[1].grbal.iterations == 9
+    # the run's own preset named again: the same run; another one: one line naming the run's
+    assert build(["--resume", "--out", str(tmp_path), "--preset", "smoke"])[1] == cfg
+    with pytest.raises(ConfigError, match="started from preset smoke; --preset cpu"):
+        build(["--resume", "--out", str(tmp_path), "--preset", "cpu"])
+    # the lab's campaigns build it the same way
+    assert config_from_argv("grbal", ["--resume", "--out", str(tmp_path)]) == cfg
+    fresh = config_from_argv("grbal", ["--env", "sidewalk", "--preset", "smoke"])
+    assert fresh == resolve("smoke", "sidewalk", config_type=GrbalExperimentConfig)
+
+
+def test_an_algorithms_own_command_takes_its_options_from_its_registration():
+    """`experiments.grbal`'s options come from the registered algorithm: its families, presets,
+    --set sections, run folder and line per iteration; the options of the task families'
+    commands it lacks read as not given."""
+    from mpcpearl_jax import algorithms
+    from mpcpearl_jax.cli.args import parser
+
+    grbal = algorithms.get("grbal")
+    p = parser(algorithm="grbal", description="GrBAL")
+    actions = {a.dest: a for a in p._actions}
+    assert p.prog == "python -m experiments.grbal"
+    assert tuple(actions["env"].choices) == grbal.families == ("restaurant", "sidewalk")
+    assert actions["preset"].choices == sorted(grbal.presets)
+    assert "grbal.FIELD, env.FIELD or a top-level field" in actions["set"].help
+    assert actions["out"].help == "run directory (default runs/<env>-<preset>-grbal)"
+    assert actions["no_progress"].help == "no line per iteration"
+    assert actions["iterations"].help == grbal.iterations_help
+    assert not {"eps", "algo", "label", "config", "tensorboard", "debug"} & set(actions)
+    args = p.parse_args([])
+    assert (args.label, args.config, args.tensorboard, args.debug) == (None, None, False, False)
+    family = {a.dest: a for a in parser("restaurant")._actions}
+    assert family["out"].help == "run directory (default runs/<label>)"
+    assert family["iterations"].help == "meta-training iterations"

@@ -1,9 +1,11 @@
 """The algorithms a run trains, one registered object each (as task families register in
 `mpcpearl_jax.envs`; in acme's words, a builder per agent): `Algorithm` carries its run-config
 type and presets, its trainer factory (the run session's `RunKind`), its training rules, its
-final evaluation, its label, its progress line and its evaluation setup. `mpcpearl_jax.train`
-(`api.train`), the training commands (`cli.train`) and the evaluation (`api.evaluate`) dispatch
-on it; nothing above this module asks which algorithm a run is.
+final evaluation, its label, its progress line, its evaluation setup and what its training
+command shows of it (its command, families, run folder, first line, preset notes).
+`mpcpearl_jax.train` (`api.train`), the training commands (`cli.args`, `cli.train`) and the
+evaluation (`api.evaluate`) dispatch on it; nothing above this module asks which algorithm a run
+is.
 
 Registered here: "mpc-pearl" (MPC-PEARL and its baselines, which are configs of it: PEARL with
 eps 0, MPC-SAC without the encoder) and "grbal" (the GrBAL baseline, `mpcpearl_jax.grbal`).
@@ -52,7 +54,17 @@ class Algorithm:
     only stop the iterations early; progress_line(row, cfg): its line per iteration (None: the
     training command's progress bar); evaluation_setup(run_dir, **arguments) -> the evaluation's
     (`evaluation.runners.Setup`, the number of tasks) of a run folder of this algorithm evaluated
-    as trained (None: the policy evaluation of `api.evaluate`)."""
+    as trained (None: the policy evaluation of `api.evaluate`).
+
+    What its training command shows of it: command, the module of its own command (`python -m
+    experiments.COMMAND`: --env picks one of `families`, --preset one of `presets`, --minutes
+    stops the iterations early; a stop outside training names the command that goes on by
+    whether the run's config.json is written), None where the task families' commands train it
+    (restaurant, sidewalk, learning: their options, progress bar and closing lines);
+    iterations_help, its --iterations' help; run_folder, the default run folder under runs/ as a
+    format of {env} and {preset} (None: the run's label); summary(cfg), what the command's first
+    line adds about the config; notes, a line per preset printed when that preset trains as it
+    is (no --config, no --iterations)."""
 
     name: str
     config_type: type
@@ -64,6 +76,21 @@ class Algorithm:
     learning_curve: bool = False
     progress_line: Callable[[dict[str, Any], Any], str] | None = None
     evaluation_setup: Callable[..., Any] | None = None
+    command: str | None = None
+    families: tuple[str, ...] = ()
+    iterations_help: str = "training iterations"
+    run_folder: str | None = None
+    summary: Callable[[Any], str] | None = None
+    notes: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+    @property
+    def iterations_field(self) -> str:
+        """The config field that holds the run's iterations ('train.iterations')."""
+        return f"{self.kind.section}.iterations"
+
+    def iterations(self, cfg: Any) -> int:
+        """The iterations a config of this algorithm trains."""
+        return getattr(cfg, self.kind.section).iterations
 
 
 _REGISTRY: dict[str, Algorithm] = {}
@@ -128,6 +155,14 @@ def _pearl_final(trainer: Any, state: Any, run_dir: Path, label: str) -> dict[st
     return final.final_evaluation(trainer, state, run_dir, label)  # looked up at each call
 
 
+# the default preset's expectations, printed on the first lines of its training
+_PEARL_DEFAULT_NOTE = (
+    "the default preset: a first look, 75 iterations, about 4-5 minutes of training on a quiet "
+    "2-core CPU, up to about 8 on a slower or busy one (the README gives the range over ten "
+    "seeds); the first iteration compiles, up to a minute of it. Far shorter than the paper's "
+    "training (printed under the results table)"
+)
+
 MPC_PEARL = register(
     Algorithm(
         name="mpc-pearl",
@@ -138,6 +173,8 @@ MPC_PEARL = register(
         final_evaluation=_pearl_final,
         label=run_label,
         learning_curve=True,
+        iterations_help="meta-training iterations",
+        notes={"default": _PEARL_DEFAULT_NOTE},
     )
 )
 
@@ -186,6 +223,15 @@ def _grbal_line(row: dict[str, Any], cfg: Any) -> str:
     return "  ".join(parts)
 
 
+def _grbal_summary(cfg: Any) -> str:
+    """GrBAL's model and planner, on the training command's first line."""
+    g = cfg.grbal
+    return (
+        f"model={'x'.join(map(str, g.hidden))} MPPI {g.num_samples}x{g.mppi_iterations} "
+        f"horizon {g.plan_horizon}"
+    )
+
+
 GRBAL = register(
     Algorithm(
         name="grbal",
@@ -197,5 +243,10 @@ GRBAL = register(
         label=lambda cfg: grbal_run.LABEL,
         progress_line=_grbal_line,
         evaluation_setup=grbal_evaluation_setup,
+        command="grbal",
+        families=("restaurant", "sidewalk"),
+        iterations_help="training iterations (fit + collection)",
+        run_folder="{env}-{preset}-grbal",
+        summary=_grbal_summary,
     )
 )

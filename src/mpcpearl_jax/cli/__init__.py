@@ -7,8 +7,9 @@ benchmarks/ shares, and nothing below imports.
   `--help-config`);
 - `progress`, `tables`: the progress bar, the printed tables, records and lines;
 - `output`: a standard output that breaks (`| head`, a full disk) without losing the work;
-- `train`: the training commands (MPC-PEARL and GrBAL), which parse, call `mpcpearl_jax.train`,
-  print and choose the exit code.
+- `train`: the training commands, one `main` for every registered algorithm
+  (`mpcpearl_jax.algorithms`: MPC-PEARL, GrBAL), which parses, calls `mpcpearl_jax.train`,
+  prints and chooses the exit code.
 
 `setup()` is where every command starts (the command packages experiments/, lab/ and
 benchmarks/ call it on import, the training commands again: it does its work once): the

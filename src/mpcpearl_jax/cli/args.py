@@ -1,7 +1,8 @@
-"""Building a run's config from a command line: the training commands' options (their parsers,
-`parse_args`), `build_config` (MPC-PEARL) and `build_grbal_config`, `--help-config`, and
-`config_from_argv`, the config a training command's argv builds (the lab's campaigns check
-their runs with it)."""
+"""Building a run's config from a command line, for every registered algorithm
+(`mpcpearl_jax.algorithms`): the training commands' options (`parser`, `parse_args`: the task
+families' commands for MPC-PEARL, an algorithm's own command from its registration),
+`build_config`, `--help-config`, and `config_from_argv`, the config a training command's argv
+builds (the lab's campaigns check their runs with it)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,19 @@ import argparse
 import math
 import sys
 from pathlib import Path
+from typing import Any
 
 from mpcpearl_jax.config import PRESETS, RESULT_NEUTRAL, ExperimentConfig, read_config, resolve
 from mpcpearl_jax.errors import ConfigError
+
+
+def algorithm_of(algorithm: Any = None) -> Any:
+    """The registered algorithm `algorithm` names (a name or the object; None: MPC-PEARL)."""
+    from mpcpearl_jax import algorithms
+
+    if algorithm is None or isinstance(algorithm, str):
+        return algorithms.get(algorithm or algorithms.DEFAULT)
+    return algorithm
 
 
 def add_run_mode_options(p: argparse.ArgumentParser) -> None:
@@ -22,6 +33,43 @@ def add_run_mode_options(p: argparse.ArgumentParser) -> None:
         "--overwrite",
         action="store_true",
         help="replace the run in --out (its records, checkpoints and figures are removed)",
+    )
+
+
+def add_seed_options(p: argparse.ArgumentParser) -> None:
+    """--seeds and --seed."""
+    p.add_argument("--seeds", type=int, help="independent seeds trained in one program")
+    p.add_argument("--seed", type=int, help="base seed (seed s uses seed + s)")
+
+
+def add_iterations_option(p: argparse.ArgumentParser, algorithm: Any) -> None:
+    """--iterations, as `algorithm` trains them."""
+    p.add_argument("--iterations", type=int, help=algorithm.iterations_help)
+
+
+def add_out_options(p: argparse.ArgumentParser, algorithm: Any) -> None:
+    """--out (its default: the algorithm's run folder under runs/) and --resume or --overwrite."""
+    folder = (algorithm.run_folder or "{label}").format(
+        env="<env>", preset="<preset>", label="<label>"
+    )
+    p.add_argument("--out", type=Path, help=f"run directory (default runs/{folder})")
+    add_run_mode_options(p)
+
+
+def add_progress_option(p: argparse.ArgumentParser, algorithm: Any) -> None:
+    """--no-progress: no line per iteration (the algorithm's `progress_line`), or no progress
+    bar."""
+    if algorithm.progress_line is not None:
+        p.add_argument("--no-progress", action="store_true", help="no line per iteration")
+        return
+    p.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bar (it says 'compiling' during the first iteration, then shows per "
+        "iteration the training episodes' mean 'episode return', the share of their steps the "
+        "MPC acted ('MPC-acted steps') and, at evaluations, the test tasks' success rate "
+        "('test SR') and collision-free rate ('test CFR'); its ETA leaves out the first "
+        "iteration)",
     )
 
 
@@ -183,8 +231,7 @@ def add_config_options(
         "on top; the run is named after RUN's folder where a preset's name would go)",
     )
     p.add_argument("--eps", type=float, help="MPC probability on an event (0 = PEARL)")
-    p.add_argument("--seeds", type=int, help="independent seeds trained in one program")
-    p.add_argument("--seed", type=int, help="base seed (seed s uses seed + s)")
+    add_seed_options(p)
     p.add_argument(
         "--devices",
         type=int,
@@ -223,13 +270,24 @@ def add_config_options(
 
 
 def parser(
-    env: str, default_preset: str = "default", command: str | None = None
+    env: str = "restaurant",
+    default_preset: str = "default",
+    command: str | None = None,
+    *,
+    algorithm: Any = None,
+    description: str | None = None,
 ) -> argparse.ArgumentParser:
-    """The training command's parser for family `env` (its task-source options); `command`
-    names the program (default `env`'s own)."""
+    """The training command's parser for family `env` and `algorithm` (a registered name or
+    object; default MPC-PEARL). An algorithm with a command of its own (`Algorithm.command`) gets
+    that command's options from its registration (`algorithm_parser`); MPC-PEARL the task
+    families' (its task-source options; `command` names the program, default `env`'s own)."""
+    algorithm = algorithm_of(algorithm)
+    if algorithm.command is not None:
+        return algorithm_parser(algorithm, env, description)
     p = argparse.ArgumentParser(
         prog=f"python -m experiments.{command or env}",
-        description=f"Train and evaluate MPC-PEARL (and its baselines) on the {env} tasks: "
+        description=description
+        or f"Train and evaluate MPC-PEARL (and its baselines) on the {env} tasks: "
         "--iterations N (the preset's by default), or --minutes M of training with a learning "
         "curve.",
     )
@@ -242,7 +300,7 @@ def parser(
         "MODULE:NAME, a module that registers NAME when imported, e.g. examples.corridor:corridor "
         "(docs/custom_tasks.md)",
     )
-    p.add_argument("--iterations", type=int, help="meta-training iterations")
+    add_iterations_option(p, algorithm)
     budget = p.add_argument_group(
         "a time budget and its learning curve (instead of --iterations; writes curve.json, "
         "curve.png and a time-to-target table)"
@@ -270,17 +328,8 @@ def parser(
         help="the run's name (default <env>-<preset>-<algo>-eps<eps>): the folder under runs/ "
         "when --out is not given, and the name on the curve",
     )
-    p.add_argument("--out", type=Path, help="run directory (default runs/<label>)")
-    add_run_mode_options(p)
-    p.add_argument(
-        "--no-progress",
-        action="store_true",
-        help="no progress bar (it says 'compiling' during the first iteration, then shows per "
-        "iteration the training episodes' mean 'episode return', the share of their steps the "
-        "MPC acted ('MPC-acted steps') and, at evaluations, the test tasks' success rate "
-        "('test SR') and collision-free rate ('test CFR'); its ETA leaves out the first "
-        "iteration)",
-    )
+    add_out_options(p, algorithm)
+    add_progress_option(p, algorithm)
     p.add_argument(
         "--tensorboard",
         action="store_true",
@@ -295,22 +344,88 @@ def parser(
     g.add_argument(
         "--coordinator-timeout",
         type=float,
-        default=120.0,
+        default=COMMAND_DEFAULTS["coordinator_timeout"],
         metavar="S",
         help="seconds to wait for the coordinator and the other processes (default 120)",
     )
     return p
 
 
-def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfig:
-    """The config of the command line `args` for family `env` (`mpcpearl_jax.config.resolve`):
-    --preset or --config, the task source, then --eps, --iterations, --seeds, --seed,
-    --devices, --algo and `extra` (top-level fields; `mpc`: a dict of MPCConfig fields), then
-    --set; checked across fields (`validate`, which `resolve` runs)."""
-    base: str | ExperimentConfig = args.preset
-    run = _resumed_run(args, env)
+# the task families' command options an algorithm's own command does not offer, at their
+# values when not given (the training command reads one namespace)
+COMMAND_DEFAULTS: dict[str, Any] = dict(
+    config=None,
+    label=None,
+    eval_minutes=None,
+    policy_only=False,
+    tensorboard=False,
+    debug=False,
+    print_config=False,
+    coordinator=None,
+    num_processes=None,
+    process_id=None,
+    coordinator_timeout=120.0,
+)
+
+
+def algorithm_parser(
+    algorithm: Any, env: str = "restaurant", description: str | None = None
+) -> argparse.ArgumentParser:
+    """The parser of `algorithm`'s own training command (`python -m experiments.COMMAND`), from
+    its registration: --env one of its families (default `env`), --preset one of its presets,
+    --iterations, --minutes (stopping the iterations early), the seeds, the task source, --set
+    over its config's sections, --out (default its run folder), --resume or --overwrite,
+    --no-progress. `description` is the help's text, as written."""
+    from mpcpearl_jax.config import override_sections
+
+    p = argparse.ArgumentParser(
+        prog=f"python -m experiments.{algorithm.command}",
+        description=description,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--env", default=DefaultPreset(env), choices=algorithm.families)
+    p.add_argument("--preset", default=DefaultPreset("default"), choices=sorted(algorithm.presets))
+    add_iterations_option(p, algorithm)
+    p.add_argument(
+        "--minutes",
+        type=float,
+        help="stop training after this many minutes (checkpointed; --resume continues)",
+    )
+    add_seed_options(p)
+    add_task_source_options(p, hold_out_val=True)
+    sections = [f"{s}.FIELD" for s in override_sections(algorithm.config_type) if s]
+    sections.append("a top-level field")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.FIELD=VALUE",
+        help=f"override a field: {', '.join(sections[:-1])} or {sections[-1]} (JSON values)",
+    )
+    add_out_options(p, algorithm)
+    add_progress_option(p, algorithm)
+    p.set_defaults(**COMMAND_DEFAULTS)
+    return p
+
+
+def build_config(args: argparse.Namespace, env: str, *, algorithm: Any = None, **extra) -> Any:
+    """The config of the command line `args` for family `env` and `algorithm` (a registered name
+    or object; default MPC-PEARL), through `mpcpearl_jax.config.resolve` with the algorithm's
+    config type: --preset or --config, or with --resume --out RUN the run's own config (where
+    the command line names no preset: `_resumed_run`); the task source, then --eps,
+    --iterations, --seeds, --seed, --devices, --algo and `extra` (top-level fields; `mpc`: a
+    dict of MPCConfig fields), then --set; checked across fields (`validate`, which `resolve`
+    runs)."""
+    algorithm = algorithm_of(algorithm)
+    if getattr(args, "data", None) is not None and env == "restaurant":
+        raise ConfigError("--data: only the sidewalk env reads a data file")
+    base: Any = args.preset
+    run = _resumed_run(args, env, algorithm)
+    if run is not None and not _names_env(args):  # the family of the run
+        args.env = env = run.env
     if run is not None and isinstance(args.preset, DefaultPreset):  # the run's own config
-        base, args.preset = run, DefaultPreset(recorded_preset(run).split()[0])
+        preset = recorded_preset(run, algorithm).split()[0]
+        base, args.preset = run, DefaultPreset(preset)
     if getattr(args, "config", None) is not None:
         base = read_config(args.config)
         if base.env != env:
@@ -321,17 +436,18 @@ def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfi
     changes = {f"mpc.{k}": v for k, v in extra.pop("mpc", {}).items()}
     changes.update(extra)
     options = (
-        ("train.eps", args.eps),
-        ("train.iterations", getattr(args, "iterations", None)),
+        ("train.eps", getattr(args, "eps", None)),
+        (algorithm.iterations_field, getattr(args, "iterations", None)),
         ("seeds", args.seeds),
         ("seed", args.seed),
         ("devices", getattr(args, "devices", None)),
-        ("pearl.use_context", False if args.algo == "sac" else None),
+        ("pearl.use_context", False if getattr(args, "algo", None) == "sac" else None),
     )
     changes.update({key: value for key, value in options if value is not None})
     cfg = resolve(
         base,
         env,
+        config_type=algorithm.config_type,
         changes=changes,
         overrides=args.set,
         scenarios=getattr(args, "scenarios", None),
@@ -339,41 +455,55 @@ def build_config(args: argparse.Namespace, env: str, **extra) -> ExperimentConfi
         data=getattr(args, "data", None),
     )
     if run is not None and base is not run:
-        _check_same_run(run, cfg, args)
+        _check_same_run(run, cfg, args, algorithm)
     return cfg
 
 
 class DefaultPreset(str):
-    """--preset's value when the command line gives none (a str equal to the preset's name):
-    --resume then continues from the run's own config instead."""
+    """An option's value when the command line gives none (a str equal to the default): --preset
+    (then --resume continues from the run's own config instead), and the --env of an
+    algorithm's own command (then --resume continues on the run's family)."""
 
 
-def _resumed_run(args: argparse.Namespace, env: str) -> ExperimentConfig | None:
+def _names_env(args: argparse.Namespace) -> bool:
+    """Whether the command line names the task family (the task families' commands always do)."""
+    return not isinstance(getattr(args, "env", None), DefaultPreset)
+
+
+def _resumed_run(args: argparse.Namespace, env: str, algorithm: Any) -> Any:
     """With --resume --out RUN (and no --config): RUN's recorded config, which the resume
-    continues from; None otherwise, or where it cannot be read (opening the run names the
+    continues from, where it is `algorithm`'s and of family `env` (any family where the command
+    line names none); None otherwise, or where it cannot be read (opening the run names the
     problem)."""
+    from mpcpearl_jax.errors import CheckpointError
+
     out = getattr(args, "out", None)
     if not getattr(args, "resume", False) or out is None or getattr(args, "config", None):
         return None
     try:
-        run = read_config(Path(out) / "config.json")
-    except (ConfigError, OSError):
+        run = algorithm.kind.load_config(Path(out), True)
+    except (ConfigError, CheckpointError, OSError):
         return None
-    return run if run.env == env else None
+    return run if run.env == env or not _names_env(args) else None
 
 
-def recorded_preset(cfg: ExperimentConfig) -> str:
-    """The preset a run's config was built from: the one whose config differs from it in the
-    fewest fields (the per-run options --iterations, --eps, --seeds, --seed, --algo, --devices
-    and the task source left out), as 'NAME', or 'NAME plus N changed field(s)'."""
+def recorded_preset(cfg: Any, algorithm: Any = None) -> str:
+    """The preset a run's config was built from: the one of its algorithm's presets whose config
+    differs from it in the fewest fields (the per-run options --iterations, --eps, --seeds,
+    --seed, --algo, --devices and the task source left out), as 'NAME', or 'NAME plus N changed
+    field(s)'."""
+    from mpcpearl_jax import algorithms
     from mpcpearl_jax.training.checkpoint import config_differences
 
-    ignore: tuple[str, ...] = ("train.iterations", "train.eps", "seeds", "seed", *RESULT_NEUTRAL)
-    ignore += ("pearl.use_context", "scenarios", "hold_out_val", "data", "env_overrides")
+    algorithm = algorithm or algorithms.of_config(cfg) or algorithm_of()
+    ignore: tuple[str, ...] = (algorithm.iterations_field, "train.eps", "seeds", "seed")
+    ignore += (*RESULT_NEUTRAL, "pearl.use_context", "scenarios", "hold_out_val", "data")
+    ignore += ("env_overrides",)
     counts: dict[str, int] = {}
-    for name in sorted(PRESETS):
+    for name in sorted(algorithm.presets):
         try:
-            counts[name] = len(config_differences(cfg, resolve(name, cfg.env), ignore=ignore))
+            preset = resolve(name, cfg.env, config_type=algorithm.config_type)
+            counts[name] = len(config_differences(cfg, preset, ignore=ignore))
         except (ConfigError, ValueError, TypeError):
             continue
     if not counts:
@@ -382,14 +512,14 @@ def recorded_preset(cfg: ExperimentConfig) -> str:
     return best if counts[best] == 0 else f"{best} plus {counts[best]} changed field(s)"
 
 
-def _check_same_run(run: ExperimentConfig, cfg: ExperimentConfig, args: argparse.Namespace):
+def _check_same_run(run: Any, cfg: Any, args: argparse.Namespace, algorithm: Any) -> None:
     """--resume with another --preset than the run's, giving another config: ConfigError naming
     the run's preset and the fields, and the resume that reads the run's own config (with the
     run's own preset, the session's check names the differing fields)."""
     from mpcpearl_jax.training.checkpoint import config_differences
 
-    diff = config_differences(run, cfg, ignore=("train.iterations", *RESULT_NEUTRAL))
-    started = recorded_preset(run)
+    diff = config_differences(run, cfg, ignore=(algorithm.iterations_field, *RESULT_NEUTRAL))
+    started = recorded_preset(run, algorithm)
     if not diff or started.split()[0] == args.preset:  # the session lists the fields
         return
     shown = ", ".join(diff[:4]) + (f" and {len(diff) - 4} more" if len(diff) > 4 else "")
@@ -401,19 +531,31 @@ def _check_same_run(run: ExperimentConfig, cfg: ExperimentConfig, args: argparse
 
 
 def parse_args(
-    env: str, argv: list[str] | None = None, *, command: str | None = None, from_config=False
+    env: str,
+    argv: list[str] | None = None,
+    *,
+    command: str | None = None,
+    from_config=False,
+    algorithm: Any = None,
+    description: str | None = None,
 ) -> argparse.Namespace:
-    """The training command's arguments. `--env restaurant` or `--env sidewalk` picks that
-    family's task-source options (--scenarios, --data) whatever the command; with `from_config`,
-    so does the family a `--config` file records when no --env is given."""
+    """The training command's arguments (`parser`; `argv` kept as `args.argv`). `--env
+    restaurant` or `--env sidewalk` picks that family's task-source options (--scenarios, --data)
+    whatever the command; with `from_config`, so does the family a `--config` file records when
+    no --env is given. An algorithm's own command offers both."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    algorithm = algorithm_of(algorithm)
+    if algorithm.command is not None:
+        args = parser(env, algorithm=algorithm, description=description).parse_args(argv)
+        args.argv = argv
+        return args
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--env")
     pre.add_argument("--config", type=Path)
     known = pre.parse_known_args(argv)[0]
     family = known.env or (_recorded_env(known.config) if from_config else None)
     options = family if family in ("restaurant", "sidewalk") else env
-    args = parser(options, command=command or env).parse_args(argv)
+    args = parser(options, command=command or env, description=description).parse_args(argv)
     if known.env is None and options != env:
         args.env = options
     args.argv = argv
@@ -431,8 +573,9 @@ def _recorded_env(config: Path | None) -> str | None:
         return None
 
 
-def budget_error(args: argparse.Namespace) -> str | None:
-    """The one-line error of a wrong combination of the budget options, or None."""
+def budget_error(args: argparse.Namespace, learning_curve: bool = True) -> str | None:
+    """The one-line error of a wrong combination of the budget options, or None. Without a
+    `learning_curve`, --minutes only stops the iterations early: it must be positive."""
     if args.minutes is None:
         given = (("--eval-minutes", args.eval_minutes), ("--policy-only", args.policy_only))
         for flag, value in given:
@@ -441,6 +584,8 @@ def budget_error(args: argparse.Namespace) -> str | None:
         return None
     if not (args.minutes > 0 and math.isfinite(args.minutes)):
         return f"--minutes must be positive, got {args.minutes}"
+    if not learning_curve:
+        return None
     if args.eval_minutes is not None and not args.eval_minutes > 0:
         return f"--eval-minutes must be positive, got {args.eval_minutes}"
     if args.iterations is not None:
@@ -461,106 +606,16 @@ def env_family(spec: str, error: type[Exception] = ValueError) -> str:
         raise error(f"--env {e}") from None
 
 
-def grbal_parser(description: str = "GrBAL baseline") -> argparse.ArgumentParser:
-    """The GrBAL command's parser (`python -m experiments.grbal`)."""
-    from mpcpearl_jax.grbal.config import PRESETS as GRBAL_PRESETS
-
-    p = argparse.ArgumentParser(
-        prog="python -m experiments.grbal",
-        description=description,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("--env", default=DefaultPreset("restaurant"), choices=("restaurant", "sidewalk"))
-    p.add_argument("--preset", default=DefaultPreset("default"), choices=sorted(GRBAL_PRESETS))
-    p.add_argument("--iterations", type=int, help="training iterations (fit + collection)")
-    p.add_argument(
-        "--minutes",
-        type=float,
-        help="stop training after this many minutes (checkpointed; --resume continues)",
-    )
-    p.add_argument("--seeds", type=int, help="independent seeds trained in one program")
-    p.add_argument("--seed", type=int, help="base seed (seed s uses seed + s)")
-    add_task_source_options(p, hold_out_val=True)
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="SECTION.FIELD=VALUE",
-        help="override a field: grbal.FIELD, env.FIELD or a top-level field (JSON values)",
-    )
-    p.add_argument("--out", type=Path, help="run directory (default runs/<env>-<preset>-grbal)")
-    add_run_mode_options(p)
-    p.add_argument("--no-progress", action="store_true", help="no line per iteration")
-    return p
-
-
-def build_grbal_config(args: argparse.Namespace):
-    """The GrBAL config of the command line `args` (`config.resolve`)."""
-    from mpcpearl_jax.grbal.config import GrbalExperimentConfig
-
-    if args.data is not None and args.env != "sidewalk":
-        raise ConfigError("--data: only the sidewalk env reads a data file")
-    changes = {
-        key: value
-        for key, value in (
-            ("grbal.iterations", args.iterations),
-            ("seeds", args.seeds),
-            ("seed", args.seed),
-        )
-        if value is not None
-    }
-    run = _resumed_grbal_run(args)
-    if run is not None:  # --resume --out RUN alone: the run's own config
-        args.env, args.preset = run.env, DefaultPreset(_grbal_preset(run))
-        return resolve(run, changes=changes, overrides=args.set)
-    return resolve(
-        args.preset,
-        args.env,
-        config_type=GrbalExperimentConfig,
-        changes=changes,
-        overrides=args.set,
-        scenarios=args.scenarios,
-        hold_out_val=args.hold_out_val,
-        data=args.data,
-    )
-
-
-def _resumed_grbal_run(args: argparse.Namespace):
-    """With --resume --out RUN and neither --preset, --env nor a task source: RUN's recorded
-    GrBAL config (None otherwise, or where it cannot be read: opening the run names it)."""
-    from mpcpearl_jax.errors import CheckpointError
-    from mpcpearl_jax.grbal.run import load_config
-
-    given = not isinstance(args.preset, DefaultPreset) or not isinstance(args.env, DefaultPreset)
-    given = given or args.data is not None or args.scenarios is not None or args.hold_out_val
-    if not args.resume or args.out is None or given:
-        return None
-    try:
-        return load_config(Path(args.out))
-    except (CheckpointError, OSError):
-        return None
-
-
-def _grbal_preset(cfg) -> str:
-    """The GrBAL preset whose settings a run's `grbal` section has (iterations aside)."""
-    import dataclasses
-
-    from mpcpearl_jax.grbal.config import PRESETS as GRBAL_PRESETS
-    from mpcpearl_jax.grbal.config import preset
-
-    own = dataclasses.replace(cfg.grbal, iterations=1)
-    for name in sorted(GRBAL_PRESETS):
-        if dataclasses.replace(preset(name), iterations=1) == own:
-            return name
-    return "its own"
-
-
 def config_from_argv(command: str, argv: list[str]):
-    """The config the training command `command` (restaurant, sidewalk, learning or grbal)
-    builds from `argv`, as that command would (argparse's SystemExit on a command line it
-    refuses, its message printed)."""
-    if command == "grbal":
-        return build_grbal_config(grbal_parser().parse_args(argv))
+    """The config the training command `command` (restaurant, sidewalk, learning, or an
+    algorithm's own: grbal) builds from `argv`, as that command would (argparse's SystemExit on
+    a command line it refuses, its message printed)."""
+    from mpcpearl_jax import algorithms
+
+    own = [algorithms.get(n) for n in algorithms.names() if algorithms.get(n).command == command]
+    if own:
+        args = parse_args("restaurant", argv, algorithm=own[0])
+        return build_config(args, env_family(args.env), algorithm=own[0])
     if command == "learning":
         args = parse_args("restaurant", argv, command="learning", from_config=True)
         return build_config(args, env_family(args.env))

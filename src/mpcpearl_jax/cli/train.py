@@ -1,9 +1,9 @@
-"""The training commands (`python -m experiments.restaurant`, `.sidewalk`, `.learning`,
-`.grbal`): each parses its command line (`cli.args`), calls the one entry `mpcpearl_jax.train`
-with its options and callbacks (`TrainOptions`), prints what they report and chooses the exit
-code: 0 done, 2 a command-line error (config, data, checkpoint, permissions: one line on stderr,
-the traceback with --debug), 1 training diverged, 128 + the signal for a stop (130: Ctrl-C;
-resumable)."""
+"""The training commands (`python -m experiments.restaurant`, `.sidewalk`, `.learning`, and an
+algorithm's own, `.grbal`): one `main` for every registered algorithm (`mpcpearl_jax.algorithms`)
+parses its command line (`cli.args`), calls the one entry `mpcpearl_jax.train` with its options
+and callbacks (`TrainOptions`), prints what they report and chooses the exit code: 0 done, 2 a
+command-line error (config, data, checkpoint, permissions: one line on stderr, the traceback with
+--debug), 1 training diverged, 128 + the signal for a stop (130: Ctrl-C; resumable)."""
 
 from __future__ import annotations
 
@@ -16,24 +16,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-from mpcpearl_jax import algorithms, cli
+from mpcpearl_jax import cli
 from mpcpearl_jax.api.train import TrainOptions, train
-from mpcpearl_jax.cli.args import (
-    budget_error,
-    build_config,
-    build_grbal_config,
-    env_family,
-    grbal_parser,
-    parse_args,
-)
+from mpcpearl_jax.cli.args import algorithm_of, budget_error, build_config, env_family, parse_args
 from mpcpearl_jax.cli.errors import fail_line, one_line_errors
-from mpcpearl_jax.cli.platform import PlatformError, check_platform
+from mpcpearl_jax.cli.platform import check_platform
 from mpcpearl_jax.cli.progress import progress_bar
 from mpcpearl_jax.cli.stopping import exit_interrupted, stop_exit_code, stoppable
 from mpcpearl_jax.cli.tables import curve_summary, print_point
 from mpcpearl_jax.config import ExperimentConfig
-from mpcpearl_jax.errors import ConfigError, RunDirError, TrainingDiverged
+from mpcpearl_jax.errors import RunDirError, TrainingDiverged
 from mpcpearl_jax.evaluation.report import run_label
+from mpcpearl_jax.runfolder import CONFIG_FILE
 from mpcpearl_jax.training.budget import default_label
 from mpcpearl_jax.training.run import RunInterrupted
 
@@ -43,21 +37,33 @@ def main(
     env: str,
     argv: list[str] | None = None,
     *,
+    algorithm: Any = None,
     command: str | None = None,
     from_config: bool = False,
+    description: str | None = None,
     clock=time.perf_counter,
     **extra,
 ) -> int:
-    """The MPC-PEARL training command for family `env` (exit codes: the module doc). `clock`
-    times a --minutes budget (tests give a fake one); `extra`: config fields (`build_config`)."""
+    """The training command of `algorithm` (a registered name or object; default MPC-PEARL) for
+    family `env` (an algorithm's own command: the default of its --env; exit codes: the module
+    doc). `description`: the help's text; `clock` times a --minutes budget (tests give a fake
+    one); `extra`: config fields (`build_config`)."""
     cli.setup()
-    args = parse_args(env, argv, command=command, from_config=from_config)
+    algorithm = algorithm_of(algorithm)
+    args = parse_args(
+        env,
+        argv,
+        command=command,
+        from_config=from_config,
+        algorithm=algorithm,
+        description=description,
+    )
 
     def fail(e: BaseException, code: int = 2) -> int:
         return fail_line(e, code, args.debug)
 
-    if budget_error(args):
-        return fail(ValueError(budget_error(args)))
+    if budget_error(args, algorithm.learning_curve):
+        return fail(ValueError(budget_error(args, algorithm.learning_curve)))
     if args.tensorboard:
         from mpcpearl_jax.training.livelog import LiveLogError, missing
 
@@ -65,26 +71,33 @@ def main(
             return fail(LiveLogError(missing()))
     if args.print_config:
         try:
-            cfg = build_config(args, env_family(args.env), **extra)
+            cfg = build_config(args, env_family(args.env), algorithm=algorithm, **extra)
         except (ValueError, TypeError, OSError) as e:
             return fail(e)
         print(cfg.to_json(), flush=True)
         return 0
-    run = _Run(args, clock)
+    run = _Run(args, clock, algorithm)
     try:  # each check names the field, file or folder; errors and stops as one line
         with one_line_errors(args.debug, interrupted=None) as outcome:
             _initialize(args)  # before any JAX work
             check_platform()  # JAX_PLATFORMS naming a platform this machine lacks: one line
-            family = env_family(args.env)
-            cfg = build_config(args, family, **extra)
-            label = args.label or default_label(family, args.preset, args.algo, cfg.train.eps)
-            out = args.out or Path("runs") / label
+            cfg = build_config(args, env_family(args.env), algorithm=algorithm, **extra)
+            family = cfg.env  # the run's, where a resume continues on it
+            if algorithm.run_folder is None:  # the run's label names its folder
+                label = args.label or default_label(family, args.preset, args.algo, cfg.train.eps)
+                folder: str = label
+            else:  # the algorithm's label names the run
+                label, folder = (
+                    args.label,
+                    algorithm.run_folder.format(env=family, preset=args.preset),
+                )
+            out = run.out = args.out or Path("runs") / folder
             finished = finished_line(out, cfg, args.minutes) if args.resume else None
             if finished is not None:  # nothing to train or evaluate: no file is touched
                 print(finished, flush=True)
                 return 0
             try:
-                _print_start(args, family, cfg, label, out)
+                _print_start(args, algorithm, family, cfg, label or folder, out)
             except BrokenPipeError:
                 return run.output_closed(out, finished=False)
             try:
@@ -100,23 +113,25 @@ def main(
             except BrokenPipeError:
                 return run.output_closed(out, finished=True)
     except KeyboardInterrupt:  # a stop before training, or a second one during it
-        run.close_bar()
-        if run.start is None:  # the session closed what it had opened
-            exit_interrupted("interrupted before training started")
-        print("interrupted; continue with --resume", file=sys.stderr, flush=True)
-        return stop_exit_code()
+        return run.interrupted()
     finally:
         run.close_bar()
     return outcome.code  # type: ignore[return-value]
 
 
 class _Run:
-    """One MPC-PEARL training of the command: `mpcpearl_jax.train` with the command's callbacks
-    (the progress bar, the eval points' lines), then its lines and exit code."""
+    """One training of the command: `mpcpearl_jax.train` with the command's callbacks (the
+    progress bar or the algorithm's line per iteration, the eval points' lines), then its lines
+    and exit code."""
 
-    def __init__(self, args: argparse.Namespace, clock) -> None:
-        self.args, self.clock = args, clock
+    def __init__(self, args: argparse.Namespace, clock, algorithm: Any) -> None:
+        self.args, self.clock, self.algorithm = args, clock, algorithm
+        # a time budget with its learning curve (otherwise --minutes stops the iterations early)
+        self.curve = args.minutes is not None and algorithm.learning_curve
+        self.line = None if args.no_progress else algorithm.progress_line
         self.start: int | None = None  # iterations finished when the session opened
+        self.cfg: Any = None
+        self.out: Path | None = None  # the run folder, once known
         self.info: dict[str, Any] = {}
         self.bar: Any = None
         self.t0 = self.train_s = 0.0
@@ -127,23 +142,31 @@ class _Run:
             self.bar = None
 
     def on_start(self, sess) -> None:
-        self.start, self.t0 = sess.done, time.perf_counter()
-        if self.args.minutes is None and not self.args.no_progress:
+        self.start, self.t0, self.cfg = sess.done, time.perf_counter(), sess.cfg
+        if not self.curve and not self.args.no_progress and self.line is None:
             self.bar = progress_bar(sess.cfg, sess.done)
 
     def on_row(self, row: dict[str, Any]) -> None:
         if self.bar is not None:
             self.bar.row(row)
+        elif self.line is not None:
+            print(self.line(row, self.cfg), flush=True)
 
     def on_trained(self, info: dict[str, Any]) -> None:
         self.close_bar()
         self.info, self.train_s = info, time.perf_counter() - self.t0
-        if info["stopped"] == "done" and self.args.minutes is None:
+        if not self.curve and info["stopped"] == "budget" and self.line is not None:
+            print(
+                f"time budget of {60.0 * self.args.minutes:.0f} s reached after iteration "
+                f"{info['iterations']}",
+                flush=True,
+            )
+        if not self.curve and info["stopped"] in ("done", "budget"):
             if info["iterations"] == self.start:  # a resume of a run stopped in its evaluation
                 print(f"all {self.start} iteration(s) trained before; evaluating", flush=True)
             else:
                 print(f"trained in {self.train_s:.1f} s; evaluating", flush=True)
-        if info["stopped"].startswith("diverged") and self.args.minutes is not None:
+        if info["stopped"].startswith("diverged") and self.curve:
             print(f"error: {info['error']}", file=sys.stderr, flush=True)  # the curve follows
 
     def options(self):
@@ -155,13 +178,32 @@ class _Run:
             eval_minutes=args.eval_minutes,
             policy_only=args.policy_only,
             tensorboard=args.tensorboard,
-            record={"preset": args.preset, "argv": args.argv} if args.minutes is not None else {},
+            record={"preset": args.preset, "argv": args.argv} if self.curve else {},
             clock=self.clock,
             on_start=self.on_start,
             on_row=self.on_row,
             on_point=print_point,
             on_trained=self.on_trained,
         )
+
+    def interrupted(self) -> int:
+        """A stop outside the saved stop of training (during start-up, a second signal, during
+        the final evaluation): its one line and exit code. An algorithm's own command names the
+        command that goes on, by whether the run's config.json is written; the task families'
+        commands say where the run stopped."""
+        self.close_bar()
+        if self.algorithm.command is not None:
+            if self.out is not None and (self.out / CONFIG_FILE).is_file():
+                exit_interrupted(
+                    "interrupted: the same command with --resume continues from the run's last "
+                    "checkpoint (written every checkpoint_interval iterations; from the start if "
+                    "none)"
+                )
+            exit_interrupted("interrupted before the run started; the same command starts it again")
+        if self.start is None:  # the session closed what it had opened
+            exit_interrupted("interrupted before training started")
+        print("interrupted; continue with --resume", file=sys.stderr, flush=True)
+        return stop_exit_code()
 
     def output_closed(self, out: Path, finished: bool) -> int:
         """stdout closed under the command (a pipe's reader gone: `| head`): one line on stderr
@@ -182,7 +224,7 @@ class _Run:
             print(f"error: the output closed (broken pipe); {line}", file=sys.stderr, flush=True)
         return 2
 
-    def stopped(self, e: BaseException, cfg: ExperimentConfig, label: str, out: Path) -> int:
+    def stopped(self, e: BaseException, cfg: Any, label: str | None, out: Path) -> int:
         """A stop signal or a divergence: its line and exit code (or `e` raised again for the
         error ladder: a divergence on iterations, a second stop during training)."""
         args, info = self.args, self.info
@@ -195,29 +237,36 @@ class _Run:
                 )
             print(line, file=sys.stderr, flush=True)
             return stop_exit_code()
-        if isinstance(e, TrainingDiverged) and args.minutes is not None:
+        if isinstance(e, TrainingDiverged) and self.curve:
             return curve_summary(info, label, out)  # its error line printed above
-        if isinstance(e, KeyboardInterrupt) and args.minutes is None and info:
+        own = self.algorithm.command is not None  # its stop lines: `interrupted`
+        if isinstance(e, KeyboardInterrupt) and not self.curve and info and not own:
             print(
                 f"interrupted in the final evaluation; training is saved (iteration "
-                f"{cfg.train.iterations}), not yet evaluated: the same command with --resume "
-                "runs the final evaluation",
+                f"{self.algorithm.iterations(cfg)}), not yet evaluated: the same command with "
+                "--resume runs the final evaluation",
                 file=sys.stderr,
                 flush=True,
             )
             return stop_exit_code()
         raise e
 
-    def report(self, cfg: ExperimentConfig, results: dict, label: str, out: Path) -> int:
+    def report(self, cfg: Any, results: dict, label: str | None, out: Path) -> int:
+        """The results table (and the paper's note that results.json carries), then the curve's
+        summary, or what was trained and how to train longer (the task families' commands), and
+        where the run is."""
         from mpcpearl_jax.distributed import is_primary
         from mpcpearl_jax.evaluation.report import results_table
 
         if results and is_primary():
             print(results_table(results))
-        if self.args.minutes is not None:
+        if results.get("paper_note"):
+            print(results["paper_note"])
+        if self.curve:
             return curve_summary(self.info, label, out)
-        print(trained_line(cfg, self.train_s, self.start or 0, self.info), flush=True)
-        print(LONGER if cfg.env == "restaurant" else LONGER_ANY, flush=True)
+        if self.algorithm.command is None:
+            print(trained_line(cfg, self.train_s, self.start or 0, self.info), flush=True)
+            print(LONGER if cfg.env == "restaurant" else LONGER_ANY, flush=True)
         print(f"results, curves and figures in {out}", flush=True)
         return 0
 
@@ -278,36 +327,33 @@ def _initialize(args: argparse.Namespace) -> None:
         os._exit(2)
 
 
-def _print_start(args: argparse.Namespace, family: str, cfg, label: str, out: Path) -> None:
-    """The command's first line: what it trains, how long, into which folder."""
-    if args.minutes is not None:
+def _print_start(
+    args: argparse.Namespace, algorithm: Any, family: str, cfg, label: str, out: Path
+) -> None:
+    """The command's first line: what it trains, how long, into which folder (and the preset's
+    note, `Algorithm.notes`, where it trains as it is)."""
+    if args.minutes is not None and algorithm.learning_curve:
         from mpcpearl_jax.training.budget import eval_every_minutes
 
         every = eval_every_minutes(args.minutes, args.eval_minutes)
         print(
-            f"[{family}] {run_label(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
+            f"[{family}] {algorithm.label(cfg)} {label}: preset={args.preset} seeds={cfg.seeds} "
             f"budget={args.minutes:g} min, eval every {every:.3g} min "
             f"({'online' if cfg.online_eval else 'adaptation'} protocol), out={out}"
             + (" (resumed)" if args.resume else ""),
             flush=True,
         )
         return
+    summary = f"{algorithm.summary(cfg)} " if algorithm.summary is not None else ""
     print(
-        f"[{family}] {run_label(cfg)} preset={args.preset} seeds={cfg.seeds} "
-        f"iterations={cfg.train.iterations} out={out}",
+        f"[{family}] {algorithm.label(cfg)} preset={args.preset} seeds={cfg.seeds} "
+        f"iterations={algorithm.iterations(cfg)} {summary}out={out}",
         flush=True,
     )
-    if args.preset == "default" and args.config is None and args.iterations is None:
-        print(DEFAULT_NOTE, flush=True)  # its figures are for the preset's 75 iterations
+    note = algorithm.notes.get(args.preset)
+    if note and args.config is None and args.iterations is None:
+        print(note, flush=True)  # its figures are for the preset's own iterations
 
-
-DEFAULT_NOTE = (
-    "the default preset: a first look, 75 iterations, about 4-5 minutes of training on a quiet "
-    "2-core CPU, up to about 8 on a slower or busy one (the README gives the range over ten "
-    "seeds); the "
-    "first iteration compiles, up to a minute of it. Far shorter than the paper's training "
-    "(printed under the results table)"
-)
 
 # the recipe of the five-seed comparison (docs/usage.md, "Training longer")
 LONGER = (
@@ -348,76 +394,3 @@ def trained_line(
         f"gradient steps ({steps:,}), {cfg.seeds} seed(s), trained in {seconds / 60:.1f} min on "
         f"{where}"
     )
-
-
-@stoppable
-def grbal_main(argv: list[str] | None = None, description: str = "GrBAL baseline") -> int:
-    """The GrBAL command (`experiments.grbal`); a stop signal (Ctrl-C, SIGTERM, SIGHUP) ends it
-    with one line and exit code 128 + the signal, the run folder closed. During training the
-    first signal finishes the iteration under way and saves it ("interrupted at iteration N;
-    continue with --resume"); a second one, or one during start-up or the final evaluation,
-    stops at once with the last checkpoint kept."""
-    cli.setup()
-    run: dict[str, Path] = {}  # the run folder, once known
-    try:
-        return _grbal(grbal_parser(description).parse_args(argv), run)
-    except KeyboardInterrupt:
-        if "out" in run and (run["out"] / "config.json").is_file():
-            line = (
-                "interrupted: the same command with --resume continues from the run's last "
-                "checkpoint (written every checkpoint_interval iterations; from the start if none)"
-            )
-        else:
-            line = "interrupted before the run started; the same command starts it again"
-        exit_interrupted(line)
-
-
-def _grbal(args: argparse.Namespace, run: dict[str, Path]) -> int:
-    from mpcpearl_jax.evaluation.report import results_table
-
-    try:
-        check_platform()  # JAX_PLATFORMS naming a platform this machine lacks: one line
-        if args.minutes is not None and not (args.minutes > 0 and args.minutes < float("inf")):
-            raise ConfigError(f"--minutes must be positive, got {args.minutes}")
-        cfg = build_grbal_config(args)
-    except (ConfigError, TypeError, PlatformError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    out = args.out or Path("runs") / f"{args.env}-{args.preset}-grbal"
-    run["out"] = Path(out)
-    g = cfg.grbal
-    print(
-        f"[{args.env}] GrBAL preset={args.preset} seeds={cfg.seeds} iterations={g.iterations} "
-        f"model={'x'.join(map(str, g.hidden))} MPPI {g.num_samples}x{g.mppi_iterations} "
-        f"horizon {g.plan_horizon} out={out}",
-        flush=True,
-    )
-    t0 = time.perf_counter()
-    progress = not args.no_progress
-    line = algorithms.of_config(cfg).progress_line  # type: ignore[union-attr]
-
-    def on_trained(info: dict[str, Any]) -> None:
-        if info["stopped"] == "budget" and progress:
-            print(
-                f"time budget of {60.0 * args.minutes:.0f} s reached after iteration "
-                f"{info['iterations']}",
-                flush=True,
-            )
-        if info["stopped"] in ("done", "budget"):
-            print(f"trained in {time.perf_counter() - t0:.1f} s; evaluating", flush=True)
-
-    options = TrainOptions(
-        resume=args.resume,
-        overwrite=args.overwrite,
-        on_row=(lambda row: print(line(row, cfg), flush=True)) if progress and line else None,
-        on_trained=on_trained,
-    )
-    # errors as one line; a stop signal: the iteration under way finished and saved
-    with one_line_errors(interrupted=None) as outcome:
-        _, results = train(cfg, out, args.minutes, options=options)
-        print(results_table(results))
-        print(results["paper_note"])
-    if outcome.code is not None:
-        return outcome.code
-    print(f"results, curves and figures in {out}", flush=True)
-    return 0

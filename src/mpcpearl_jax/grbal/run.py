@@ -45,14 +45,6 @@ def load_config(run_dir: Path) -> GrbalExperimentConfig:
         raise CheckpointError(f"{path}: not a GrBAL run config ({e})") from e
 
 
-def is_grbal_run(run_dir: Path) -> bool:
-    """Whether `run_dir`'s config.json was written by a GrBAL run (its `method` field)."""
-    try:
-        return json.loads((Path(run_dir) / CONFIG_FILE).read_text()).get("method") == "grbal"
-    except (OSError, json.JSONDecodeError, AttributeError):
-        return False
-
-
 def load_model(run_dir: Path, data: str | None = None) -> tuple[GrbalTrainer, dict]:
     """A GrBAL run's trainer (built from its config.json; `data` replaces the run's data file)
     and what its policy.msgpack holds: {"model": parameters, "norm": input normalisation}, every
