@@ -111,13 +111,22 @@ def test_dagger_diagnostic_runs_tiny(tmp_path: Path, clean_environ) -> None:
     """`lab.diagnostics.dagger` (a diagnostic) with the egocentric, sorted observation:
     labelled
     states accumulate over the rounds (round 0 is the MPC alone, every later round executes the
-    clone on most steps), and the record names the observation options it used."""
+    clone on most steps), and the record names the observation options it used (`--presence`
+    adds the presence entries to the MLP's input) and the clone's parameter count."""
     from lab.diagnostics import dagger
+    from mpcpearl_jax.envs import make_env, make_tasks
 
-    res = dagger.main(["--tiny", "--relative", "--sorted", "--out", str(tmp_path)])
-    record = json.loads((tmp_path / "dagger-relative-sorted-tiny.json").read_text())
+    argv = ["--tiny", "--relative", "--sorted", "--presence", "--out", str(tmp_path)]
+    res = dagger.main(argv)
+    record = json.loads((tmp_path / "dagger-relative-sorted-presence-tiny.json").read_text())
     assert record["config"]["size"] == "tiny" and record["config"]["sorted"]
-    assert res["observation"]["observe_relative"] and res["observation"]["observe_sorted"]
+    assert record["config"]["presence"] and dagger.arm_of(record["config"]) == "mlp + presence"
+    obs = res["observation"]
+    assert obs["observe_relative"] and obs["observe_sorted"] and obs["observe_presence"]
+    env = make_env("restaurant", **obs)
+    o = env.obs_dim(make_tasks("restaurant", "val", 1, config=env.config))
+    h = 128  # the default hidden sizes 128, 128, 128, tanh output of 2
+    assert res["parameters"] == (o + 1) * h + 2 * (h + 1) * h + (h + 1) * 2
     curve = res["curve"]
     assert [row["round"] for row in curve] == [0, 1] and [row["beta"] for row in curve] == [1, 0.5]
     assert 0 < curve[0]["samples"] < curve[1]["samples"] <= 2 * 2 * 80  # two tasks, two rounds

@@ -20,16 +20,17 @@ The observation is the run's (its `env` overrides), plus the egocentric entries 
 representation is the clone's: `--encoder mlp` (one MLP over the flat observation, as the
 policy of `pearl.crowd_encoder` "none") or `--encoder attention` (the policy's crowd encoder,
 `pearl.networks.CrowdEncoder`, in front of the same MLP; it adds `env.observe_relative` and
-`env.observe_presence`), with `--forecast K` the people's constant-velocity positions K points
+`env.observe_presence`; `--presence` adds the presence entries to the MLP's observation), with
+`--forecast K` the people's constant-velocity positions K points
 ahead (`env.observe_forecast`, every `--stride` steps). `--labels N` drives N times as many
 tasks per round (each training layout with N crowds drawn for the round), so N times the labels
 at the same number of rounds; `--seed` moves the DAgger mixture, the noise, the minibatches and
 the clone's initialisation (the tasks and crowds stay the same, so arms are paired).
 
     python -m lab.diagnostics.dagger [--tiny] [--relative] [--sorted] [--encoder mlp|attention]
-    [--forecast K] [--stride S] [--labels N] [--seed S] [--rounds N] [--out DIR]
+    [--presence] [--forecast K] [--stride S] [--labels N] [--seed S] [--rounds N] [--out DIR]
 
-The record, DIR/dagger[-relative][-sorted][-ENCODER][-forecastKxS][-labelsN][-tiny][-roundsN]
+The record (with the clone's parameter count), DIR/dagger[-relative][-sorted][-ENCODER|-presence][-forecastKxS][-labelsN][-tiny][-roundsN]
 [-hiddenAxB][-runNAME][-seedS].json, names every setting that is not the default, so runs of
 another size or setting never replace each other's records.
 
@@ -91,6 +92,8 @@ def record_name(args) -> str:
             name += f"-tables{args.static}"
         if args.layers != 2:
             name += f"-layers{args.layers}"
+    elif args.presence:
+        name += "-presence"
     if args.forecast:
         name += f"-forecast{args.forecast}x{args.stride}"
     if args.labels != 1:
@@ -114,6 +117,8 @@ def arm_of(config: dict) -> str:
         enc += f" (dim {dim})" if (enc, dim) != ("attention", 64) else ""
         enc += ", tables flat" if config.get("static", "pool") == "flat" else ""
         enc += f", {config['layers']} layer(s)" if config.get("layers") not in (None, 2) else ""
+    elif config.get("presence"):
+        enc += " + presence"
     arm = enc + (
         f" + forecast {config['forecast']}x{config['stride']}" if config.get("forecast") else ""
     )
@@ -324,6 +329,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--dim", type=int, default=64, help="pearl.crowd_dim of a crowd encoder")
     p.add_argument("--layers", type=int, default=2, help="pearl.crowd_layers (deepsets, sarl)")
     p.add_argument("--static", choices=("pool", "flat"), default="pool", help="pearl.crowd_static")
+    p.add_argument(
+        "--presence",
+        action="store_true",
+        help="add env.observe_presence (a crowd encoder always has it)",
+    )
     p.add_argument("--forecast", type=int, default=0, help="env.observe_forecast (points ahead)")
     p.add_argument("--stride", type=int, default=1, help="env.forecast_stride (steps per point)")
     p.add_argument("--labels", type=int, default=1, help="tasks per round, x the size's")
@@ -364,6 +374,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         overrides["observe_relative"] = True
     if args.sorted:
         overrides["observe_sorted"] = True
+    if args.presence:
+        overrides["observe_presence"] = True
     if args.encoder != "mlp":
         overrides.update(observe_relative=True, observe_presence=True)
     if args.forecast:
@@ -471,6 +483,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     results = {
         "run": run_name(args.run),
         "observation": overrides,
+        "parameters": int(sum(np.size(a) for a in jax.tree_util.tree_leaves(prm))),
         "curve": curve,
         "final": {"per_task_seed": per_seed, "blind_per_task_seed": blind_seed, "mean": pooled},
     }
@@ -480,6 +493,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "hidden": list(hidden),
         "relative": args.relative,
         "sorted": args.sorted,
+        "presence": args.presence or args.encoder != "mlp",
         "encoder": args.encoder,
         "dim": args.dim if args.encoder != "mlp" else None,
         "static": args.static if args.encoder != "mlp" else None,
