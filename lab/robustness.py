@@ -19,7 +19,6 @@ in one process so that each run's evaluator is compiled once. A record that exis
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -51,10 +50,9 @@ def committed_runs(results: Path) -> list[Path]:
 
 def _is_grbal(run: Path) -> bool:
     """A GrBAL run: a dynamics model planned with MPPI, evaluated by experiments.grbal."""
-    try:
-        return json.loads((run / "config.json").read_text()).get("method") == "grbal"
-    except (OSError, ValueError):
-        return False
+    from mpcpearl_jax import algorithms
+
+    return algorithms.of_run(run) is algorithms.GRBAL
 
 
 def record_path(run: Path | None, text: str) -> Path:
