@@ -12,8 +12,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from mpcpearl_jax import compilation_cache as cc
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -134,21 +132,3 @@ def test_a_second_process_reads_the_program_the_first_one_compiled(tmp_path):
     code = _PROGRAM.replace("folder.iterdir()", "[]")
     fresh = json.loads(_python(code, "off", XDG_CACHE_HOME=str(xdg), JAX_COMPILATION_CACHE_DIR=""))
     assert fresh["sum"] == first["sum"] and fresh["hits"] == 0 and not xdg.exists()
-
-
-@pytest.mark.slow
-def test_the_benchmark_runs_tiny(tmp_path):
-    """`benchmarks.compile_cache --tiny`: two smoke trainings on one new cache; the second run
-    finds the first one's entries (it writes fewer than the first did)."""
-    out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "benchmarks.compile_cache", "--tiny", "--out", str(out)]
-    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1200)
-    assert done.returncode == 0, done.stderr
-    rec = json.loads((out / "compile_cache.json").read_text())["results"]
-    first, second = rec["runs"]["first"], rec["runs"]["second"]
-    assert first["cache_after"]["entries"] > 0
-    grown = second["cache_after"]["entries"] - first["cache_after"]["entries"]
-    assert 0 <= grown < first["cache_after"]["entries"]
-    assert rec["ratio_first_iteration"] == pytest.approx(
-        second["first_iteration_s"] / first["first_iteration_s"]
-    )
