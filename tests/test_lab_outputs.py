@@ -22,6 +22,7 @@ DIAGNOSTICS = {
 
 def _dagger_args(**kw) -> argparse.Namespace:
     args = dict(relative=True, sorted=True, encoder="mlp", forecast=0, stride=1, labels=1, seed=0)
+    args.update(presence=False)
     args.update(tiny=False, full=False, rounds=None, hidden="128,128,128", run=dagger.DEFAULT_RUN)
     return argparse.Namespace(**{**args, **kw})
 
@@ -38,6 +39,7 @@ def test_dagger_names_its_record_by_size_rounds_hidden_and_run() -> None:
     assert name(rounds=5) == "dagger-relative-sorted-rounds5"
     assert name(hidden="64,64") == "dagger-relative-sorted-hidden64x64"
     assert name(run=Path("runs/mine")) == "dagger-relative-sorted-run-mine"
+    assert name(presence=True) == "dagger-relative-sorted-presence"
     assert (
         len({name(), name(tiny=True), name(rounds=5), name(hidden="64"), name(run=Path("x"))}) == 5
     )
