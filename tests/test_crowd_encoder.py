@@ -236,6 +236,44 @@ def _tiny_crowd_cfg():
     )
 
 
+@pytest.mark.parametrize("kind", ["attention", "deepsets", "sarl", "none"])
+def test_a_loaded_encoder_policy_acts_on_an_empty_batch(tmp_path, kind):
+    """`load_policy` of a run with a crowd encoder: a batch of no observations gives no actions,
+    shape (0, 2), from `act`, `__call__` and `jit()`'s act, as the MLP policy ("none") and the
+    exported policy do (the entities' reshape inferred a size from the batch's 0 elements: a
+    ZeroDivisionError). A batch of observations acts as the networks do."""
+    from mpcpearl_jax import load_policy
+    from mpcpearl_jax.runfolder import POLICY_FILE, save_config, save_network, save_params
+
+    cfg = _tiny_crowd_cfg()
+    cfg = dataclasses.replace(cfg, pearl=cfg.pearl.replace(crowd_encoder=kind))
+    env = make_env(cfg.env, **cfg.env_overrides)
+    tasks = make_tasks(cfg.env, "train", 0, config=env.config)
+    nets = Networks(cfg.pearl, env.obs_dim(tasks), 2, env.obs_layout(tasks))
+    params = nets.init(jax.random.PRNGKey(0))
+    run = tmp_path / "run"
+    save_config(run, cfg)
+    save_network(run, nets)
+    per_seed = {k: params[k] for k in ("policy", "encoder")}
+    save_params(
+        run / POLICY_FILE, jax.tree_util.tree_map(lambda x: jnp.stack([x] * cfg.seeds), per_seed)
+    )
+    policy = load_policy(run)
+    assert (policy.nets.crowd is None) == (kind == "none")
+    obs, z = jnp.zeros((0, policy.obs_dim)), jnp.zeros((0, policy.latent_dim))
+    context = jnp.zeros((3, policy.context_dim))
+    act, _ = policy.jit()
+    assert policy.act(obs, z).shape == (0, 2)
+    assert policy.act(obs, z, jax.random.PRNGKey(0)).shape == (0, 2)
+    assert policy(obs, context).shape == (0, 2)
+    assert act(obs, z).shape == (0, 2)
+    none_of_two = jnp.zeros((2, 0, policy.obs_dim)), jnp.zeros((2, 0, policy.latent_dim))
+    assert policy.act(*none_of_two).shape == (2, 0, 2)
+    some = jnp.asarray(_some_obs(env, tasks, 2))
+    zs = jnp.ones((len(some), policy.latent_dim))
+    np.testing.assert_array_equal(policy.act(some, zs), nets.act(params["policy"], some, zs, None))
+
+
 @pytest.mark.slow  # trains (~70 s); fast sibling: test_spec_round_trip_and_errors
 def test_a_trained_crowd_policy_loads_and_exports(tmp_path):
     """A tiny training with the encoder: `load_policy` rebuilds it from the run folder alone and
