@@ -238,14 +238,17 @@ def report(folder: Path) -> dict[str, Any]:
 
 
 def _score(final: dict, key: str) -> float | None:
-    """A record's final score `key` as a float; None where it is missing or null (a
-    non-finite value, as the project writes it)."""
+    """A record's final score `key` as a float; None where it is missing or not finite (null,
+    as the run records write a non-finite value, or NaN / Infinity, as a record written by
+    `json.dumps` holds it), so that a report never averages a NaN into an arm."""
+    import math
+
     x = final.get(key)
     if x is None:
         return None
     if isinstance(x, bool) or not isinstance(x, (int, float)):
         raise TypeError(f"results.final.mean.{key} is {x!r}, not a number")
-    return float(x)
+    return float(x) if math.isfinite(x) else None
 
 
 def check_memory(sz: dict, labels: int, obs_dim: int, horizon: int) -> None:
