@@ -156,3 +156,61 @@ def test_dagger_report_names_a_missing_folder_as_missing(tmp_path, capsys):
     _fails(capsys, dagger.main, ["--report", str(tmp_path)], "no DAgger record")
     (tmp_path / "dagger-bad.json").write_text(json.dumps({"config": {}, "results": {}}))
     _fails(capsys, dagger.main, ["--report", str(tmp_path)], "dagger-bad.json", "not a DAgger")
+
+
+def test_dagger_report_leaves_out_a_non_finite_sr_as_it_does_null(tmp_path, capsys):
+    """A record written by `json.dumps` holds a non-finite score as NaN, not null: the report
+    leaves it out with the same line instead of averaging NaN into the arm; a NaN score with
+    nobody observed is '-' (not measured), as null is."""
+    from lab.diagnostics import dagger
+
+    _record(tmp_path, "dagger-s0", 0.2)
+    _record(tmp_path, "dagger-s1", float("nan"), seed=1)
+    _record(tmp_path, "dagger-s2", 0.4, seed=2)
+    blind = json.loads((tmp_path / "dagger-s2.json").read_text())
+    blind["results"]["final"]["mean"]["SR_blind"] = float("inf")
+    (tmp_path / "dagger-s2.json").write_text(json.dumps(blind))
+    rows = dagger.report(tmp_path)["arms"]
+    assert [r["val_SR"] for r in rows] == [[0.2, 0.4]]
+    assert rows[0]["mean"] == pytest.approx(0.3)
+    assert rows[0]["val_SR_blind"] == [None, None]
+    err = capsys.readouterr().err
+    assert "skipped" in err and "dagger-s1.json" in err and "nan" in err
+    assert "nan" not in (tmp_path / "README.md").read_text()
+
+
+def _scenarios(root: Path) -> Path:
+    """A scenarios folder of the authors' layout: 205 tasks of random people."""
+    import numpy as np
+
+    from mpcpearl_jax.envs.restaurant import scenarios as sc
+
+    (root / sc.MAIN_FILE).parent.mkdir(parents=True)
+    people = np.random.default_rng(0).uniform(-4.5, 4.5, size=(205, 2, 81, 6))
+    np.save(root / sc.MAIN_FILE, people)
+    return root
+
+
+def test_fallback_runs_inputs_are_one_line_before_the_rollout(tmp_path, capsys):
+    """lab.diagnostics.fallback_runs: a scenarios folder that is not there, a task index outside
+    the scenarios (999 was an IndexError, -1 silently the last task), a bad --set and an --out
+    that cannot be written (found only after the rollout) are each one line naming the flag."""
+    from lab.diagnostics import fallback_runs
+
+    data = _scenarios(tmp_path / "data")
+    out = tmp_path / "rec" / "fallback-runs.json"
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+
+    def fails(argv: list[str], *names: str) -> str:
+        return _fails(capsys, fallback_runs.main, argv, *names)
+
+    ok = ["--scenarios", str(data), "--out", str(out)]
+    fails(["--scenarios", str(tmp_path / "none"), "--tasks", "0", "--out", str(out)], "--scenarios")
+    fails([*ok, "--tasks", "0", "999"], "--tasks 999", "0-204")
+    fails([*ok, "--tasks", "-1"], "--tasks -1", "0-204")
+    fails([*ok, "--tasks", "0", "--set", "nosuch=1"], "--set nosuch=1", "nosuch")
+    argv = ["--scenarios", str(data), "--tasks", "0", "--out"]
+    fails([*argv, str(afile / "x.json")], "--out", "a file is where a folder should be")
+    fails([*argv, str(tmp_path)], "--out", "a folder")
+    assert not out.exists() and afile.read_text() == "x"

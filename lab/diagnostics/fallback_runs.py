@@ -37,17 +37,38 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=OUT / "fallback-runs.json")
     args = ap.parse_args(argv)
 
+    from lab import harness
+    from mpcpearl_jax.validate import unwritable_folder
+
+    # the record's place is checked before the rollout: it is written once every task has run
+    if args.out.is_dir():
+        harness.fail(f"--out {args.out}: a folder; give the record's file name (NAME.json)")
+    why = unwritable_folder(args.out.parent)
+    if why is not None:
+        harness.fail(f"--out {args.out}: not writable ({why}); choose another --out")
+
     import jax
 
     from mpcpearl_jax.config import apply_overrides
     from mpcpearl_jax.envs import make_env, mpc_defaults
+    from mpcpearl_jax.errors import ConfigError, DataFormatError
     from mpcpearl_jax.mpc import HostSolver, MPCBridge, MPCConfig, SQPSolver, make_gp_mpc_rollout
     from mpcpearl_jax.mpc.problem import solver_params, starts
     from mpcpearl_jax.mpc.rows import FALLBACK_PLAN, FALLBACK_POLICY
 
     env = make_env("restaurant")
-    cfg = apply_overrides(MPCConfig(**mpc_defaults("restaurant")), args.set)
-    tasks = _scenario_tasks(env, args.scenarios)
+    try:
+        cfg = apply_overrides(MPCConfig(**mpc_defaults("restaurant")), args.set)
+    except ConfigError as e:
+        harness.fail(str(e))
+    try:
+        tasks = _scenario_tasks(env, args.scenarios)
+    except (OSError, DataFormatError) as e:
+        harness.fail(f"--scenarios: {e}")
+    n = len(tasks.start)
+    outside = [str(t) for t in args.tasks if not 0 <= t < n]
+    if outside:
+        harness.fail(f"--tasks {' '.join(outside)}: the {n} scenarios are indices 0-{n - 1}")
     tasks = jax.tree_util.tree_map(lambda a: a[np.asarray(args.tasks)], tasks)
     log: list[list[dict]] = []
 
