@@ -49,3 +49,23 @@ def test_grown_fields_compares_with_the_defaults():
         "pearl.crowd_dim=128",
         "pearl.hidden=300,300,300,300",
     ]
+
+
+def test_grbal_memory_check_names_the_model_width_that_grew(tmp_path, capsys, monkeypatch):
+    """GrBAL's check blamed the planner and the buffers (grbal.plan_horizon, num_samples,
+    buffer_episodes, the seeds) for a model made too wide by grbal.hidden: the model's width is
+    now named first when the model and its optimizer are the larger part."""
+    from experiments import grbal
+    from mpcpearl_jax.training import resources
+
+    monkeypatch.setattr(resources, "free_bytes", lambda: 2**30)
+    out = tmp_path / "run"
+    argv = ["--preset", "smoke", "--no-progress", "--out", str(out)]
+    assert grbal.main([*argv, "--set", "grbal.hidden=[20000,20000]"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: grbal.hidden=20000,20000, or "), err
+    assert "grbal.num_samples" in err[0] and "model and optimizer" in err[0]
+    assert grbal.main([*argv, "--set", "grbal.buffer_episodes=1000000"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: grbal.plan_horizon, "), err
+    assert "grbal.hidden" not in err[0] and not out.exists()

@@ -19,11 +19,17 @@ import numpy as np
 from mpcpearl_jax.errors import CheckpointError
 from mpcpearl_jax.evaluation.metrics import METRIC_NAMES
 from mpcpearl_jax.evaluation.report import PAPER, plot_learning_curves
-from mpcpearl_jax.grbal.config import GrbalExperimentConfig
+from mpcpearl_jax.grbal.config import GrbalConfig, GrbalExperimentConfig
 from mpcpearl_jax.grbal.trainer import GrbalState, GrbalTrainer
 from mpcpearl_jax.runfolder import CONFIG_FILE, LOG_FILE, read_log, write_json
 from mpcpearl_jax.training.loop import Progress
-from mpcpearl_jax.training.resources import check_fits, tree_bytes
+from mpcpearl_jax.training.resources import (
+    _size,
+    check_fits,
+    dataclass_defaults,
+    grown_fields,
+    tree_bytes,
+)
 from mpcpearl_jax.training.run import Session
 
 LABEL = "GrBAL"
@@ -119,15 +125,24 @@ GRBAL = GrbalRun()
 def _check_memory(trainer: GrbalTrainer) -> None:
     """The state (model, optimizer, per-task buffers) and MPPI's sampled sequences (every env of
     a collection or an evaluation batch holds num_samples x plan_horizon actions, noise and
-    costs) must fit in memory: ConfigError naming the fields otherwise."""
+    costs) must fit in memory: ConfigError naming the fields otherwise, the model's width
+    (grbal.hidden, when above its default) first when the model and its optimizer are the
+    larger part."""
     g, seeds = trainer.cfg.grbal, trainer.cfg.seeds
     envs = seeds * max(
         g.tasks_per_iteration * g.episodes_per_task, int(trainer.test_tasks.start.shape[0])
     )
     planner = envs * g.num_samples * g.plan_horizon * (3 * 2 + 2) * 4
-    state = tree_bytes(jax.eval_shape(trainer.init_state)) // jax.process_count()
-    fields = "grbal.plan_horizon, grbal.num_samples, grbal.buffer_episodes or the seeds"
-    check_fits(state + planner, "the state and the MPPI samples", fields)
+    shapes = jax.eval_shape(trainer.init_state)
+    state = tree_bytes(shapes) // jax.process_count()
+    model = (tree_bytes(shapes.params) + tree_bytes(shapes.opt_state)) // jax.process_count()
+    data = "grbal.plan_horizon, grbal.num_samples, grbal.buffer_episodes or the seeds"
+    width = grown_fields({"hidden": g.hidden}, dataclass_defaults(GrbalConfig), "grbal")
+    parts = [data, *width] if state - model + planner >= model else [*width, data]
+    what = "the state and the MPPI samples"
+    if width:
+        what += f" (model and optimizer {_size(model)}, the rest {_size(state - model + planner)})"
+    check_fits(state + planner, what, ", or ".join(parts))
 
 
 def train_iterations(
