@@ -20,10 +20,11 @@ not the whole split (--tasks, --max-tasks; tasks A to B - 1, or _tasksI+J+K when
 consecutive), then each of --preset (other than paper), --seed,
 --sample-seed (other than 0) and --set, so runs with other settings keep their own records; a
 record of the same name made with other settings (another --scenarios, --data or --env module) is
-never replaced without --overwrite, checked before the rollout. A stop signal (Ctrl-C,
-SIGTERM, SIGHUP) ends it with one line and exit code 128 + the signal, nothing written; the
-rollout of all tasks is one program, so the stop takes effect when it ends (--tasks makes it
-shorter).
+never replaced without --overwrite, checked before the rollout. The figure is named after its
+record, `<record's name>_taskI.png` (task I of the split), so it is replaced only with it. A
+stop signal (Ctrl-C, SIGTERM, SIGHUP) ends it with one line and exit code 128 + the signal,
+nothing written; the rollout of all tasks is one program, so the stop takes effect when it ends
+(--tasks makes it shorter).
 """
 
 from __future__ import annotations
@@ -190,7 +191,7 @@ def _main(argv: list[str] | None) -> int:
     }
     with one_line_errors(interrupted=None) as failed:  # written before anything is printed
         path.write_text(json.dumps(record, indent=2))
-        png = _plot(args, s.env_config, tasks, traj, plot, ids[plot])
+        png = _plot(args, path, s.env_config, tasks, traj, plot, ids[plot])
     if failed.code is not None:
         return failed.code
     which = f"{first} to {last}" if _consecutive(ids) else ",".join(map(str, ids))
@@ -279,8 +280,14 @@ def probe_out(out: Path) -> None:
         raise OSError(f"--out {out}: not writable ({why}); choose another --out")
 
 
-def _plot(args, env_config, tasks, traj, i: int, task: int) -> Path:
-    """The trajectory of tasks[i], the split's task `task`: its figure's path."""
+def figure_path(record: Path, task: int) -> Path:
+    """The trajectory figure of the split's task `task` beside `record`, named after it (a run of
+    other settings, which names its record otherwise, never replaces the figure)."""
+    return record.with_name(f"{record.stem}_task{task}.png")
+
+
+def _plot(args, record: Path, env_config, tasks, traj, i: int, task: int) -> Path:
+    """The trajectory of tasks[i], the split's task `task`: its figure's path (`figure_path`)."""
     import jax
 
     from mpcpearl_jax.envs import save_trajectory
@@ -288,7 +295,7 @@ def _plot(args, env_config, tasks, traj, i: int, task: int) -> Path:
     params = jax.tree_util.tree_map(lambda a: a[i], tasks)
     png = save_trajectory(
         args.env,
-        args.out / f"{args.env}_{args.split}_task{task}.png",
+        figure_path(record, task),
         params,
         {"GP-MPC": (traj["position"][i], traj["collision"][i])},
         env_config,

@@ -133,6 +133,71 @@ def test_gp_mpc_never_replaces_a_record_of_other_settings(tmp_path, capsys):
     ]
 
 
+def _stub_gp_mpc_rollout(monkeypatch, seen: list) -> None:
+    """The GP-MPC rollout replaced by a straight line from start to goal per task (no MPC, no
+    compilation): what is tested is what the command writes and prints around it."""
+    import numpy as np
+
+    from mpcpearl_jax.api import evaluate as api
+
+    def run_setup(s, eval_seed, episodes=None, online=False):
+        seen.append(s.mpc)
+        start, goal = np.asarray(s.tasks.start)[:, :2], np.asarray(s.tasks.goal)
+        w = np.linspace(0.0, 1.0, s.env_config.horizon + 1)[None, :, None]
+        steps = (1, len(start), s.env_config.horizon)
+        result = {
+            "position": (start[:, None] + w * (goal - start)[:, None])[None],
+            "collision": np.zeros(steps, bool),
+            "in_goal": np.zeros(steps, bool),
+        }
+        stats = {"status": {"solved": 1}, "reasons": {}, "sqp_stops": {}, "starts": {}}
+        return {"wall_s": 0.1}, result, {**stats, "solve_s": [0.01, 0.02]}
+
+    monkeypatch.setattr(api, "run_setup", run_setup)
+
+
+def test_gp_mpc_runs_of_other_settings_keep_their_figures(tmp_path, capsys, monkeypatch):
+    """The trajectory figure was named by family, split and task only: a run with another
+    --preset into the same --out kept its record apart but replaced the earlier run's figure. It
+    is named after its record now (the default's name unchanged). The second run's standard
+    output breaks after one line (`| head -1`): both files are written first, then one line on
+    stderr, exit 2."""
+    import errno
+    import sys
+
+    from test_evaluate_cli import _BrokenStdout
+
+    from experiments import gp_mpc
+
+    seen: list = []
+    _stub_gp_mpc_rollout(monkeypatch, seen)
+    out = tmp_path / "g"
+    assert gp_mpc.main(["--split", "test", "--out", str(out)]) == 0
+    first = (out / "restaurant_test_task0.png").read_bytes()
+    capsys.readouterr()
+    stdout = _BrokenStdout(BrokenPipeError(errno.EPIPE, "Broken pipe"), lines=1)
+    with monkeypatch.context() as m:
+        m.setattr(sys, "stdout", stdout)
+        argv = ["--split", "test", "--max-tasks", "2", "--preset", "default", "--out", str(out)]
+        code = gp_mpc.main(argv)
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err == (
+        "error: standard output: Broken pipe; the record and the figure are written"
+    )
+    assert stdout.text.startswith("GP-MPC on restaurant/test: 2 tasks (0 to 1)")
+    assert sorted(p.name for p in out.iterdir()) == [
+        "restaurant_test.json",
+        "restaurant_test_task0.png",
+        "restaurant_test_tasks0-2_preset-default.json",
+        "restaurant_test_tasks0-2_preset-default_task0.png",
+    ]
+    assert (out / "restaurant_test_task0.png").read_bytes() == first
+    assert len(seen) == 2 and seen[0] != seen[1]  # the two presets' MPC settings
+    record = json.loads((out / "restaurant_test_tasks0-2_preset-default.json").read_text())
+    assert record["preset"] == "default" and record["tasks"] == [0, 2]
+    assert gp_mpc.figure_path(out / "restaurant_test.json", 3) == out / "restaurant_test_task3.png"
+
+
 def test_compare_names_the_runs_with_labels(tmp_path, capsys):
     """`lab.compare --labels`: one name per run in the figure and summary; a wrong count
     is a one-line error."""

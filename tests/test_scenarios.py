@@ -264,7 +264,7 @@ def test_gp_mpc_runs_a_range_of_the_180_training_scenarios(tmp_path, synthetic, 
     rec = json.loads((out / "restaurant_train_tasks178-180.json").read_text())
     assert rec["split"] == "train" and rec["tasks"] == [178, 180]
     assert len(rec["per_task"]["in_goal"]) == 2
-    assert (out / "restaurant_train_task178.png").is_file()
+    assert (out / "restaurant_train_tasks178-180_task178.png").is_file()  # named after it
 
 
 @pytest.mark.slow  # a training on the authors' scenarios (~60 s); their loading is tested fast
