@@ -106,3 +106,49 @@ def test_the_options_are_one_list_that_the_signatures_show(tmp_path):
     with pytest.raises(TypeError, match=r"^prepare\(\) got an unexpected keyword argument 'x'"):
         prepare(controller="gp-mpc", x=1)
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [
+        ("episodes", "2"),
+        ("seed_index", "0"),
+        ("eval_seed", 1.5),
+        ("online", "yes"),
+        ("overwrite", 1),
+        ("tasks", 5),
+        ("mpc", "sqp_iters=2"),
+        ("eps", "0.5"),
+        ("out", 3),
+        ("shield", "on"),
+    ],
+)
+def test_a_wrong_type_is_a_type_error_naming_the_option(option, value, tmp_path):
+    """An option of the wrong type was a bare comparison error inside the evaluation ('<' not
+    supported between 'str' and 'int'), or taken ("yes" as online): a TypeError naming the
+    option and what it takes, before anything is loaded or written."""
+    from mpcpearl_jax.api.evaluate import EvaluationOptions, prepare
+
+    match = rf"^evaluate\(\): {option} must be .*, not {type(value).__name__} "
+    with pytest.raises(TypeError, match=match):
+        mpcpearl_jax.evaluate(RUN, **{"tasks": [0], "out": tmp_path / "o", option: value})
+    with pytest.raises(TypeError, match=rf"^prepare\(\): {option} must be "):
+        prepare(RUN, **{option: value})
+    with pytest.raises(TypeError, match=rf"^EvaluationOptions: {option} must be "):
+        EvaluationOptions(**{option: value})
+    assert not (tmp_path / "o").exists()
+
+
+def test_the_types_the_callers_pass_are_taken():
+    """Task lists as lists, ranges or NumPy arrays, NumPy ints, MPC changes as a list or a
+    mapping, paths as strings or Paths."""
+    import numpy as np
+
+    from mpcpearl_jax.api.evaluate import prepare
+
+    gp = prepare(controller="gp-mpc", tasks=np.arange(2), mpc={"sqp_iters": 2}, figures="none")
+    assert gp.setup.task_ids == [0, 1]
+    gp = prepare(controller="gp-mpc", tasks=range(1, 3), mpc=["sqp_iters=2"], eval_seed=np.int64(3))
+    assert gp.setup.task_ids == [1, 2]
+    policy = prepare(str(RUN), tasks="0-2", episodes=np.int32(1), seed_index=0, shield=True)
+    assert policy.setup.task_ids == [0, 1, 2]

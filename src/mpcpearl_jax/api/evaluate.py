@@ -100,7 +100,16 @@ class EvaluationOptions:
         for name in options:
             if name not in names:
                 raise TypeError(f"{caller}() got an unexpected keyword argument {name!r}")
+        why = _wrong_type(options)
+        if why is not None:
+            raise TypeError(f"{caller}(): {why}")
         return cls(**options)
+
+    def __post_init__(self) -> None:
+        """Each option's type checked when built: TypeError naming the option."""
+        why = _wrong_type(self.arguments())
+        if why is not None:
+            raise TypeError(f"EvaluationOptions: {why}")
 
     @classmethod
     def names(cls) -> tuple[str, ...]:
@@ -110,6 +119,59 @@ class EvaluationOptions:
     def arguments(self) -> dict[str, Any]:
         """The options as keyword arguments (the values as given, not copied)."""
         return {name: getattr(self, name) for name in self.names()}
+
+
+def _wrong_type(options: Mapping[str, Any]) -> str | None:
+    """The first of `options` (EvaluationOptions' names) whose type is wrong, as "NAME must be
+    EXPECTED, not TYPE VALUE"; None when each is of its type (the values are checked later)."""
+    import numbers
+    import os
+
+    def integer(x: Any) -> bool:
+        return isinstance(x, numbers.Integral) and not isinstance(x, bool)
+
+    def text_or_ints(x: Any) -> bool:
+        return isinstance(x, str) or (
+            hasattr(x, "__len__") and not isinstance(x, Mapping) and all(integer(i) for i in x)
+        )
+
+    def strings(x: Any) -> bool:
+        return isinstance(x, Mapping) or (
+            isinstance(x, (list, tuple)) and all(isinstance(i, str) for i in x)
+        )
+
+    ints = "a text like '0-9,12' or a list of ints"
+    kinds: dict[str, tuple[Callable[[Any], bool], str]] = {
+        "online": (lambda x: isinstance(x, bool), "True or False"),
+        "animate": (lambda x: isinstance(x, bool), "True or False"),
+        "overwrite": (lambda x: isinstance(x, bool), "True or False"),
+        "eval_seed": (integer, "an int"),
+        "episodes": (lambda x: x is None or integer(x), "an int (or None)"),
+        "task_seed": (lambda x: x is None or integer(x), "an int (or None)"),
+        "seed_index": (lambda x: x is None or integer(x), "an int (or None)"),
+        "eps": (
+            lambda x: x is None or (isinstance(x, numbers.Real) and not isinstance(x, bool)),
+            "a number (or None)",
+        ),
+        "controller": (lambda x: isinstance(x, str), "a string"),
+        "split": (lambda x: isinstance(x, str), "a string"),
+        "perturb": (lambda x: isinstance(x, str), "a string"),
+        "env": (lambda x: x is None or isinstance(x, str), "a string (or None)"),
+        "preset": (lambda x: x is None or isinstance(x, str), "a string (or None)"),
+        "tasks": (text_or_ints, f"'all', {ints}"),
+        "task_seeds": (lambda x: x is None or text_or_ints(x), f"{ints} (or None)"),
+        "figures": (lambda x: x is None or text_or_ints(x), f"'none', {ints} (or None)"),
+        "mpc": (strings, "a mapping or a list of 'FIELD=VALUE' strings"),
+        "shield": (lambda x: isinstance(x, (bool, ShieldConfig)), "True, False or a ShieldConfig"),
+        "scenarios": (lambda x: x is None or isinstance(x, (str, os.PathLike)), "a path (or None)"),
+        "data": (lambda x: x is None or isinstance(x, (str, os.PathLike)), "a path (or None)"),
+        "out": (lambda x: x is None or isinstance(x, (str, os.PathLike)), "a path (or None)"),
+    }
+    for name, x in options.items():
+        ok, expected = kinds.get(name, (lambda _: True, ""))
+        if not ok(x):
+            return f"{name} must be {expected}, not {type(x).__name__} {x!r}"
+    return None
 
 
 @dataclass
