@@ -58,6 +58,57 @@ def test_a_gif_stopped_part_way_leaves_the_previous_one_whole(tmp_path, monkeypa
     assert not any(tmp_path.iterdir())  # none rather than a short one
 
 
+def _stop_part_way(monkeypatch) -> None:
+    """Every matplotlib savefig writes half its file, then stops (a stop signal while the PNG
+    is being written, as the commands turn it; or a disk that fills up)."""
+    from matplotlib.figure import Figure
+
+    savefig = Figure.savefig
+
+    def stopped(self, fname, *args, **kwargs):
+        savefig(self, fname, *args, **kwargs)
+        data = open(fname, "rb").read()
+        with open(fname, "wb") as f:
+            f.write(data[: len(data) // 2])
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Figure, "savefig", stopped)
+
+
+def test_a_png_stopped_part_way_leaves_the_previous_one_whole(tmp_path, monkeypatch):
+    """The final evaluation's PNG figures (learning_curves.png, trajectory_test0.png, a time
+    budget's curve.png), as its GIF: written under a temporary name and renamed once whole. A
+    stop part-way left a cut-short PNG under the figure's name (the previous one lost)."""
+    from mpcpearl_jax.envs import save_trajectory
+    from mpcpearl_jax.evaluation.report import plot_learning_curves
+    from mpcpearl_jax.training.budget import plot_curve
+
+    env = make_env("restaurant")
+    task = jax.tree_util.tree_map(lambda x: x[0], make_tasks("restaurant", "test", 0))
+    start, goal = np.asarray(task.start)[:2], np.asarray(task.goal)
+    pos = start + np.linspace(0.0, 1.0, env.config.horizon + 1)[:, None] * (goal - start)
+    row = {"iteration": 1, "train_return": -1.0, "test_return": -2.0, "test_SR": 0.5, "test_CFR": 0}
+    point = {f"{s}_{m}": 0.5 for s in ("test", "val") for m in ("SR", "CFR", "return")}
+    figures = {
+        "trajectory_test0.png": lambda p: save_trajectory(
+            "restaurant", p, task, {"policy": (pos, None)}, env.config
+        ),
+        "learning_curves.png": lambda p: plot_learning_curves([("x", [row, row])], p),
+        "curve.png": lambda p: plot_curve([{**point, "minutes": 1.0, "grad_steps": 10}], p, "x"),
+    }
+    for name, draw in figures.items():
+        path = tmp_path / name
+        draw(path)
+        before = path.read_bytes()
+        assert before.startswith(b"\x89PNG")
+        with monkeypatch.context() as m:
+            _stop_part_way(m)
+            with pytest.raises(KeyboardInterrupt):
+                draw(path)
+        assert path.read_bytes() == before, name  # the previous figure, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(figures)  # no temporary left
+
+
 class _Trainer:
     """What `final_evaluation` reads of a trainer, with fixed results."""
 

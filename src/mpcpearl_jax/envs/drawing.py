@@ -9,6 +9,7 @@ any task family built on `TaskParams`; a family with its own style registers a v
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -134,6 +135,21 @@ def plot_episode(
     return fig
 
 
+def save_figure(fig, path: str | Path, **savefig_kwargs) -> Path:
+    """`fig.savefig(path, **savefig_kwargs)` through a temporary name in the same folder and a
+    rename: a stop signal or a full disk part-way leaves the previous figure (or none), never a
+    cut-short file under the figure's name. The format is taken from `path`'s suffix, as
+    savefig does; the bytes are those savefig writes."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    try:
+        fig.savefig(tmp, **savefig_kwargs)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
 def save_trajectory_figure(
     path: str | Path,
     params: TaskParams,
@@ -147,8 +163,10 @@ def save_trajectory_figure(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig = plot_episode(params, robot_paths, collisions, config, title)
-    fig.savefig(path, dpi=dpi, bbox_inches="tight")
-    plt.close(fig)
+    try:
+        save_figure(fig, path, dpi=dpi, bbox_inches="tight")
+    finally:
+        plt.close(fig)
     return path
 
 

@@ -176,6 +176,10 @@ def plot_learning_curves(
     if note:
         fig.suptitle(note, fontsize=9)
     fig.tight_layout(rect=(0, 0, 1, 0.94) if note else None)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    from mpcpearl_jax.envs.drawing import save_figure
+
+    try:
+        save_figure(fig, path, dpi=110)  # whole or not there: a stop leaves no cut-short PNG
+    finally:
+        plt.close(fig)
     return path

@@ -179,8 +179,12 @@ def plot_curve(points: Sequence[dict[str, Any]], path: Path, title: str) -> Path
     sub = "test: the unseen test tasks; val: the validation tasks"
     fig.suptitle(f"{title}\n{sub}", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    from mpcpearl_jax.envs.drawing import save_figure
+
+    try:
+        save_figure(fig, path, dpi=110)  # whole or not there: a stop leaves no cut-short PNG
+    finally:
+        plt.close(fig)
     return path
 
 

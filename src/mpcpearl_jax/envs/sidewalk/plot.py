@@ -64,7 +64,7 @@ def plot_sidewalk(
     """
     from matplotlib.figure import Figure
 
-    from mpcpearl_jax.envs.drawing import draw_robot_path
+    from mpcpearl_jax.envs.drawing import draw_robot_path, save_figure
 
     fig = Figure(figsize=(6.4, 5.4))
     ax = fig.add_subplot()
@@ -85,7 +85,7 @@ def plot_sidewalk(
         ax.set_title(title)
     ax.legend(loc="upper right", fontsize=8, framealpha=0.9)
     if path is not None:
-        fig.savefig(path, dpi=120, bbox_inches="tight")
+        save_figure(fig, path, dpi=120, bbox_inches="tight")
     return fig
 
 
