@@ -108,3 +108,40 @@ def test_configure_threads_refuses_fewer_than_one_core() -> None:
     for n in (-1, 0):
         with pytest.raises(ValueError, match=f"threads {n}: must be at least 1"):
             harness.machine.configure_threads(n)
+
+
+def test_fallback_runs_never_replaces_a_record_of_other_settings(tmp_path, capsys) -> None:
+    """`lab.diagnostics.fallback_runs` writes to one file (by default the committed record): a
+    run with other --tasks or --set replaced it silently once its rollout ended. Such a record
+    is refused before the rollout, one line naming the file and --overwrite; the same settings,
+    or --overwrite, may write."""
+    import shutil
+
+    from lab.diagnostics import fallback_runs
+
+    committed = Path(__file__).resolve().parents[1] / "results/mpc/convergence/fallback-runs.json"
+    record = tmp_path / "fallback-runs.json"
+    shutil.copyfile(committed, record)
+    before = record.read_bytes()
+    absent = tmp_path / "absent"  # no rollout, whatever the check says
+    for argv, what in (
+        (["--tasks", "150"], "(tasks, mpc)"),
+        (["--tasks", *map(str, json.loads(before)["tasks"])], "(mpc)"),
+    ):
+        with pytest.raises(SystemExit) as e:
+            fallback_runs.main([*argv, "--scenarios", str(absent), "--out", str(record)])
+        err = capsys.readouterr().err.strip()
+        assert e.value.code == 2 and "\n" not in err, err
+        assert err == (
+            f"error: --out {record}: holds a record made with other settings {what}; choose "
+            "another --out, or add --overwrite to replace it"
+        )
+    (tmp_path / "list.json").write_text("[1, 2]")
+    with pytest.raises(SystemExit):
+        fallback_runs.main(["--tasks", "1", "--out", str(tmp_path / "list.json")])
+    assert "(not a record of this diagnostic)" in capsys.readouterr().err
+    assert record.read_bytes() == before
+    old = json.loads(before)
+    assert fallback_runs._other_record(record, old["tasks"], old["mpc"], False) is None
+    assert fallback_runs._other_record(record, [150], old["mpc"], True) is None
+    assert fallback_runs._other_record(tmp_path / "new.json", [150], {}, False) is None

@@ -10,7 +10,9 @@ warm-start trap; one that no start ends is a problem with no safe first move the
 
     python -m lab.diagnostics.fallback_runs --scenarios DIR --tasks 150 36 91 [--set sqp_iters=2]
 
-Record: results/mpc/convergence/fallback-runs.json (and a summary printed).
+Record: results/mpc/convergence/fallback-runs.json (and a summary printed). A record of other
+--tasks or MPC settings (--set) at --out is never replaced without --overwrite, checked before
+the rollout.
 """
 
 from __future__ import annotations
@@ -35,6 +37,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tasks", type=int, nargs="+", required=True, help="indices 0-204 (180+ test)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     ap.add_argument("--out", type=Path, default=OUT / "fallback-runs.json")
+    ap.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace a record at --out made with other --tasks or --set",
+    )
     args = ap.parse_args(argv)
 
     from lab import harness
@@ -61,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         cfg = apply_overrides(MPCConfig(**mpc_defaults("restaurant")), args.set)
     except ConfigError as e:
         harness.fail(str(e))
+    why = _other_record(args.out, args.tasks, cfg.to_dict(), args.overwrite)
+    if why is not None:
+        harness.fail(why)
     try:
         tasks = _scenario_tasks(env, args.scenarios)
     except (OSError, DataFormatError) as e:
@@ -142,6 +152,26 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps(out["summary"], indent=1))
     print(f"wrote {args.out}")
     return 0
+
+
+def _other_record(out: Path, tasks: list[int], mpc: dict, overwrite: bool) -> str | None:
+    """The one-line refusal where `out` holds a record made with other `tasks` or `mpc`
+    settings (or something that is not this diagnostic's record), unless `overwrite`; None
+    where it may be written."""
+    if overwrite or not out.exists():
+        return None
+    try:
+        old = json.loads(out.read_text())
+        mpc = json.loads(json.dumps(mpc, default=float))  # as the record holds it
+        differ = [k for k, v in (("tasks", tasks), ("mpc", mpc)) if old.get(k) != v]
+    except (OSError, ValueError, AttributeError):
+        differ = ["(not a record of this diagnostic)"]
+    if not differ:
+        return None
+    return (
+        f"--out {out}: holds a record made with other settings ({', '.join(differ)}); choose "
+        "another --out, or add --overwrite to replace it"
+    )
 
 
 def _summary(per_task: list[dict], window: int = 3) -> dict:
