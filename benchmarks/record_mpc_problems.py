@@ -116,6 +116,19 @@ def solve_reference(data) -> dict[str, np.ndarray]:
     }
 
 
+def check_out(out: Path) -> None:
+    """--out must name a file in a folder that can be written (created if missing): one line
+    and exit 2 otherwise (`harness.fail`), before the training runs."""
+    from benchmarks.harness import fail
+    from mpcpearl_jax.validate import unwritable_folder
+
+    if out.is_dir():
+        fail(f"--out {out}: a folder; give the file's name (NAME.npz)")
+    why = unwritable_folder(out.parent)
+    if why is not None:
+        fail(f"--out {out}: not writable ({why}); choose another --out")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=90.0, help="training budget (s)")
@@ -123,6 +136,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--eps", type=float, default=0.2)
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = ap.parse_args(argv)
+    check_out(args.out)  # before the training, not after it
     probs, inits, params = record(args.seconds, args.count, args.eps)
     if len(probs) > args.count:  # evenly over the run
         keep = np.linspace(0, len(probs) - 1, args.count).round().astype(int)

@@ -446,6 +446,29 @@ def test_benchmark_flags_are_checked_before_it_runs(tmp_path: Path, capsys) -> N
         undo()
 
 
+def test_record_mpc_problems_checks_out_before_its_training(tmp_path: Path, capsys, monkeypatch):
+    """`record_mpc_problems --out` under a regular file, or a folder: the training ran its 90
+    seconds first and then ended in a traceback writing nothing. One line, exit 2, at once."""
+    from benchmarks import record_mpc_problems
+
+    def never(*a, **k):
+        raise AssertionError("the training ran")
+
+    monkeypatch.setattr(record_mpc_problems, "record", never)
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("x")
+    cases = [
+        (a_file / "p.npz", f"--out {a_file / 'p.npz'}: not writable (a file is"),
+        (tmp_path, f"--out {tmp_path}: a folder; give the file's name"),
+    ]
+    for out, expected in cases:
+        with pytest.raises(SystemExit) as exit_:
+            record_mpc_problems.main(["--out", str(out)])
+        assert exit_.value.code == 2
+        assert expected in _error_line(capsys)
+    assert a_file.read_text() == "x"
+
+
 def test_mpc_latency_refuses_zero_tasks_before_its_episodes(capsys, monkeypatch) -> None:
     """`mpc_latency --tasks 0` ended in an IndexError after 27 s of episodes."""
     from benchmarks import mpc_latency
