@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import time
 from pathlib import Path
 
@@ -116,17 +117,20 @@ def solve_reference(data) -> dict[str, np.ndarray]:
     }
 
 
-def check_out(out: Path) -> None:
+def check_out(out: str | Path) -> Path:
     """--out must name a file in a folder that can be written (created if missing): one line
-    and exit 2 otherwise (`harness.fail`), before the training runs."""
+    and exit 2 otherwise (`harness.fail`), before the training runs; a path ending in "/" names
+    a folder, there or not. -> the file's path."""
     from benchmarks.harness import fail
     from mpcpearl_jax.validate import unwritable_folder
 
-    if out.is_dir():
+    if str(out).endswith(("/", os.sep)) or Path(out).is_dir():
         fail(f"--out {out}: a folder; give the file's name (NAME.npz)")
+    out = Path(out)
     why = unwritable_folder(out.parent)
     if why is not None:
         fail(f"--out {out}: not writable ({why}); choose another --out")
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -134,9 +138,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seconds", type=float, default=90.0, help="training budget (s)")
     ap.add_argument("--count", type=int, default=1200, help="problems to keep")
     ap.add_argument("--eps", type=float, default=0.2)
-    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--out", default=str(DEFAULT_OUT), help="the problems' file (NAME.npz)")
     args = ap.parse_args(argv)
-    check_out(args.out)  # before the training, not after it
+    args.out = check_out(args.out)  # before the training, not after it
     probs, inits, params = record(args.seconds, args.count, args.eps)
     if len(probs) > args.count:  # evenly over the run
         keep = np.linspace(0, len(probs) - 1, args.count).round().astype(int)

@@ -460,6 +460,8 @@ def test_record_mpc_problems_checks_out_before_its_training(tmp_path: Path, caps
     cases = [
         (a_file / "p.npz", f"--out {a_file / 'p.npz'}: not writable (a file is"),
         (tmp_path, f"--out {tmp_path}: a folder; give the file's name"),
+        # a folder not there yet, named with a trailing slash: it became a file DIR.npz
+        (f"{tmp_path / 'new'}/", f"--out {tmp_path / 'new'}/: a folder; give the file's name"),
     ]
     for out, expected in cases:
         with pytest.raises(SystemExit) as exit_:

@@ -213,4 +213,5 @@ def test_fallback_runs_inputs_are_one_line_before_the_rollout(tmp_path, capsys):
     argv = ["--scenarios", str(data), "--tasks", "0", "--out"]
     fails([*argv, str(afile / "x.json")], "--out", "a file is where a folder should be")
     fails([*argv, str(tmp_path)], "--out", "a folder")
-    assert not out.exists() and afile.read_text() == "x"
+    fails([*argv, f"{tmp_path / 'new'}/"], "--out", "a folder")  # it became a file 'new'
+    assert not out.exists() and not (tmp_path / "new").is_file() and afile.read_text() == "x"

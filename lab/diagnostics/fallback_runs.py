@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -36,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--tasks", type=int, nargs="+", required=True, help="indices 0-204 (180+ test)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
-    ap.add_argument("--out", type=Path, default=OUT / "fallback-runs.json")
+    ap.add_argument("--out", default=str(OUT / "fallback-runs.json"), help="the record (NAME.json)")
     ap.add_argument(
         "--overwrite",
         action="store_true",
@@ -48,7 +49,9 @@ def main(argv: list[str] | None = None) -> int:
     from mpcpearl_jax.validate import unwritable_folder
 
     # the record's place is checked before the rollout: it is written once every task has run
-    if args.out.is_dir():
+    folder = args.out.endswith(("/", os.sep))  # "DIR/" names a folder, there or not
+    args.out = Path(args.out)
+    if folder or args.out.is_dir():
         harness.fail(f"--out {args.out}: a folder; give the record's file name (NAME.json)")
     why = unwritable_folder(args.out.parent)
     if why is not None:
