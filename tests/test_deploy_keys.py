@@ -1,6 +1,7 @@
-"""A key where the deploy API takes one (`infer_z`, `act`, `__call__`, `Adapter.init`) is a PRNG
-key or None: an int seed or another array is a TypeError naming `key`, on the exported policy,
-the loaded one and the adapter alike, not JAX's "invalid PRNG key data"."""
+"""A key where the deploy API takes one (`infer_z`, `act`, `__call__`, `prior_z`,
+`Adapter.init`) is a PRNG key or None: an int seed or another array is a TypeError naming `key`,
+on the exported policy, the loaded one and the adapter alike, not JAX's "invalid PRNG key
+data"."""
 
 from __future__ import annotations
 
@@ -41,6 +42,8 @@ def test_a_key_that_is_not_one_is_named(policies, key):
         loaded.act(obs, jnp.zeros(loaded.latent_dim), key)
     with pytest.raises(TypeError, match=MATCH):
         loaded(obs, ctx, key)
+    with pytest.raises(TypeError, match=MATCH):
+        loaded.prior_z(key)
 
 
 def test_keys_of_both_kinds_and_none_are_taken(policies):
@@ -49,6 +52,7 @@ def test_keys_of_both_kinds_and_none_are_taken(policies):
     for key in (None, jax.random.PRNGKey(3), jax.random.key(3)):
         assert exported.infer_z(ctx, None, key).shape == (exported.latent_dim,)
         assert loaded.infer_z(ctx, None, key).shape == (loaded.latent_dim,)
+        assert loaded.prior_z(key).shape == (loaded.latent_dim,)
     same = exported.infer_z(ctx, None, jax.random.PRNGKey(3))
     assert jnp.allclose(same, exported.infer_z(ctx, None, jax.random.PRNGKey(3)))
 

@@ -72,7 +72,8 @@ class LoadedPolicy:
         return self.nets.cfg.latent_dim
 
     def prior_z(self, key: Array | None = None) -> Array:
-        shape = (self.latent_dim,)
+        """z [L] before any context: the prior's mean, 0 (no key), or a draw from N(0, I)."""
+        key, shape = check_key(key), (self.latent_dim,)
         return jnp.zeros(shape) if key is None else jax.random.normal(key, shape)
 
     @property
