@@ -98,6 +98,16 @@ def test_dagger_hidden_sizes_must_be_positive(hidden, tmp_path, capsys, threads_
     assert "--hidden" in err.splitlines()[-1] and "Traceback" not in err
 
 
+def test_imitation_select_seed_below_zero(tmp_path, capsys, threads_kept):
+    from lab.diagnostics import imitation
+
+    with pytest.raises(SystemExit) as exc:
+        imitation.main(["--tiny", "--select-seed", "-1", "--out", str(tmp_path)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--select-seed" in err.splitlines()[-1] and "Traceback" not in err
+
+
 def test_dagger_forecast_asks_for_relative(tmp_path, capsys, threads_kept):
     """A run that does not observe relative positions: --forecast alone names the command's
     own fix, --relative (not a config field)."""

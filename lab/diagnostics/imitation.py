@@ -135,6 +135,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--run", type=Path, default=DEFAULT_RUN, help="run directory (load_policy)")
     p.add_argument("--select-seed", type=int, default=0, help="task seed of the val MPC episodes")
     args = p.parse_args(argv)
+    if args.select_seed < 0:  # a task-set seed; -1 was a NumPy ValueError after the first work
+        p.error(f"--select-seed: a task-set seed is at least 0, got {args.select_seed}")
     threads = harness.configure_threads(args.threads)
     size = harness.size_of(args)
     sz = SIZES[size]
