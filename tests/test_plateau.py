@@ -128,3 +128,25 @@ def test_statistics():
     st = plateau.seed_stats([1.0, None, 3.0])
     assert st["n"] == 2 and st["mean"] == 2.0 and st["se"] == pytest.approx(1.0)
     assert plateau._ranks(np.array([5.0, 1.0, 5.0])).tolist() == [1.5, 0.0, 1.5]
+
+
+def test_records_with_only_sr_and_cfr_per_task(tmp_path):
+    # the committed evaluation records keep the per-task SR and CFR only: no outcomes, SR still read
+    val = {
+        "pooled": {"SR": {"mean": 0.25}},
+        "records": [{"per_task": {"SR": [[1.0, 0.0, 0.0, 0.0]], "CFR": [[1.0, 0.0, 1.0, 1.0]]}}],
+    }
+    _run(tmp_path / "r", [_row(1, 0.0), _row(2, 0.5)], val)
+    s = plateau.run_summary(tmp_path / "r")
+    assert s["val"] is None and s["val_SR"] == pytest.approx(0.25)
+    report = plateau.analyse(tmp_path, {"default": ["r"]})
+    assert report["groups"]["default"]["val_SR"]["mean"] == pytest.approx(0.25)
+    names = [f.name for f in plateau.write(report, tmp_path / "out")]
+    assert "summary.json" in names and "outcomes.png" not in names
+    assert not (tmp_path / "out" / "outcomes.png").exists()
+
+
+def test_a_record_with_some_outcome_arrays_is_an_error(tmp_path):
+    per_task = {"SR": [[1.0, 0.0]], "MGD": [[1.0, 2.0]], "contact_step": [[-1, 3]]}
+    with pytest.raises(plateau.PlateauError, match="per_task lacks 'contact_person'"):
+        plateau.val_outcomes({"records": [{"per_task": per_task}]})

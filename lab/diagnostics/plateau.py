@@ -12,7 +12,9 @@ policy's `log_pi`, the temperature `alpha`, the MPC solver's outcomes) and the f
 `eval/policy-val-seeds1-8/results.json` (how each of the 192 validation episodes ended). Lift-off
 is the first iteration with `train_success > 0` (as in `lab.screen`). It writes
 `summary.json` (every number per seed, group statistics, rank correlations of lift-off with the
-first iterations' statistics) and four figures to `results/restaurant/plateau/`.
+first iterations' statistics) and five figures to `results/restaurant/plateau/`. The committed
+evaluation records keep only the per-task SR and CFR: from them a run's validation outcomes are
+null (its `val_SR` is still read) and `outcomes.png`, which draws them, is not written.
 """
 
 from __future__ import annotations
@@ -46,6 +48,8 @@ GROUPS: dict[str, list[str]] = {
     # `default` with 95 iterations: seeds 2-9 resumed from the 75-iteration runs above
     "default_it95": [f"results/restaurant/main-seeds/default-it95-s{s}" for s in range(10)],
 }
+# the per-task arrays besides SR that the validation outcomes are read from
+OUTCOME_ARRAYS = ("MGD", "contact_step", "contact_person", "reached_after_contact")
 # per-iteration fields averaged over a window (absent ones are skipped)
 FIELDS = (
     "train_success",
@@ -233,11 +237,15 @@ def val_outcomes(record: dict) -> dict[str, Any]:
     """How the validation episodes ended, from the per-task arrays of every task set: reached
     the goal without contact; first contact with a person / a table (goal reached after it
     counted apart); out of time without either. MGD (the mean over steps of the squared distance
-    to the goal) per outcome."""
+    to the goal) per outcome. None when no task set's per-task arrays go beyond SR and CFR (the
+    committed evaluation records keep only those two): the outcomes are not recorded there."""
+    records = record.get("records", [])
+    if records and not any(k in rec.get("per_task", {}) for rec in records for k in OUTCOME_ARRAYS):
+        return None
     cols: dict[str, list] = {}
-    for rec in record.get("records", []):
+    for rec in records:
         pt = rec.get("per_task", {})
-        for k in ("SR", "MGD", "contact_step", "contact_person", "reached_after_contact"):
+        for k in ("SR", *OUTCOME_ARRAYS):
             if k not in pt:
                 raise PlateauError(f"validation record: per_task lacks {k!r}")
             cols.setdefault(k, []).append(np.asarray(pt[k], float).ravel())
@@ -332,9 +340,10 @@ def run_summary(folder: Path) -> dict[str, Any]:
         "iteration": [r["iteration"] for r in rows],
     }
     val = folder / VAL8
-    out["val"] = val_outcomes(read_json(val)) if val.is_file() else None
-    if out["val"] is not None:
-        out["val_SR"] = read_json(val)["pooled"]["SR"]["mean"]
+    record = read_json(val) if val.is_file() else None
+    out["val"] = val_outcomes(record) if record is not None else None
+    if record is not None:
+        out["val_SR"] = record["pooled"]["SR"]["mean"]
     return out
 
 
@@ -783,6 +792,8 @@ def write(report: dict[str, Any], out: Path, split: int = 50) -> list[Path]:
         },
     }
     files[0].write_text(json.dumps(_rounded(slim), indent=1) + "\n")
+    # outcomes.png only where a `default` or `recipe` run's validation outcomes are recorded
+    outcomes = any(r["val"] is not None for g in ("default", "recipe") for r in runs.get(g, []))
     for name, fn in (
         ("trajectories.png", lambda p: figure_trajectories(runs, p, split)),
         ("rows.png", lambda p: figure_rows(runs, p)),
@@ -790,6 +801,8 @@ def write(report: dict[str, Any], out: Path, split: int = 50) -> list[Path]:
         ("outcomes.png", lambda p: figure_outcomes(runs, p)),
         ("early-vs-liftoff.png", lambda p: figure_early(runs, p)),
     ):
+        if name == "outcomes.png" and not outcomes:
+            continue
         fn(out / name)
         files.append(out / name)
     return files
