@@ -426,6 +426,44 @@ def test_one_typed_parser_for_every_set_option():
         apply_overrides(mpc, ["nope=1"])
 
 
+@pytest.mark.parametrize(
+    ("cfg", "item", "message"),
+    [
+        (
+            "pearl",
+            "pearl.hidden=64,64",
+            "PearlConfig.hidden: must be a non-empty tuple of positive "
+            "ints, got '64,64' (write it as [64,64])",
+        ),
+        ("pearl", "pearl.encoder_hidden=(200, 200)", "got '(200, 200)' (write it as [200,200])"),
+        ("pearl", "pearl.hidden=64", "got 64 (write it as [64])"),
+        ("pearl", "pearl.hidden=wide", "got 'wide' (write it as a list, e.g. [64,64])"),
+        (
+            "grbal",
+            "grbal.hidden=64,64",
+            "GrbalConfig.hidden: must be a non-empty tuple of "
+            "positive ints, got '64,64' (write it as [64,64])",
+        ),
+    ],
+)
+def test_layer_sizes_without_brackets_name_the_form_they_take(cfg, item, message):
+    """`--set pearl.hidden=64,64` (and GrBAL's `grbal.hidden`) is text, not a list: the message
+    says how the field is written; a bracketed list is taken, a wrong list has no hint."""
+    from mpcpearl_jax.config import apply_overrides
+    from mpcpearl_jax.grbal.config import GrbalExperimentConfig
+
+    base = ExperimentConfig() if cfg == "pearl" else GrbalExperimentConfig()
+    with pytest.raises(ConfigError) as e:
+        apply_overrides(base, [item])
+    assert message in str(e.value) and "\n" not in str(e.value)
+    key = item.partition("=")[0]
+    taken = apply_overrides(base, [f"{key}=[64,64]"])
+    assert getattr(getattr(taken, cfg), key.partition(".")[2]) == (64, 64)
+    with pytest.raises(ConfigError) as e:
+        PearlConfig(hidden=(0, 64))
+    assert str(e.value).endswith("got (0, 64)")
+
+
 CONFIG_RUNS = [
     "restaurant/main-default",
     "restaurant/mpc-sac",

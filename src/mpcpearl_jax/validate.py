@@ -9,6 +9,7 @@ accepted as numbers, and numbers must be finite.
 from __future__ import annotations
 
 import math
+import re
 import tempfile
 from collections.abc import Iterable
 from pathlib import Path
@@ -75,12 +76,28 @@ def flags(obj: Any, *fields: str) -> None:
         check(isinstance(v, bool), obj, f, f"must be true or false, got {v!r}")
 
 
+def _tuple_form(v: Any) -> str:
+    """How a tuple of layer sizes is written (in `--set` and the JSON config), for the message
+    of a value given as text or a single int: ' (write it as [64,64])'; '' for other values."""
+    if is_int(v) and v > 0:
+        return f" (write it as [{v}])"
+    if not isinstance(v, str):
+        return ""
+    parts = [p for p in re.split(r"[\s,]+", v.strip().strip("()[]")) if p]
+    if parts and all(p.isdigit() for p in parts):
+        return f" (write it as [{','.join(parts)}])"
+    return " (write it as a list, e.g. [64,64])"
+
+
 def int_tuples(obj: Any, *fields: str) -> None:
-    """Each field is a non-empty tuple of positive ints (layer sizes)."""
+    """Each field is a non-empty tuple of positive ints (layer sizes). A value given as text or a
+    single int ('64,64', 64: `--set pearl.hidden=64,64` without the brackets) gets the form it
+    takes in the message: '... got '64,64' (write it as [64,64])'."""
     for f in fields:
         v = getattr(obj, f)
         ok = isinstance(v, tuple) and len(v) > 0 and all(is_int(h) and h > 0 for h in v)
-        check(ok, obj, f, f"must be a non-empty tuple of positive ints, got {v!r}")
+        msg = f"must be a non-empty tuple of positive ints, got {v!r}{_tuple_form(v)}"
+        check(ok, obj, f, msg)
 
 
 def one_of(obj: Any, field: str, options: Iterable[Any]) -> None:
