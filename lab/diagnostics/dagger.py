@@ -30,7 +30,8 @@ the clone's initialisation (the tasks and crowds stay the same, so arms are pair
     python -m lab.diagnostics.dagger [--tiny] [--relative] [--sorted] [--encoder mlp|attention]
     [--presence] [--forecast K] [--stride S] [--labels N] [--seed S] [--rounds N] [--out DIR]
 
-The record (with the clone's parameter count), DIR/dagger[-relative][-sorted][-ENCODER|-presence][-forecastKxS][-labelsN][-tiny][-roundsN]
+The record (with the clone's parameter count),
+DIR/dagger[-relative][-sorted][-ENCODER|-presence][-forecastKxS][-labelsN][-tiny][-roundsN]
 [-hiddenAxB][-runNAME][-seedS].json, names every setting that is not the default, so runs of
 another size or setting never replace each other's records.
 

@@ -11,7 +11,7 @@ import json
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import jax
 import numpy as np
@@ -160,7 +160,8 @@ def train_iterations(
     "budget" (the time ran out first). With handle_sigint, a stop signal (Ctrl-C, SIGTERM,
     SIGHUP) finishes the iteration under way, saves it and raises RunInterrupted
     (`Session.train`); a second one stops at once."""
-    trainer, g, done = sess.trainer, sess.cfg.grbal, sess.done
+    trainer = cast(GrbalTrainer, sess.trainer)  # a GrBAL session's (GrbalRun.make_trainer)
+    g, done = sess.cfg.grbal, sess.done
     budget_s = None if minutes is None else 60.0 * minutes
     t_start = time.perf_counter()
 
