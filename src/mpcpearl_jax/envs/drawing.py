@@ -10,7 +10,8 @@ any task family built on `TaskParams`; a family with its own style registers a v
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 
 import matplotlib
@@ -135,19 +136,26 @@ def plot_episode(
     return fig
 
 
-def save_figure(fig, path: str | Path, **savefig_kwargs) -> Path:
-    """`fig.savefig(path, **savefig_kwargs)` through a temporary name in the same folder and a
-    rename: a stop signal or a full disk part-way leaves the previous figure (or none), never a
-    cut-short file under the figure's name. The format is taken from `path`'s suffix, as
-    savefig does; the bytes are those savefig writes."""
+@contextmanager
+def written_whole(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary name in `path`'s folder (same suffix, so writers pick the format from
+    it) and rename it to `path` once the block ends without error: a stop signal or a full disk
+    part-way leaves the previous file (or none), never a cut-short one under its name."""
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
     try:
-        fig.savefig(tmp, **savefig_kwargs)
+        yield tmp
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
-    return path
+
+
+def save_figure(fig, path: str | Path, **savefig_kwargs) -> Path:
+    """`fig.savefig(path, **savefig_kwargs)` written whole (`written_whole`); the bytes are those
+    savefig writes."""
+    with written_whole(path) as tmp:
+        fig.savefig(tmp, **savefig_kwargs)
+    return Path(path)
 
 
 def save_trajectory_figure(

@@ -13,7 +13,6 @@ flashed (red frame, red robot, a star left where it happened). Works for any `Ta
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -107,16 +106,14 @@ def animate_episode(
     steps = frame_steps(horizon, max_frames)
     with matplotlib.rc_context(_RC):  # type: ignore[arg-type]  # keys typed as literals
         fig, draw = _figure(task, config, pos, col, head, acted_by, steps, title, width_in)
-        # a temporary name in the same folder, renamed once every frame is in: a stop or an
-        # error part-way leaves no GIF (or the previous one), never a short one that looks whole
-        tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+        # renamed once every frame is in: a stop or an error part-way leaves no GIF (or the
+        # previous one), never a short one that looks whole
         try:
-            anim = FuncAnimation(fig, draw, frames=len(steps), blit=False)
-            anim.save(tmp, writer=PillowWriter(fps=fps), dpi=dpi)
-            os.replace(tmp, path)
+            with drawing.written_whole(path) as tmp:
+                anim = FuncAnimation(fig, draw, frames=len(steps), blit=False)
+                anim.save(tmp, writer=PillowWriter(fps=fps), dpi=dpi)
         finally:
             plt.close(fig)
-            tmp.unlink(missing_ok=True)
     return path
 
 
