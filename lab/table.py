@@ -29,9 +29,10 @@ import json
 import re
 import sys
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 
-from lab.screen import render_screen_learner
+from lab.screen import render_screen, render_screen_learner
 from lab.tables.render import (
     render_main_seed_summary,
     render_main_seeds,
@@ -65,6 +66,11 @@ BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block
     (LOG, "main-seed-summary", render_main_seed_summary),
     (LOG, "robustness", render_robustness),
     (LOG, "robustness-choice", render_robustness_choice),
+    (
+        LOG,
+        "screen-student-recipe",
+        partial(render_screen, screen_file="lab/screens/student-recipe.json"),
+    ),
     ("results/restaurant/screen/README.md", "screen-learner", render_screen_learner),
 )
 # the pages whose results/ paths must exist and whose generated blocks back README's figures
