@@ -71,6 +71,11 @@ BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block
         "screen-student-recipe",
         partial(render_screen, screen_file="lab/screens/student-recipe.json"),
     ),
+    (
+        LOG,
+        "screen-methods-recipe",
+        partial(render_screen, screen_file="lab/screens/methods-recipe.json"),
+    ),
     ("results/restaurant/screen/README.md", "screen-learner", render_screen_learner),
 )
 # the pages whose results/ paths must exist and whose generated blocks back README's figures
