@@ -282,11 +282,15 @@ def check_unchanged(run: CampaignRun, folder: Path) -> None:
         then = Config.from_dict(json.loads(recorded.read_text()))
     except (ConfigError, TypeError, ValueError) as e:
         raise ValueError(f"{run.name}: cannot compare its argv with {recorded}: {e}") from e
-    # a learning run records the iterations it did (its budget is time); where a run computed
-    # never matters (`config.RESULT_NEUTRAL`: devices, the MPC's worker processes)
+    # a run on a time budget (a learning run, or any restaurant run given --minutes) records the
+    # iterations it did; where a run computed never matters (`config.RESULT_NEUTRAL`: devices,
+    # the MPC's worker processes)
     from mpcpearl_jax.config import RESULT_NEUTRAL
 
-    ignore = (*RESULT_NEUTRAL, "train.iterations") if run.trainer == "learning" else RESULT_NEUTRAL
+    timed = run.trainer == "learning" or (
+        run.trainer == "restaurant" and any(a.split("=")[0] == "--minutes" for a in run.argv)
+    )
+    ignore = (*RESULT_NEUTRAL, "train.iterations") if timed else RESULT_NEUTRAL
     diff = config_differences(then, now, ignore)
     if diff:
         raise ValueError(

@@ -18,9 +18,13 @@ A screen file names its arms and seeds once; every arm is trained with every see
               "explore": {"argv": ["--set", "train.explore_start_share=0.5"]}}}
 
 An arm with `runs` reuses finished run folders, one per seed (nothing is trained for it; their
-configs must be the ones its argv builds with each seed). An arm marked `"retired"` (a line naming
-the options since removed that its argv sets, `config.REMOVED_OPTIONS`) is reported from its run
-folders, `<results>/<arm>-s<S>`, and never trained or rebuilt. An arm with `argv` only is trained:
+configs must be the ones its argv builds with each seed). An arm with `"iterations_of": ARM`
+(ARM an arm of reused runs) trains each seed for as many iterations as ARM's run of that seed
+finished (`--iterations N` after its argv and `common_argv`, which then give no budget of their
+own): a comparison at equal iterations with runs that had a time budget. An arm marked
+`"retired"` (a line naming the options since removed that its argv sets,
+`config.REMOVED_OPTIONS`) is reported from its run folders, `<results>/<arm>-s<S>`, and never
+trained or rebuilt. An arm with `argv` only is trained:
 seed S becomes the campaign entry `<name>-<arm>-s<S>` with argv = the arm's argv, then
 `common_argv`, then `--seed S`, results folder `<results>/<arm>-s<S>` and the screen's `evaluate`
 list, and the entries are trained seed by seed, each arm in turn (an interrupted screen leaves its
@@ -60,9 +64,10 @@ from lab.tables import statistics
 from lab.tables.statistics import Records, cumulative_wall_s
 
 KEYS = ("name", "results", "seeds", "trainer", "common_argv", "evaluate", "baseline", "arms")
-ARM_KEYS = ("argv", "runs", "retired")
+ARM_KEYS = ("argv", "runs", "retired", "iterations_of")
 TRAINERS = ("restaurant",)  # trainers whose records the report reads (metrics.jsonl, results.json)
 SET_BY_SCREEN = ("--seed", "--out", "--resume", "--overwrite")
+BUDGET_FLAGS = ("--iterations", "--minutes", "--eval-minutes")  # not beside 'iterations_of'
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*\Z")  # a screen or arm name: one folder name
 METRICS = ("SR", "CFR", "TT", "SPL")  # the validation metrics of the report
 BOOTSTRAP_METRICS = ("SR", "SPL")  # IQM and probability of improvement
@@ -77,6 +82,7 @@ class Arm:
     argv: tuple[str, ...]
     runs: dict[int, Path] | None = None  # reused run folders by seed; None: trained
     retired: str | None = None  # the removed options its argv sets: reported, never trained
+    iterations_of: str | None = None  # an arm of reused runs: seed S trains as many iterations
 
 
 @dataclass(frozen=True)
@@ -97,7 +103,20 @@ class Screen:
         return runs[seed] if runs is not None else self.results / f"{arm}-s{seed}"
 
     def argv(self, arm: str, seed: int) -> list[str]:
-        return [*self.arms[arm].argv, *self.common_argv, "--seed", str(seed)]
+        matched = self.arms[arm].iterations_of
+        budget = [] if matched is None else ["--iterations", str(self.iterations(matched, seed))]
+        return [*self.arms[arm].argv, *self.common_argv, *budget, "--seed", str(seed)]
+
+    def iterations(self, arm: str, seed: int) -> int:
+        """The iterations the reused run of `arm` and `seed` trained (its metrics.jsonl's last
+        row); ValueError naming the file when it has none."""
+        path = self.folder(arm, seed) / "metrics.jsonl"
+        try:
+            rows = [line for line in path.read_text().splitlines() if line.strip()]
+            done = int(json.loads(rows[-1])["iteration"])
+        except (OSError, IndexError, KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{path}: no finished iteration to match ({e})") from None
+        return done
 
     def entry(self, arm: str, seed: int) -> dict[str, Any]:
         """The campaign entry that trains one arm and seed."""
@@ -205,7 +224,25 @@ def load_screen(path: Path) -> Screen:
         retired = spec.get("retired")
         if retired is not None and (not isinstance(retired, str) or not retired.strip()):
             raise ValueError(f"{where}: 'retired' must name the removed options (a string)")
-        arms[arm] = Arm(arm, argv, runs, retired)
+        matched = spec.get("iterations_of")
+        if matched is not None:
+            if runs is not None or retired is not None:
+                raise ValueError(f"{where}: 'iterations_of' is for a trained arm, not with 'runs'")
+            budget = [a for a in (*argv, *common) if a.split("=")[0] in BUDGET_FLAGS]
+            if budget:
+                raise ValueError(
+                    f"{where}: with 'iterations_of' its argv and common_argv must not hold "
+                    f"{budget[0]} (the matched iterations are its budget)"
+                )
+        arms[arm] = Arm(arm, argv, runs, retired, matched)
+    for arm in arms.values():
+        if arm.iterations_of is not None and (
+            arm.iterations_of not in arms or arms[arm.iterations_of].runs is None
+        ):
+            raise ValueError(
+                f"{path}: arms.{arm.name}: 'iterations_of' must name an arm with 'runs' "
+                f"({[a for a in arms if arms[a].runs is not None]}), got {arm.iterations_of!r}"
+            )
     baseline = raw["baseline"]
     if baseline not in arms:
         raise ValueError(f"{path}: 'baseline' must name an arm ({list(arms)}), got {baseline!r}")

@@ -161,6 +161,10 @@ def test_probability_of_improvement_is_the_pairwise_win_rate():
 
 
 GOOD_ARMS = {"base": {"argv": []}, "explore": {"argv": ["--set", "train.explore_start_share=0.5"]}}
+MATCHED = {  # an arm trained for as many iterations as the reused runs of `base`
+    "base": {"argv": ["--minutes", "24"], "runs": {"0": "r/a", "1": "r/b"}},
+    "m": {"argv": ["--set", "train.pipeline=true"], "iterations_of": "base"},
+}
 
 
 @pytest.mark.parametrize(
@@ -193,6 +197,26 @@ GOOD_ARMS = {"base": {"argv": []}, "explore": {"argv": ["--set", "train.explore_
             r"arms.base: 'runs': '2' is not one of the screen's seeds",
         ),
         ({"arms": {"base": {"runs": {"0": "r/a", "1": 3}}}}, "seed 1: the run folder must be"),
+        (
+            {"arms": {"base": {"argv": []}, "m": {"argv": [], "iterations_of": "base"}}},
+            r"arms.m: 'iterations_of' must name an arm with 'runs' \(\[\]\), got 'base'",
+        ),
+        (
+            {"arms": {**MATCHED, "m": {"argv": [], "iterations_of": "nosuch"}}},
+            "arms.m: 'iterations_of' must name an arm with 'runs'",
+        ),
+        (
+            {"arms": {**MATCHED, "m": {"argv": ["--iterations", "3"], "iterations_of": "base"}}},
+            "arms.m: with 'iterations_of' its argv and common_argv must not hold --iterations",
+        ),
+        (
+            {"arms": MATCHED, "common_argv": ["--minutes=24"]},
+            "arms.m: with 'iterations_of' its argv and common_argv must not hold --minutes",
+        ),
+        (
+            {"arms": {**MATCHED, "m": {"runs": {"0": "a", "1": "b"}, "iterations_of": "base"}}},
+            "arms.m: 'iterations_of' is for a trained arm, not with 'runs'",
+        ),
     ],
 )
 def test_bad_screen_files_name_the_file_and_field(tmp_path, over, match):
@@ -234,6 +258,25 @@ def test_trained_arms_become_campaign_entries(tmp_path, monkeypatch):
         "out": "res/screen/explore-s1/" + VAL,
     }
     assert s.folder("base", 1) == Path("b") and s.validation == VAL + "/results.json"
+
+
+def test_an_arm_matched_to_reused_runs_trains_each_seed_for_their_iterations(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    make_run(tmp_path / "r/a", [0.0] * 7, 0.5)
+    make_run(tmp_path / "r/b", [0.0] * 4, 0.5)
+    s = screen.load_screen(write_screen(tmp_path / "s.json", MATCHED, baseline="base"))
+    runs = screen.campaign_runs(s)
+    assert runs["base"] == []
+    assert [r.argv for r in runs["m"]] == [
+        ("--set", "train.pipeline=true", "--no-progress", "--iterations", "7", "--seed", "0"),
+        ("--set", "train.pipeline=true", "--no-progress", "--iterations", "4", "--seed", "1"),
+    ]
+    (tmp_path / "r/b/metrics.jsonl").write_text("")  # a reused run with no iteration: named
+    with pytest.raises(ValueError, match=r"r/b/metrics.jsonl: no finished iteration to match"):
+        screen.campaign_runs(s)
+    (tmp_path / "r/b/metrics.jsonl").unlink()
+    with pytest.raises(ValueError, match=r"r/b/metrics.jsonl: no finished iteration to match"):
+        screen.campaign_runs(s)
 
 
 # ---------------------------------------------------------------- the report
@@ -431,6 +474,16 @@ def test_reused_runs_must_hold_the_config_their_arm_builds(tmp_path, monkeypatch
     assert screen.main([str(path), "--dry-run"]) == 2  # trained with seed 1, said to be seed 0
     assert "differs from the trained run's r0/config.json in ['seed']" in capsys.readouterr().err
     arms["base"]["runs"] = {"1": "r0"}
+    path = write_screen(tmp_path / "s.json", arms, seeds=[1], baseline="base")
+    assert screen.main([str(path), "--dry-run"]) == 0
+    # a run on a time budget records the iterations it did: those alone do not make it another
+    cfg["train"]["iterations"] += 7
+    (tmp_path / "r0" / "config.json").write_text(json.dumps(cfg))
+    assert screen.main([str(path), "--dry-run"]) == 2
+    assert "differs from the trained run's r0/config.json in ['train.iterations']" in (
+        capsys.readouterr().err
+    )
+    arms["base"]["argv"] = ["--minutes", "24"]
     path = write_screen(tmp_path / "s.json", arms, seeds=[1], baseline="base")
     assert screen.main([str(path), "--dry-run"]) == 0
 
