@@ -112,11 +112,9 @@ class Screen:
         row); ValueError naming the file when it has none."""
         path = self.folder(arm, seed) / "metrics.jsonl"
         try:
-            rows = [line for line in path.read_text().splitlines() if line.strip()]
-            done = int(json.loads(rows[-1])["iteration"])
+            return int(_read(path)[-1]["iteration"])
         except (OSError, IndexError, KeyError, TypeError, ValueError) as e:
             raise ValueError(f"{path}: no finished iteration to match ({e})") from None
-        return done
 
     def entry(self, arm: str, seed: int) -> dict[str, Any]:
         """The campaign entry that trains one arm and seed."""
