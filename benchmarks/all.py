@@ -68,7 +68,7 @@ def run_script(name: str, size: str, out: Path, threads: int | None) -> dict:
 
 @stops_with("interrupted; the benchmarks run so far wrote their records, all.json is not written")
 def main(argv: list[str] | None = None) -> int:
-    p = harness.common_parser(__doc__.splitlines()[0])  # --out or --record checked up front
+    p = harness.common_parser(__doc__.split("\n\n")[0])  # --out or --record checked up front
     p.add_argument("--only", nargs="+", choices=SCRIPTS, default=None)
     args = p.parse_args(argv)
     harness.check_platform_or_fail()  # once here, not once per script

@@ -155,7 +155,7 @@ def bench_shape(label: str, rows: int, env, nets, bridge, params, tasks, cfg) ->
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument(
         "--seeds", type=int, default=1, help="seeds in one program (8: the GPU recipe's)"
     )

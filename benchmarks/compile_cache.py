@@ -257,7 +257,7 @@ def table_rows(pairs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument("--iterations", type=int, default=None, help="default: 2 (1 at --tiny)")
     args = p.parse_args(argv)
     n = args.iterations or (1 if args.tiny else 2)

@@ -249,7 +249,7 @@ def crossover(rows: list[dict[str, Any]], baseline_rate: float) -> dict[str, Any
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    args = harness.common_parser(__doc__.splitlines()[0]).parse_args(argv)
+    args = harness.common_parser(__doc__.split("\n\n")[0]).parse_args(argv)
     threads = harness.configure_threads(args.threads)
     size = harness.size_of(args)
     cfg = SIZES[size]

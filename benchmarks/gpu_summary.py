@@ -250,7 +250,7 @@ def lines(summary: dict[str, Any]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("out", type=Path, help="the session's OUT_DIR")
     p.add_argument(
         "--json", type=Path, help="where to write the JSON (default OUT_DIR/summary.json)"

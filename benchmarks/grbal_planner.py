@@ -89,7 +89,7 @@ def planner_rows(preset_name: str, batches, cfg: dict[str, Any]) -> list[dict[st
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     args = p.parse_args(argv)
     size = harness.size_of(args)
     threads = harness.configure_threads(args.threads)

@@ -107,7 +107,7 @@ def breakdown(log: dict[str, Any], stats: dict[str, Any], gp_s: float) -> dict[s
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument("--iterations", type=int, default=None, help="measured iterations")
     args = p.parse_args(argv)
     threads = harness.configure_threads(args.threads)

@@ -155,7 +155,7 @@ def _restaurant_learner(cfg, forecast: int):
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = harness.common_parser(__doc__.splitlines()[0])
+    parser = harness.common_parser(__doc__.split("\n\n")[0])
     parser.add_argument(
         "--encoders",
         action="store_true",

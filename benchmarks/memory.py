@@ -141,7 +141,7 @@ def in_child(args: list[str], threads: int) -> dict[str, Any]:
 
 @stops_with("interrupted; the memory record is not written")
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument("--child", nargs=4, help=argparse.SUPPRESS)  # KIND PRESET N ITERATE
     args = p.parse_args(argv)
     threads = harness.configure_threads(args.threads)

@@ -619,7 +619,7 @@ def gil_test(seconds: float) -> dict:
 
 # ------------------------------------------------------------------------ main
 def main(argv: list[str] | None = None) -> dict:
-    ap = harness.common_parser(__doc__.splitlines()[0])
+    ap = harness.common_parser(__doc__.split("\n\n")[0])
     args = ap.parse_args(argv)
     threads = harness.configure_threads(args.threads)
     size_name = harness.size_of(args)

@@ -63,7 +63,7 @@ def gp_cost(env, tasks, cfg, batch):
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = harness.BenchmarkParser(description=__doc__.splitlines()[0])
+    ap = harness.BenchmarkParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--tasks", type=int, default=24, help="episodes, one per test task (1-24)")
     harness.add_out_options(ap)
     ap.add_argument("--gp-mode", default="fit", choices=("fit", "fixed"))

@@ -78,7 +78,7 @@ def timed_call(rec, qp, rows) -> tuple[float, float]:
 def main(argv: list[str] | None = None) -> None:
     from mpcpearl_jax.mpc import recorded
 
-    ap = harness.common_parser(__doc__.splitlines()[0])
+    ap = harness.common_parser(__doc__.split("\n\n")[0])
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 16])
     ap.add_argument("--calls", type=int, default=None, help="timed calls per batch size")
     ap.add_argument("--data", default=str(DATA))

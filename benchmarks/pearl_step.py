@@ -134,7 +134,7 @@ def interleaved(sides: dict[str, Any], steps: int, rounds: int) -> dict[str, Any
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = harness.common_parser(__doc__.splitlines()[0])
+    parser = harness.common_parser(__doc__.split("\n\n")[0])
     parser.add_argument(
         "--seeds",
         type=int,

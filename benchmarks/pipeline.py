@@ -38,7 +38,7 @@ def build(preset_name: str, iterations: int, seeds: int, pipeline: bool, tiny: b
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument("--preset", default=None, help="default: `default` (smoke at --tiny)")
     p.add_argument("--iterations", type=int, default=None, help="default: the preset's")
     p.add_argument("--seeds", type=int, default=1)

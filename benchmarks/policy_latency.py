@@ -148,7 +148,7 @@ def mpc_timings(policy, cfg: dict[str, Any]) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument("--run", default=None, help="run directory of a trained agent")
     args = p.parse_args(argv)
     threads = harness.configure_threads(args.threads)

@@ -134,7 +134,7 @@ def check_out(out: str | Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=90.0, help="training budget (s)")
     ap.add_argument("--count", type=int, default=1200, help="problems to keep")
     ap.add_argument("--eps", type=float, default=0.2)

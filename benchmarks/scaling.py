@@ -104,7 +104,7 @@ def child(size: str, devices: int, out: Path) -> None:
 
 @stops_with("interrupted; the scaling record is not written")
 def main(argv: list[str] | None = None) -> None:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument("--devices", type=int, nargs="+", default=[1, 2, 4])
     p.add_argument("--real", action="store_true", help="use the machine's own devices")
     p.add_argument("--child", nargs=2, metavar=("DEVICES", "RESULT"), help=argparse_hidden())

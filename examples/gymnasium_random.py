@@ -54,7 +54,7 @@ def run_vector(env_id: str, num_envs: int, steps: int, seed: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", choices=sorted(IDS), default="restaurant")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--num-envs", type=int, default=8, help="slots of the vector env")

@@ -391,7 +391,7 @@ def _dies_with_parent(cmd: list[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("campaign", type=Path)
     p.add_argument("--only", nargs="*", default=None, help="these run names only")
     p.add_argument("--dry-run", action="store_true", help="print what would run, run nothing")

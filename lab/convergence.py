@@ -468,7 +468,7 @@ def _selected(args) -> list[str]:
 @stops_with("stopped: the parts already measured are saved (one file each)")
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python -m lab.convergence", description=__doc__.split("\n")[0]
+        prog="python -m lab.convergence", description=__doc__.split("\n\n")[0]
     )
     ap.add_argument("part", choices=("problems", "scenarios", "figure"))
     ap.add_argument("--count", type=int, default=48, help="recorded problems, evenly spread")

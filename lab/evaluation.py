@@ -118,7 +118,7 @@ def _summary(ev: Any) -> str:
 
 @stops_with("interrupted before the evaluation finished (nothing written); run it again")
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog=f"python -m {MODULE}", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog=f"python -m {MODULE}", description=__doc__.split("\n\n")[0])
     p.add_argument("keywords", help="mpcpearl_jax.evaluate's keyword arguments (a JSON object)")
     args = p.parse_args(argv)
     import mpcpearl_jax

@@ -94,7 +94,7 @@ def evaluate(run: Path | None, perturb: str, out: Path, overwrite: bool) -> bool
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", type=Path, nargs="*", help="run directories")
     p.add_argument("--all", action="store_true", help="every committed restaurant policy")
     p.add_argument("--gp-mpc", action="store_true", help="the GP-MPC baseline too")

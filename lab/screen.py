@@ -675,7 +675,7 @@ def render_screen_learner(rec: Records) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m lab.screen",
-        description=__doc__.splitlines()[0],
+        description=__doc__.split("\n\n")[0],
     )
     p.add_argument("screen", type=Path)
     p.add_argument(

@@ -4,6 +4,7 @@ written as escapes, never a UnicodeEncodeError."""
 
 from __future__ import annotations
 
+import ast
 import json
 import os
 import subprocess
@@ -22,6 +23,17 @@ def _commands() -> list[str]:
             if '__name__ == "__main__"' in path.read_text():
                 mods.append(".".join((*Path(folder).parts, path.stem)))
     return mods
+
+
+def _described_by_docstring(module: str) -> str | None:
+    """The first paragraph of a command's docstring, whitespace-normalised and as the ASCII
+    locale escapes it, when the command's parser takes its description from the docstring."""
+    path = ROOT.joinpath(*module.split(".")).with_suffix(".py")
+    source = path.read_text()
+    if "description=__doc__" not in source and "common_parser(__doc__" not in source:
+        return None
+    lead = ast.get_docstring(ast.parse(source), clean=True).split("\n\n")[0]
+    return " ".join(lead.encode("ascii", "backslashreplace").decode().split())
 
 
 # One process for every command: before each, the project's modules are dropped (so the command
@@ -69,11 +81,17 @@ def test_every_commands_help_prints_under_an_ascii_locale():
     assert {"experiments.restaurant", "lab.diagnostics.dagger", "benchmarks.memory"} <= set(mods)
     argvs = [[m, "--help"] for m in mods]
     argvs += [[m, "--help-config"] for m in ("experiments.restaurant", "experiments.sidewalk")]
-    bad = {}
+    bad, cut = {}, {}
     for argv, (code, out, err) in _run(argvs).items():
         if code not in (0, None) or "Error" in err or not out.strip():
             bad[argv] = (code, err[-300:])
+        lead = _described_by_docstring(argv.split()[0])
+        if argv.endswith("--help") and lead and lead not in " ".join(out.split()):
+            cut[argv] = lead[-60:]
     assert not bad, bad
+    # a command whose help is its docstring's lead prints the whole first paragraph, not its
+    # first line cut mid-sentence
+    assert not cut, cut
     helped = _run([["experiments.restaurant", "--help"]])["experiments.restaurant --help"]
     assert "\\xa7" in helped[1]  # the "§" as an escape, the rest of the help as written
 

@@ -69,7 +69,7 @@ def intervened_env(config, clock_lag: int = 0, blind: bool = False):
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument(
         "--runs", type=Path, nargs="*", default=DEFAULT_RUNS, help="run directories (load_policy)"
     )

@@ -318,7 +318,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             return report(Path(args_in[1]))
         except ValueError as e:
             harness.fail(str(e))
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument("--run", type=Path, default=DEFAULT_RUN, help="run directory (load_policy)")
     p.add_argument("--relative", action="store_true", help="add env.observe_relative")
     p.add_argument("--sorted", action="store_true", help="add env.observe_sorted")

@@ -131,7 +131,7 @@ def _split(errors: dict, which: str) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument("--run", type=Path, default=DEFAULT_RUN, help="run directory (load_policy)")
     p.add_argument("--select-seed", type=int, default=0, help="task seed of the val MPC episodes")
     args = p.parse_args(argv)

@@ -843,7 +843,7 @@ def print_summary(report: dict[str, Any]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m lab.diagnostics.plateau", description=__doc__.splitlines()[0]
+        prog="python -m lab.diagnostics.plateau", description=__doc__.split("\n\n")[0]
     )
     p.add_argument("--root", type=Path, default=Path("."), help="the repository root")
     p.add_argument("--out", type=Path, default=OUT, help=f"output folder (default {OUT})")

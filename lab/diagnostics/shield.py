@@ -135,7 +135,7 @@ def val_config(size: str, threads: Any, seeds: list[int], tasks: int | None, run
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = harness.common_parser(__doc__.splitlines()[0])
+    p = harness.common_parser(__doc__.split("\n\n")[0])
     p.add_argument(
         "--runs", type=Path, nargs="*", default=DEFAULT_RUNS, help="run directories (load_policy)"
     )
