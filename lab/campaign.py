@@ -133,8 +133,17 @@ class CampaignRun:
         return TRAINERS[self.trainer][1]
 
     @property
+    def time_budget(self) -> bool:
+        """The main command's run on a time budget: a learning run, or a `restaurant` entry given
+        --minutes (it records the iterations it managed as `train.iterations`)."""
+        return self.trainer == "learning" or (
+            self.trainer == "restaurant" and any(a.split("=")[0] == "--minutes" for a in self.argv)
+        )
+
+    @property
     def wall_clock(self) -> bool:
-        return TRAINERS[self.trainer][2]
+        """Its training has a wall-clock budget (--minutes, and GrBAL): it waits for the load."""
+        return TRAINERS[self.trainer][2] or self.time_budget
 
 
 def load_campaign(path: Path) -> list[CampaignRun]:
@@ -282,15 +291,11 @@ def check_unchanged(run: CampaignRun, folder: Path) -> None:
         then = Config.from_dict(json.loads(recorded.read_text()))
     except (ConfigError, TypeError, ValueError) as e:
         raise ValueError(f"{run.name}: cannot compare its argv with {recorded}: {e}") from e
-    # a run on a time budget (a learning run, or any restaurant run given --minutes) records the
-    # iterations it did; where a run computed never matters (`config.RESULT_NEUTRAL`: devices,
-    # the MPC's worker processes)
+    # a run on a time budget records the iterations it did; where a run computed never matters
+    # (`config.RESULT_NEUTRAL`: devices, the MPC's worker processes)
     from mpcpearl_jax.config import RESULT_NEUTRAL
 
-    timed = run.trainer == "learning" or (
-        run.trainer == "restaurant" and any(a.split("=")[0] == "--minutes" for a in run.argv)
-    )
-    ignore = (*RESULT_NEUTRAL, "train.iterations") if timed else RESULT_NEUTRAL
+    ignore = (*RESULT_NEUTRAL, "train.iterations") if run.time_budget else RESULT_NEUTRAL
     diff = config_differences(then, now, ignore)
     if diff:
         raise ValueError(

@@ -220,8 +220,12 @@ def test_settle_waits_for_the_load_average_and_gives_up_at_its_limit(monkeypatch
 
 
 def test_only_wall_clock_trainings_wait_for_the_load(tmp_path, monkeypatch, capsys):
+    """A learning run and a `restaurant` run given --minutes (how seed screens set a time budget)
+    wait for the load before they start; a `restaurant` run on an iteration count does not."""
     monkeypatch.chdir(tmp_path)
-    runs = [_run("a"), {**_run("m", results="res/m"), "trainer": "restaurant"}]
+    timed = {**_run("t", results="res/t"), "trainer": "restaurant"}  # _run's argv: --minutes
+    counted = {**timed, "name": "m", "results": "res/m", "argv": ["--preset", "smoke"]}
+    runs = [_run("a"), counted, timed]
     path = _write(tmp_path, runs)
     settled, calls = [], []
     monkeypatch.setattr(campaign, "settle", lambda: settled.append(1) or 10.0)
@@ -229,8 +233,11 @@ def test_only_wall_clock_trainings_wait_for_the_load(tmp_path, monkeypatch, caps
     monkeypatch.setattr(campaign, "run_child", lambda cmd: calls.append(cmd[2]) or 0)
     monkeypatch.setattr(campaign, "copy_results", lambda run: None)
     assert campaign.main([str(path)]) == 0
-    assert calls == ["experiments.restaurant", "experiments.restaurant"] and settled == [1]
+    assert calls == ["experiments.restaurant"] * 3 and settled == [1, 1]
     assert "waited 10 s for the load average (now 1.00)" in capsys.readouterr().out
+    loaded = campaign.load_campaign(path)
+    assert [r.wall_clock for r in loaded] == [True, False, True]
+    assert [r.time_budget for r in loaded] == [True, False, True]
 
 
 def test_unknown_top_level_keys_and_results_under_a_file(tmp_path):
