@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     out["summary"] = _summary(out["per_task"])
     # the record before the lines: a failing or closed standard output loses none of the work
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1, default=float))
+    args.out.write_text(json.dumps(out, separators=(",", ":"), default=float))
     for rec in out["per_task"]:
         print(
             f"task {rec['task']}: {rec['fallbacks']} fallbacks, first collision at step "
