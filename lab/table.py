@@ -34,6 +34,7 @@ from pathlib import Path
 
 from lab.screen import render_screen, render_screen_learner
 from lab.tables.render import (
+    render_campaign_seeds,
     render_main_seed_summary,
     render_main_seeds,
     render_restaurant,
@@ -57,6 +58,7 @@ BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block
     ("README.md", "speed", render_speed),
     ("results/README.md", "paper", render_paper),
     ("results/README.md", "seeds", render_seeds),
+    ("results/README.md", "campaign-seeds", render_campaign_seeds),
     ("results/README.md", "robustness-summary", render_robustness_summary),
     ("results/README.md", "sidewalk-seeds", render_sidewalk_seeds),
     ("results/README.md", "speed", render_speed),
@@ -75,6 +77,11 @@ BLOCKS: tuple[tuple[str, str, Callable[[Records], str]], ...] = (  # file, block
         LOG,
         "screen-methods-recipe",
         partial(render_screen, screen_file="lab/screens/methods-recipe.json"),
+    ),
+    (
+        "docs/extensions.md",
+        "screen-pipeline-recipe",
+        partial(render_screen, screen_file="lab/screens/pipeline-recipe.json"),
     ),
     ("results/restaurant/screen/README.md", "screen-learner", render_screen_learner),
 )

@@ -316,8 +316,22 @@ def test_sidewalk_seed_table_reads_the_windows_and_lists_a_method_without_seeds(
 
 def test_grbal_is_in_the_seed_table_but_not_in_the_curve_table():
     assert "GrBAL" in dict(catalogue.SEED_GROUPS)
+    assert "GrBAL" in dict(catalogue.CAMPAIGN_SEED_GROUPS)
     assert "GrBAL" not in dict(catalogue.CURVE_SEED_GROUPS)
     assert ("MPC-SAC 0.2", "GrBAL") in catalogue.PAPER_ORDER
+
+
+def test_the_seed_tables_name_their_own_runs_and_sets():
+    """The five-seed table reads the current version's recipe seeds (no OOD scenarios: MPC-PEARL
+    0.2's seeds 0-2 kept no policy); the earlier campaign's table keeps its six sets."""
+    from lab.tables import render
+
+    rec = Records(ROOT / "results")
+    now, earlier = render.render_seeds(rec), render.render_campaign_seeds(rec)
+    assert "methods-recipe-screen/pearl-s4" in now and "seeds/pearl-s4" not in now
+    assert "paper's 25 OOD scenarios" not in now and "paper's 25 OOD scenarios" in earlier
+    assert "seeds/mpc-pearl-s4" in earlier and "student-recipe-screen" not in earlier
+    assert not rec.missing
 
 
 def test_a_difference_that_rounds_to_zero_has_no_minus_sign():
@@ -400,7 +414,9 @@ def test_summary_tables_set_the_paper_beside_the_recipe_with_budgets():
     paper = rows["MPC-PEARL 0.2, the paper"]
     assert "| 0.92 | 0.99 |" in paper and "about 27 h on the authors' GPU machine" in paper
     recipe = rows["MPC-PEARL 0.2, this project's recipe"]
-    assert "(worst " in recipe and "24 min each on a 2-core CPU" in recipe and "5 seeds" in recipe
+    assert "(worst " in recipe and "min each on a 2-core CPU" in recipe and "5 seeds" in recipe
+    # the recipe's seeds on the current version, their cores read from results.json (no curve)
+    assert "student-recipe-screen/recipe-s4" in text and "cores not recorded" not in recipe
     assert "GP-MPC, this project, the SQP to convergence (the `paper` preset's expert)" in rows
     expert = (
         "GP-MPC, this project, the learned presets' expert (2 QPs with the unsafe-plan recovery)"

@@ -294,22 +294,26 @@ CURVE_SEED_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ),
 )
 # `lab/campaigns/grbal-seeds.json`: `--preset cpu`, 24 minutes alone per seed; GrBAL's
-# trainer writes no curve.json, so it is in the seed table only
+# trainer writes no curve.json, so it is in the seed tables only
+GRBAL_SEEDS = ("GrBAL", tuple(f"restaurant/seeds/grbal-s{s}" for s in range(5)))
+# the five-seed campaign above with GrBAL: the `recipe` configuration on an earlier version of
+# the code, trained on a faster 2-core machine
+CAMPAIGN_SEED_GROUPS = (*CURVE_SEED_GROUPS, GRBAL_SEEDS)
+# the recipe's five MPC-PEARL 0.2 seeds on the current version (`lab/screens/student-recipe.json`,
+# arm `recipe`: `--preset recipe --minutes 24 --seed S`)
+RECIPE_MPC_PEARL = tuple(f"restaurant/student-recipe-screen/recipe-s{s}" for s in range(5))
+# the paper's three learned methods at the recipe on the current version, every seed trained
+# alone for 24 minutes on one kind of 2-core machine (`lab/screens/methods-recipe.json`: PEARL
+# with `--eps 0`, MPC-SAC with `--algo sac`), and GrBAL: the README's summary, the paper's table
+# side by side and the five-seed table
 SEED_GROUPS = (
-    *CURVE_SEED_GROUPS,
-    (
-        "GrBAL",
-        (
-            "restaurant/seeds/grbal-s0",
-            "restaurant/seeds/grbal-s1",
-            "restaurant/seeds/grbal-s2",
-            "restaurant/seeds/grbal-s3",
-            "restaurant/seeds/grbal-s4",
-        ),
-    ),
+    ("MPC-PEARL 0.2", RECIPE_MPC_PEARL),
+    ("PEARL", tuple(f"restaurant/methods-recipe-screen/pearl-s{s}" for s in range(5))),
+    ("MPC-SAC 0.2", tuple(f"restaurant/methods-recipe-screen/mpc-sac-s{s}" for s in range(5))),
+    GRBAL_SEEDS,
 )
-# evaluation sets of the seed table: kind, label
-SEED_SETS = (
+# evaluation sets of the seed tables: kind, label
+CAMPAIGN_SEED_SETS = (
     ("test", "24 test tasks"),
     ("val8", "192 validation tasks"),
     ("online", "24 test tasks, online"),
@@ -317,6 +321,9 @@ SEED_SETS = (
     ("scen_test", "paper's 25 test scenarios"),
     ("scen_ood", "paper's 25 OOD scenarios"),
 )
+# the current version's seeds were scored on the paper's test scenarios only (the policies of
+# MPC-PEARL 0.2's seeds 0-2 were not kept, so their OOD scenarios cannot be added)
+SEED_SETS = tuple(s for s in CAMPAIGN_SEED_SETS if s[0] != "scen_ood")
 # the paper's ordering claim, as pairs (A, B): A > B in the paper's table
 PAPER_ORDER = (
     ("MPC-PEARL 0.2", "PEARL"),

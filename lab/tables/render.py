@@ -6,6 +6,8 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from lab.tables.catalogue import (
+    CAMPAIGN_SEED_GROUPS,
+    CAMPAIGN_SEED_SETS,
     CURVE_MINUTES,
     CURVE_SEED_GROUPS,
     CURVE_VALUES,
@@ -291,6 +293,12 @@ def render_seeds(
         f"verdict below {MIN_VERDICT_SEEDS} seeds each (the difference is still shown).",
     ]
     return "\n".join(lines)
+
+
+def render_campaign_seeds(rec: Records) -> str:
+    """The five-seed table of the earlier campaign (the same recipe on an earlier version, a
+    faster machine), on its six evaluation sets."""
+    return render_seeds(rec, CAMPAIGN_SEED_GROUPS, CAMPAIGN_SEED_SETS)
 
 
 # ---------------------------------------------------------------- the seeds' learning curves

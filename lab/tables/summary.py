@@ -8,13 +8,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from lab.tables.catalogue import (
-    CAMPAIGN_MPC_PEARL,
     GP_MPC,
     GP_MPC_CONVERGED,
     GP_MPC_EXPERT,
     MAIN_PASS,
     MAIN_SEED_SUMMARY,
     PERTURBATIONS,
+    RECIPE_MPC_PEARL,
     ROBUSTNESS,
     ROBUSTNESS_CHOICE,
     SEED_GROUPS,
@@ -44,10 +44,10 @@ def run_budget(rec: Records, e: Entry) -> str:
     if MISSING in (minutes, steps):
         return MISSING
     cores = set()
-    for run in e.runs:
+    for run in e.runs:  # the machine of the learning harness's curve.json, else of results.json
         has_curve = (rec.results / run / "curve.json").is_file()
-        curve = rec.read(f"{run}/curve.json") if has_curve else {}
-        cores.add((curve or {}).get("machine", {}).get("cores_available"))
+        record = rec.read(f"{run}/curve.json" if has_curve else f"{run}/results.json")
+        cores.add((record or {}).get("machine", {}).get("cores_available"))
     known = len(cores) == 1 and None not in cores
     where = f"a {cores.pop()}-core CPU" if known else "a CPU (cores not recorded)"
     seeds = f", {len(e.runs)} seeds" if len(e.runs) > 1 else ", 1 seed"
@@ -66,7 +66,7 @@ def _paper_budget(method: str) -> str:
 # ---------------------------------------------------------------- README: against the paper
 
 SUMMARY_METRICS = ("SR", "CFR", "TT", "SPL")
-RECIPE = Entry("MPC-PEARL 0.2, this project's recipe", CAMPAIGN_MPC_PEARL)
+RECIPE = Entry("MPC-PEARL 0.2, this project's recipe", RECIPE_MPC_PEARL)
 
 
 def render_summary(rec: Records) -> str:
