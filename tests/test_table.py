@@ -329,8 +329,8 @@ def test_the_seed_tables_name_their_own_runs_and_sets():
     rec = Records(ROOT / "results")
     now, earlier = render.render_seeds(rec), render.render_campaign_seeds(rec)
     assert "methods-recipe-screen/pearl-s4" in now and "seeds/pearl-s4" not in now
-    for table in (now, earlier):
-        assert all(label in table for _, label in catalogue.CAMPAIGN_SEED_SETS)
+    for rendered in (now, earlier):
+        assert all(label in rendered for _, label in catalogue.SEED_SETS)
     assert "seeds/mpc-pearl-s4" in earlier and "student-recipe-screen" not in earlier
     assert not rec.missing
 

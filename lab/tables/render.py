@@ -7,7 +7,6 @@ from collections.abc import Callable, Sequence
 
 from lab.tables.catalogue import (
     CAMPAIGN_SEED_GROUPS,
-    CAMPAIGN_SEED_SETS,
     CURVE_MINUTES,
     CURVE_SEED_GROUPS,
     CURVE_VALUES,
@@ -298,7 +297,7 @@ def render_seeds(
 def render_campaign_seeds(rec: Records) -> str:
     """The five-seed table of the earlier campaign (the same recipe on an earlier version, a
     faster machine), on its six evaluation sets."""
-    return render_seeds(rec, CAMPAIGN_SEED_GROUPS, CAMPAIGN_SEED_SETS)
+    return render_seeds(rec, CAMPAIGN_SEED_GROUPS)
 
 
 # ---------------------------------------------------------------- the seeds' learning curves
